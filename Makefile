@@ -1,0 +1,42 @@
+# Two commands for a fresh clone (see README.md):
+#   make demo   - run the main job
+#   make test   - run the test suite
+# Both bootstrap a local virtual environment in .venv by themselves.
+PYTHON ?= python3.11
+VENV ?= .venv
+# torch is installed first and pinned, so nothing else can pull a multi-GB CUDA build by accident.
+# On a GPU machine pass the CUDA build instead, e.g.
+#   make test TORCH_SPEC="torch==2.13.0" TORCH_INDEX="--index-url <PyTorch CUDA wheel index>"
+TORCH_SPEC ?= torch==2.13.0
+TORCH_INDEX ?=
+PYTEST_ARGS ?=
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.rtsplat-installed
+
+.PHONY: demo test test-fast lint bench clean-venv
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; run 'make PYTHON=python3' with Python >= 3.10"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet $(TORCH_SPEC) $(TORCH_INDEX)
+	$(BIN)/pip install --quiet -e ".[pipeline,dev]"
+	@touch $@
+
+demo: $(STAMP)
+	$(BIN)/python -m rtsplat.demo --out demo_out
+
+test: $(STAMP)
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -m "not slow" $(PYTEST_ARGS)
+
+lint: $(STAMP)
+	$(BIN)/ruff check rtsplat tests
+
+bench: $(STAMP)
+	$(BIN)/python -m rtsplat.bench.raster
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,94 @@
+"""The ``rtsplat`` command: one subcommand per pipeline stage.
+
+Each stage lives in its own module that exposes two functions:
+
+* ``add_arguments(parser: argparse.ArgumentParser) -> None``
+* ``run(args: argparse.Namespace) -> int``  (the exit status)
+
+The CLI only parses arguments and calls ``run``; the work is done by the stage's function API.
+Stage modules are imported lazily, so ``rtsplat --help`` stays fast and a stage's heavy
+dependencies (pycolmap, mitsuba, onnxruntime, ...) are loaded only when that stage runs.
+A stage that is not implemented yet says so and exits with status 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from dataclasses import dataclass
+
+NOT_IMPLEMENTED_EXIT = 3
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    module: str  # module exposing add_arguments() and run()
+    help: str
+
+
+STAGES: tuple[Stage, ...] = (
+    Stage("sfm", "rtsplat.sfm", "structure from motion with pycolmap (skipped when sparse/0 exists)"),
+    Stage("masks", "rtsplat.masks", "ingest or segment (ONNX) the transparent-surface masks"),
+    Stage("prepare", "rtsplat.prepare", "downsample, region of interest, train/test split"),
+    Stage("train", "rtsplat.train.cli", "train an RT-Splatting model on a prepared scene"),
+    Stage("render", "rtsplat.render", "render test views, decomposed layers and measure FPS"),
+    Stage("metrics", "rtsplat.metrics", "PSNR/SSIM/LPIPS on the entire image and transparent region"),
+    Stage("report", "rtsplat.report", "benchmark report (HTML + Markdown)"),
+    Stage("synth", "rtsplat.synth.cli", "render a ground-truth benchmark scene with Mitsuba 3"),
+    Stage("demo", "rtsplat.demo", "rasterizer demo: render a small random surfel scene to PNG"),
+)
+
+
+def _load(stage: Stage):
+    """Import a stage module; None when that module does not exist yet."""
+    try:
+        return importlib.import_module(stage.module)
+    except ModuleNotFoundError as exc:
+        # Only "this stage's module is missing" means not implemented; a missing dependency
+        # inside an existing module is a real error and must surface.
+        missing = exc.name or ""
+        if stage.module == missing or stage.module.startswith(missing + "."):
+            return None
+        raise
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rtsplat",
+        description="RT-Splatting reconstruction pipeline. Every stage is also a Snakemake rule; "
+        "run 'rtsplat <stage> --help' for a stage's options.",
+    )
+    from rtsplat import __version__
+
+    parser.add_argument("--version", action="version", version=f"rtsplat {__version__}")
+    sub = parser.add_subparsers(dest="stage", metavar="<stage>")
+    for stage in STAGES:
+        sub.add_parser(stage.name, help=stage.help, description=stage.help, add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    if not argv or argv[0] not in {s.name for s in STAGES}:
+        args = parser.parse_args(argv)  # handles --help/--version and unknown stages
+        parser.print_help()
+        return 2
+    stage = next(s for s in STAGES if s.name == argv[0])
+    module = _load(stage)
+    if module is None:
+        print(
+            f"rtsplat {stage.name}: this stage is not implemented yet ({stage.help}).",
+            file=sys.stderr,
+        )
+        return NOT_IMPLEMENTED_EXIT
+    stage_parser = argparse.ArgumentParser(prog=f"rtsplat {stage.name}", description=stage.help)
+    module.add_arguments(stage_parser)
+    args = stage_parser.parse_args(argv[1:])
+    return int(module.run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""Data types of the rasterizer API: surfels in, G-buffers and volume buffers out."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Surfels:
+    """2D Gaussian surfels, already *activated* (no sigmoid/exp is applied by the rasterizer).
+
+    means [N,3] world centres; quats [N,4] rotations (w, x, y, z; normalised internally);
+    scales [N,2] extents along the two tangent axes (>= 0); occupancy [N] in [0,1] (probability a
+    ray hits the surfel); opacity [N] in [0,1] (probability a hit absorbs); features [N,F] per-surfel
+    surface attributes blended with the surface weights (any F, may be 0); colors [N,3] volume
+    radiance blended with the volume weights.
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    occupancy: Tensor
+    opacity: Tensor
+    features: Tensor
+    colors: Tensor
+
+    def __post_init__(self) -> None:
+        n = self.means.shape[0]
+        expect = {
+            "means": (n, 3), "quats": (n, 4), "scales": (n, 2), "occupancy": (n,), "opacity": (n,),
+            "colors": (n, 3),
+        }
+        for name, shape in expect.items():
+            got = tuple(getattr(self, name).shape)
+            if got != shape:
+                raise ValueError(f"Surfels.{name} must have shape {shape}, got {got}")
+        if self.features.dim() != 2 or self.features.shape[0] != n:
+            raise ValueError(f"Surfels.features must have shape (N={n}, F), got {tuple(self.features.shape)}")
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.means.dtype
+
+
+@dataclass(frozen=True)
+class RasterSettings:
+    """Constants of the 2DGS rasterizer (METHOD.md section 2). Defaults follow 2DGS."""
+
+    tile_size: int = 16
+    near: float = 0.2  # per-pixel depth test, and centre culling
+    far: float = 100.0  # only used to map depth to [0,1] for the distortion term
+    alpha_max: float = 0.99  # per-surfel alpha clamp
+    alpha_min: float = 1.0 / 255.0  # contributions below are skipped
+    transmittance_min: float = 1e-4  # a weight set stops when its transmittance would drop below
+    extent_sigma: float = 3.0  # screen-space extent used for tile binning, in kernel sigmas
+    lowpass_inv_var: float = 2.0  # rho_2d = lowpass_inv_var * |centre - pixel|^2 (filter sqrt(2)/2 px)
+    max_pairs_per_chunk: int = 4_000_000  # reference backend: pixel x surfel pairs evaluated at once
+
+    @property
+    def lowpass_radius(self) -> float:
+        """Screen radius (px) that the low-pass filter alone covers at ``extent_sigma``."""
+        return self.extent_sigma / math.sqrt(self.lowpass_inv_var)
+
+
+@dataclass
+class RasterOutput:
+    """What one rasterization returns. Images are [H, W, C], channel last.
+
+    Surface set (weights p_i = occupancy_i G_i prod_{j<i}(1 - occupancy_j G_j)):
+      features [H,W,F] sum p f; normal [H,W,3] sum p n (world space, facing the camera, not
+      renormalised); depth [H,W,1] expected depth sum p z / sum p; depth_median [H,W,1] depth of
+      the surfel where the surface transmittance crosses 0.5; alpha [H,W,1] = sum p;
+      distortion [H,W,1] 2DGS depth distortion sum_{i>j} p_i p_j (m_i - m_j)^2 (m = NDC depth).
+    Volume set (weights w_i = occupancy_i opacity_i G_i prod_{j<i}(1 - occupancy_j opacity_j G_j)):
+      color [H,W,3] sum w c; volume_alpha [H,W,1] = sum w; volume_depth [H,W,1] sum w z / sum w.
+    Per surfel, for density control:
+      means2d [N,2] projected centres (px); radii [N,2] integer screen half-extent (0 = culled);
+      visible [N] bool, contributed to at least one pixel with either weight set;
+      screen_probe [N,2] zero tensor added to the projected centres: after backward its ``.grad``
+      is dL/d(centre in px); :meth:`densification_grad` turns it into the 2DGS signal.
+    """
+
+    features: Tensor
+    normal: Tensor
+    depth: Tensor
+    depth_median: Tensor
+    alpha: Tensor
+    distortion: Tensor
+    color: Tensor
+    volume_alpha: Tensor
+    volume_depth: Tensor
+    means2d: Tensor
+    radii: Tensor
+    visible: Tensor
+    screen_probe: Tensor | None = None
+    width: int = 0
+    height: int = 0
+    extras: dict = field(default_factory=dict)
+
+    def densification_grad(self) -> Tensor | None:
+        """2DGS densification signal [N,2]: screen-space centre gradient in NDC units.
+
+        2DGS scales the pixel gradient of the projected centre by (W/2, H/2); its gradient
+        threshold (2e-4) is calibrated for that. None before backward or without a probe.
+        """
+        if self.screen_probe is None or self.screen_probe.grad is None:
+            return None
+        scale = self.screen_probe.new_tensor([self.width * 0.5, self.height * 0.5])
+        return self.screen_probe.grad * scale
