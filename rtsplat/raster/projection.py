@@ -8,7 +8,7 @@ coordinates (u, v) to the world point p + u s_u t_u + v s_v t_v. Composed with t
 
 (columns: image of the two tangent axes and of the centre, in homogeneous pixel coordinates).
 The rows of M are therefore "image x", "image y" and "camera depth" as linear functions of
-(u, v, 1); gsplat stores the transpose of this matrix.
+(u, v, 1). gsplat's ``ray_transforms`` are the same matrices.
 """
 
 from __future__ import annotations

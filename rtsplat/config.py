@@ -1,0 +1,457 @@
+"""The pipeline configuration: one dataclass tree that mirrors ``config.yaml``.
+
+``config.yaml`` layout::
+
+    data: data                 # dataset directory: <data>/<scene>/images/*
+    results: results           # where every stage writes
+    scenes: []                 # empty: every <data>/<scene> that has images/
+    methods: [rtsplat]         # trained / rendered / evaluated per scene
+    defaults:                  # a SceneConfig: sfm, masks, prepare, train, render, metrics
+      prepare: {downsample: 4}
+    overrides:                 # per-scene SceneConfig fragments merged over the defaults
+      sedan: {prepare: {downsample: 8}}
+
+The JSON schema that Snakemake's ``validate`` uses (``workflow/schemas/config.schema.json``) is
+generated from these dataclasses by :func:`json_schema` (``python -m rtsplat.config --write-schema``)
+and a test checks that the file is up to date, so the two cannot drift. :func:`validate_config`
+turns schema violations into messages that name the key and the fix.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import difflib
+import json
+import shlex
+import sys
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from rtsplat.errors import ConfigError
+
+SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "config.schema.json"
+
+
+def _f(default: Any = dataclasses.MISSING, *, help: str, factory: Any = None, **schema: Any):
+    """A dataclass field with a description and extra JSON-schema keywords (minimum, ...)."""
+    meta = {"description": help, "schema": schema}
+    if factory is not None:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass
+class SfmConfig:
+    """Structure from motion (pycolmap)."""
+
+    matcher: Literal["auto", "exhaustive", "sequential"] = _f(
+        "auto", help="feature matching: exhaustive for small sets, sequential for ordered captures; "
+        "auto picks exhaustive up to exhaustive_max_images images"
+    )
+    exhaustive_max_images: int = _f(150, help="auto matcher: exhaustive up to this many images", minimum=2)
+    sequential_overlap: int = _f(10, help="sequential matcher: neighbours matched per image", minimum=1)
+    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = _f(
+        "SIMPLE_RADIAL", help="COLMAP camera model; models with distortion are undistorted to PINHOLE"
+    )
+    single_camera: bool = _f(True, help="all images share one camera")
+    max_image_size: int = _f(1600, help="images are resized to this size for feature extraction", minimum=64)
+    max_num_features: int = _f(8192, help="SIFT features per image", minimum=64)
+    min_registered_fraction: float = _f(
+        0.5, help="fail when fewer than this fraction of images register", minimum=0.0, maximum=1.0
+    )
+    min_registered_images: int = _f(3, help="fail when fewer images register", minimum=2)
+    use_masks: bool = _f(False, help="suppress features on transparent surfaces using the masks")
+    num_threads: int = _f(-1, help="threads for pycolmap (-1: all cores)")
+    seed: int = _f(0, help="random seed of the mapper", minimum=0)
+
+
+@dataclass
+class OnnxSegmenterConfig:
+    """A local ONNX segmenter: SAM / SAM2 (encoder + prompted decoder) or a plain image-to-logits net."""
+
+    model: str | None = _f(None, help="ONNX file: the SAM/SAM2 mask decoder or a plain segmentation model")
+    encoder: str | None = _f(None, help="ONNX file of the SAM/SAM2 image encoder (not used by plain models)")
+    kind: Literal["auto", "sam", "sam2", "plain"] = _f(
+        "auto", help="auto detects the kind from the model's input names"
+    )
+    points: list[list[float]] = _f(
+        help="prompt points [[x, y], ...] as fractions of the image width/height", factory=list
+    )
+    point_labels: list[int] = _f(help="1 = on the glass, 0 = background; one per point", factory=list)
+    box: list[float] | None = _f(
+        None, help="prompt box [x0, y0, x1, y1] as fractions of the image size", minItems=4, maxItems=4
+    )
+    normalize: Literal["unit", "imagenet"] = _f(
+        "unit", help="plain models: input in [0, 1] (unit) or ImageNet mean/std normalised"
+    )
+    providers: list[str] = _f(
+        help="onnxruntime execution providers", factory=lambda: ["CPUExecutionProvider"]
+    )
+
+
+@dataclass
+class MasksConfig:
+    """Transparent-surface masks (white = see-through surface)."""
+
+    source: Literal["auto", "ingest", "onnx", "none"] = _f(
+        "auto", help="auto: ingest <scene>/<dir> when present, else segment when onnx.model is set, else none"
+    )
+    dir: str = _f("transparent_masks", help="mask folder inside the scene, one <image stem>.png per image")
+    threshold: float = _f(0.5, help="binarisation threshold (of the mask value or segmenter probability)",
+                          minimum=0.0, maximum=1.0)
+    allow_missing: bool = _f(False, help="ingest: an image without a mask gets an empty mask instead of an error")
+    onnx: OnnxSegmenterConfig = _f(help="the ONNX segmenter", factory=OnnxSegmenterConfig)
+
+
+@dataclass
+class RoiConfig:
+    """Spherical region of interest."""
+
+    center: list[float] = _f(help="sphere centre [x, y, z] in SfM coordinates", factory=lambda: [0.0, 0.0, 0.0],
+                             minItems=3, maxItems=3)
+    radius: float = _f(1.0, help="sphere radius in SfM units", exclusiveMinimum=0.0)
+
+
+@dataclass
+class PrepareConfig:
+    """Downsampling, region of interest and train/test split."""
+
+    downsample: int = _f(1, help="integer image downsample factor (area filter)", minimum=1)
+    roi: RoiConfig | None = _f(None, help="region of interest; estimated from the SfM points when not given")
+    roi_percentile: float = _f(95.0, help="estimated ROI: radius covers this percentile of the SfM points",
+                               exclusiveMinimum=0.0, maximum=100.0)
+    test_every: int = _f(8, help="every n-th image of the name-sorted list is a test view (llffhold)", minimum=2)
+    bit_depth: Literal[8, 16] = _f(8, help="bit depth of the prepared PNG images")
+    use_prescaled: bool = _f(True, help="use <scene>/images_<factor> when present instead of resizing")
+
+
+@dataclass
+class TrainConfig:
+    """Training (pass-through to ``rtsplat train``)."""
+
+    iterations: int = _f(30000, help="optimisation iterations", minimum=1)
+    effects: str = _f("auto", help="modelled effects: auto | full | an ablation name (see rtsplat train --help)")
+    backend: str = _f("auto", help="rasterizer backend: auto | reference | a fast backend")
+    options: dict[str, Any] = _f(help="further trainer options, passed through unchanged", factory=dict)
+
+
+@dataclass
+class RenderConfig:
+    """Rendering (pass-through to ``rtsplat render``)."""
+
+    video: Literal["gif", "mp4", "none"] = _f("gif", help="fly-through format")
+    fps_frames: int = _f(100, help="frames rendered to measure the rendering FPS", minimum=1)
+    options: dict[str, Any] = _f(help="further render options, passed through unchanged", factory=dict)
+
+
+@dataclass
+class MetricsConfig:
+    """Evaluation (pass-through to ``rtsplat metrics``)."""
+
+    lpips: bool = _f(True, help="compute LPIPS-VGG")
+    options: dict[str, Any] = _f(help="further metric options, passed through unchanged", factory=dict)
+
+
+@dataclass
+class SceneConfig:
+    """Every stage's settings for one scene (defaults, then per-scene overrides)."""
+
+    sfm: SfmConfig = _f(help="structure from motion", factory=SfmConfig)
+    masks: MasksConfig = _f(help="transparent masks", factory=MasksConfig)
+    prepare: PrepareConfig = _f(help="prepared scene", factory=PrepareConfig)
+    train: TrainConfig = _f(help="training", factory=TrainConfig)
+    render: RenderConfig = _f(help="rendering", factory=RenderConfig)
+    metrics: MetricsConfig = _f(help="metrics", factory=MetricsConfig)
+
+
+@dataclass
+class PipelineConfig:
+    """The whole ``config.yaml``."""
+
+    data: str = _f("data", help="dataset directory: <data>/<scene>/images/*")
+    results: str = _f("results", help="output directory")
+    scenes: list[str] = _f(help="scenes to run; empty: every <data>/<scene> with an images/ folder",
+                           factory=list)
+    methods: list[str] = _f(help="methods trained, rendered and evaluated per scene",
+                            factory=lambda: ["rtsplat"], minItems=1)
+    defaults: SceneConfig = _f(help="settings for every scene", factory=SceneConfig)
+    overrides: dict[str, SceneConfig] = _f(help="per-scene settings merged over the defaults", factory=dict)
+
+
+STAGE_SECTIONS = {f.name: f.type for f in dataclasses.fields(SceneConfig)}
+
+
+# ----------------------------------------------------------------------------------------------
+# JSON schema generated from the dataclasses
+
+
+def _type_schema(tp: Any) -> dict[str, Any]:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        return _dataclass_schema(tp)
+    if origin in (typing.Union, types.UnionType):
+        non_null = [a for a in args if a is not type(None)]
+        options = [_type_schema(a) for a in non_null]
+        if len(non_null) < len(args):
+            options.append({"type": "null"})
+        return options[0] if len(options) == 1 else {"anyOf": options}
+    if origin is Literal:
+        kinds = {bool: "boolean", int: "integer", str: "string", float: "number"}
+        return {"type": kinds[type(args[0])], "enum": list(args)}
+    if origin is list:
+        return {"type": "array", "items": _type_schema(args[0])}
+    if origin is dict:
+        value = args[1]
+        return {"type": "object", "additionalProperties": True if value is Any else _type_schema(value)}
+    if tp is bool:
+        return {"type": "boolean"}
+    if tp is int:
+        return {"type": "integer"}
+    if tp is float:
+        return {"type": "number"}
+    if tp is str:
+        return {"type": "string"}
+    if tp is Any:
+        return {}
+    raise TypeError(f"no JSON schema for type {tp!r}")
+
+
+def _dataclass_schema(cls: type) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    props = {}
+    for f in dataclasses.fields(cls):
+        schema = _type_schema(hints[f.name])
+        extra = dict(f.metadata.get("schema", {}))
+        if extra and "anyOf" in schema:  # constraints apply to the non-null alternative
+            schema["anyOf"][0].update(extra)
+        else:
+            schema.update(extra)
+        schema["description"] = f.metadata.get("description", "")
+        if f.default is not dataclasses.MISSING and not dataclasses.is_dataclass(f.default):
+            schema["default"] = f.default
+        props[f.name] = schema
+    return {
+        "type": "object",
+        "description": (cls.__doc__ or "").strip().splitlines()[0],
+        "properties": props,
+        "additionalProperties": False,
+    }
+
+
+def json_schema() -> dict[str, Any]:
+    schema = {"$schema": "http://json-schema.org/draft-07/schema#", "title": "rtsplat config"}
+    schema.update(_dataclass_schema(PipelineConfig))
+    return schema
+
+
+def json_schema_text() -> str:
+    return json.dumps(json_schema(), indent=2) + "\n"
+
+
+# ----------------------------------------------------------------------------------------------
+# validation with readable messages
+
+
+def _key(path: typing.Iterable[Any]) -> str:
+    return ".".join(str(p) for p in path) or "<top level>"
+
+
+def _message(error: Any, source: str) -> str:
+    where = _key(error.absolute_path)
+    if error.validator == "anyOf" and error.instance is not None and error.context:
+        # "X or null": report what is wrong inside X rather than "not X or null"
+        inner = [e for e in error.context if e.relative_schema_path[0] == 0]
+        if inner:
+            return "\n".join(_message(e, source) for e in inner)
+    if error.validator == "additionalProperties":
+        allowed = sorted(error.schema.get("properties", {}))
+        unknown = sorted(set(error.instance) - set(allowed))
+        lines = []
+        for key in unknown:
+            full = f"{where}.{key}" if error.absolute_path else key
+            close = difflib.get_close_matches(key, allowed, n=1)
+            hint = f"did you mean '{close[0]}'? " if close else ""
+            lines.append(
+                f"{source}: config key '{full}' does not exist. Fix: {hint}remove or rename it; "
+                f"valid keys under '{where}': {', '.join(allowed)}"
+            )
+        return "\n".join(lines)
+    if error.validator == "enum":
+        return f"{source}: config key '{where}' is {error.instance!r}. Fix: use one of {error.validator_value}"
+    if error.validator in ("type", "anyOf"):
+        expected = error.schema.get("type") or " or ".join(
+            str(s.get("type")) for s in error.schema.get("anyOf", [])
+        )
+        return f"{source}: config key '{where}' is {error.instance!r}. Fix: it must be of type {expected}"
+    return f"{source}: config key '{where}': {error.message}. Fix: see the description in config.yaml"
+
+
+def validate_config(data: Any, source: str = "config") -> None:
+    """Raise :class:`ConfigError` listing every problem in ``data`` (a parsed config.yaml)."""
+    import jsonschema
+
+    if data is None:
+        data = {}
+    validator = jsonschema.Draft7Validator(json_schema())
+    errors = sorted(validator.iter_errors(data), key=lambda e: list(map(str, e.absolute_path)))
+    if errors:
+        raise ConfigError("\n".join(_message(e, source) for e in errors))
+
+
+def _build(cls: type, data: dict[str, Any]) -> Any:
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        kwargs[f.name] = _convert(hints[f.name], data[f.name])
+    return cls(**kwargs)
+
+
+def _convert(tp: Any, value: Any) -> Any:
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value or {})
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None:
+            return None
+        return _convert(next(a for a in args if a is not type(None)), value)
+    if origin is dict and dataclasses.is_dataclass(args[1]):
+        return dict(value)  # per-scene fragments stay dicts: they are merged, not built
+    if tp is float and isinstance(value, int):
+        return float(value)
+    return copy.deepcopy(value)
+
+
+def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for key, value in (override or {}).items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def load_config_dict(data: dict[str, Any] | None, source: str = "config") -> PipelineConfig:
+    data = data or {}
+    validate_config(data, source)
+    return _build(PipelineConfig, data)
+
+
+def load_config(path: str | Path) -> PipelineConfig:
+    """Read and validate a config.yaml."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError("config file not found", path=path, fix="pass an existing config.yaml")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"not valid YAML ({exc})", path=path, fix="fix the YAML syntax") from exc
+    return load_config_dict(data, str(path))
+
+
+def scene_config(cfg: PipelineConfig, scene: str) -> SceneConfig:
+    """The defaults with ``overrides[scene]`` merged over them."""
+    merged = deep_merge(dataclasses.asdict(cfg.defaults), cfg.overrides.get(scene, {}))
+    return _build(SceneConfig, merged)
+
+
+def section_from_dict(section: str, data: dict[str, Any] | None, source: str = "--config-json") -> Any:
+    """Build one stage section (``sfm``, ``masks``, ...) from a dict, validating it against the schema."""
+    if section not in STAGE_SECTIONS:
+        raise ConfigError(f"unknown config section '{section}'", fix=f"use one of {sorted(STAGE_SECTIONS)}")
+    validate_config({"defaults": {section: data or {}}}, source)
+    return _build(SceneConfig, {section: data or {}}).__getattribute__(section)
+
+
+def discover_scenes(cfg: PipelineConfig) -> list[str]:
+    """Scenes listed in the config, else every ``<data>/<scene>`` with an ``images/`` folder."""
+    data = Path(cfg.data)
+    if cfg.scenes:
+        missing = [s for s in cfg.scenes if not (data / s / "images").is_dir()]
+        if missing:
+            raise ConfigError(
+                f"listed scenes have no images/ folder: {', '.join(missing)}",
+                path=data,
+                fix="check the scene names in 'scenes' or the 'data' directory",
+            )
+        return list(cfg.scenes)
+    if not data.is_dir():
+        raise ConfigError("dataset directory not found", path=data, fix="set 'data' in config.yaml")
+    scenes = sorted(p.name for p in data.iterdir() if (p / "images").is_dir())
+    if not scenes:
+        raise ConfigError(
+            "no scenes found (no <scene>/images folder)",
+            path=data,
+            fix="put each scene's photos in <data>/<scene>/images/, or set 'data' in config.yaml",
+        )
+    unknown = sorted(set(cfg.overrides) - set(scenes))
+    if unknown:
+        raise ConfigError(
+            f"overrides given for unknown scenes: {', '.join(unknown)}",
+            fix=f"rename them to one of: {', '.join(scenes)}",
+        )
+    return scenes
+
+
+def section_json(cfg: PipelineConfig, scene: str, section: str, quote: bool = True) -> str:
+    """One stage section of a scene's config as JSON (shell-quoted), for the rules' ``--config-json``."""
+    text = json.dumps(dataclasses.asdict(getattr(scene_config(cfg, scene), section)), sort_keys=True)
+    return shlex.quote(text) if quote else text
+
+
+# ----------------------------------------------------------------------------------------------
+# shared CLI options of the stages
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("configuration (defaults apply when none is given)")
+    group.add_argument("--config", type=Path, help="config.yaml to read this stage's settings from")
+    group.add_argument("--scene", help="scene name whose overrides apply (with --config)")
+    group.add_argument("--config-json", help="this stage's config section as JSON (used by the workflow)")
+
+
+def stage_config_from_args(args: argparse.Namespace, section: str) -> Any:
+    if getattr(args, "config_json", None):
+        try:
+            data = json.loads(args.config_json)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--config-json is not valid JSON ({exc})", fix="pass a JSON object") from exc
+        return section_from_dict(section, data)
+    if getattr(args, "config", None):
+        cfg = load_config(args.config)
+        sc = scene_config(cfg, args.scene) if args.scene else cfg.defaults
+        return getattr(sc, section)
+    return STAGE_SECTIONS[section]()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="rtsplat config tools")
+    parser.add_argument("--write-schema", action="store_true", help=f"regenerate {SCHEMA_PATH}")
+    parser.add_argument("--check", type=Path, help="validate a config.yaml")
+    args = parser.parse_args(argv)
+    if args.write_schema:
+        SCHEMA_PATH.parent.mkdir(parents=True, exist_ok=True)
+        SCHEMA_PATH.write_text(json_schema_text())
+        print(f"wrote {SCHEMA_PATH}")
+    if args.check:
+        try:
+            load_config(args.check)
+        except ConfigError as exc:
+            print(exc, file=sys.stderr)
+            return 1
+        print(f"{args.check}: OK")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,236 @@
+"""``rtsplat prepare``: turn a scene (images + COLMAP model + masks) into the trainer's prepared scene.
+
+Steps (function API :func:`prepare_scene`):
+
+1. read the SfM result (``rtsplat sfm`` output: its ``summary.json`` says where the model and the
+   images it belongs to are) and match model views to image files by name;
+2. downsample images by an integer factor with an area (box) filter, or take ``images_<factor>/``
+   when the dataset has it, and scale the intrinsics exactly (see :func:`rtsplat.io.images.area_downsample`);
+3. downsample the transparent masks the same way and binarise them;
+4. define the spherical region of interest: from the config, or estimated from the SfM points and
+   the point the cameras look at (:func:`estimate_roi`); saved with its source;
+5. split train/test: every ``test_every``-th image of the name-sorted list is a test view;
+6. write ``prepared/`` atomically (see :mod:`rtsplat.scene` for the format).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rtsplat import __version__
+from rtsplat.config import PrepareConfig, add_config_arguments, stage_config_from_args
+from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import atomic_dir
+from rtsplat.io.colmap import ColmapModel, load_model
+from rtsplat.io.images import area_downsample, read_header, read_image, read_mask, write_mask, write_png
+from rtsplat.io.ply import write_points_ply
+from rtsplat.scene import IMAGES_DIR, MASKS_DIR, POINTS_FILE, CameraRecord, PreparedScene, Roi
+
+
+@dataclass
+class PrepareSummary:
+    num_train: int
+    num_test: int
+    width: int
+    height: int
+    downsample: int
+    roi: Roi
+    has_transparency: bool
+    mask_coverage: float
+    num_points: int
+    used_prescaled: bool
+
+
+def load_stage_summary(directory: str | Path, stage: str) -> dict:
+    path = Path(directory) / "summary.json"
+    if not path.is_file():
+        raise PipelineError(f"no {stage} result here (summary.json missing)", path=directory,
+                            fix=f"run 'rtsplat {stage}' for this scene first")
+    return json.loads(path.read_text())
+
+
+def estimate_roi(model: ColmapModel, percentile: float = 95.0) -> Roi:
+    """Sphere around what the cameras look at.
+
+    The centre is the least-squares point closest to all optical axes (the common look-at point);
+    when the axes are (nearly) parallel it falls back to the median SfM point. The radius covers
+    ``percentile`` % of the SfM points; without points it is half the median camera distance.
+    """
+    centers = np.stack([v.center for v in model.views])
+    dirs = np.stack([v.forward for v in model.views])
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, d in zip(centers, dirs, strict=True):
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    eig = np.linalg.eigvalsh(A)
+    if len(model.views) >= 2 and eig[0] > 1e-3 * eig[-1]:
+        center = np.linalg.solve(A, b)
+    elif len(model.xyz):
+        center = np.median(model.xyz, axis=0)
+    else:
+        raise PipelineError("cannot estimate a region of interest: parallel cameras and no SfM points",
+                            fix="set prepare.roi {center, radius} in the config")
+    if len(model.xyz) >= 8:
+        radius = float(np.percentile(np.linalg.norm(model.xyz - center, axis=1), percentile))
+    else:
+        radius = 0.5 * float(np.median(np.linalg.norm(centers - center, axis=1)))
+    if not radius > 0:
+        radius = 1.0
+    return Roi(center=[float(x) for x in center], radius=radius, source="estimated")
+
+
+def _test_split(names: list[str], test_every: int) -> dict[str, str]:
+    return {n: ("test" if i % test_every == 0 else "train") for i, n in enumerate(sorted(names))}
+
+
+def prepare_scene(
+    scene_dir: str | Path,
+    sfm_dir: str | Path,
+    out_dir: str | Path,
+    cfg: PrepareConfig | None = None,
+    masks_dir: str | Path | None = None,
+    progress: bool = True,
+) -> PrepareSummary:
+    """Write the prepared scene for ``scene_dir`` into ``out_dir`` (atomically); see the module docstring."""
+    from tqdm import tqdm
+
+    cfg = cfg or PrepareConfig()
+    scene_dir = Path(scene_dir)
+    sfm = load_stage_summary(sfm_dir, "sfm")
+    model = load_model(sfm["model_dir"])
+    image_dir = Path(sfm["image_dir"])
+    f = int(cfg.downsample)
+    masks = load_stage_summary(masks_dir, "masks") if masks_dir is not None else {"has_masks": False}
+    has_masks = bool(masks.get("has_masks"))
+
+    missing = [v.name for v in model.views if not (image_dir / v.name).is_file()]
+    views = [v for v in model.views if v.name not in missing]
+    if missing:
+        raise PipelineError(
+            f"the COLMAP model lists {len(missing)} image(s) that are not in {image_dir}, e.g. {missing[0]}",
+            path=sfm["model_dir"],
+            fix="restore the images or re-run 'rtsplat sfm' so the model matches the image folder",
+        )
+    if len(views) < 2:
+        raise PipelineError("fewer than 2 registered images", path=sfm["model_dir"],
+                            fix="add more overlapping images and re-run 'rtsplat sfm'")
+    stems = [Path(v.name).stem for v in views]
+    if len(set(stems)) != len(stems):
+        raise PipelineError("two images share a file stem (e.g. a.jpg and a.png)", path=image_dir,
+                            fix="rename the images so their names without extension are unique")
+
+    prescaled_dir = scene_dir / f"images_{f}"
+    use_prescaled = (
+        f > 1 and cfg.use_prescaled and not sfm.get("undistorted", False) and prescaled_dir.is_dir()
+        and all((prescaled_dir / v.name).is_file() for v in views)
+    )
+    split = _test_split(stems, cfg.test_every)
+    roi = (Roi(center=[float(x) for x in cfg.roi.center], radius=float(cfg.roi.radius), source="config")
+           if cfg.roi is not None else estimate_roi(model, cfg.roi_percentile))
+
+    cameras: list[CameraRecord] = []
+    coverage: list[float] = []
+    out_dir = Path(out_dir)
+    with atomic_dir(out_dir) as tmp:
+        (tmp / IMAGES_DIR).mkdir()
+        if has_masks:
+            (tmp / MASKS_DIR).mkdir()
+        for view, stem in tqdm(list(zip(views, stems, strict=True)), desc="prepare", unit="img",
+                               disable=not progress):
+            src = image_dir / view.name
+            header = read_header(src)
+            if (header.width, header.height) != (view.width, view.height):
+                raise PipelineError(
+                    f"image is {header.width}x{header.height} but its COLMAP camera is {view.width}x{view.height}",
+                    path=src,
+                    fix="use the images the model was computed from (or re-run 'rtsplat sfm'); "
+                    "all images of a scene must have the size of their camera",
+                )
+            K = view.K.copy()
+            if use_prescaled:
+                image = read_image(prescaled_dir / view.name)
+                h, w = image.shape[:2]
+                if abs(w * f - view.width) >= f or abs(h * f - view.height) >= f:
+                    raise PipelineError(
+                        f"pre-scaled image is {w}x{h}, expected about {view.width // f}x{view.height // f}",
+                        path=prescaled_dir / view.name,
+                        fix=f"delete {prescaled_dir} or set prepare.use_prescaled: false",
+                    )
+                K[0] *= w / view.width
+                K[1] *= h / view.height
+            else:
+                image = area_downsample(read_image(src), f)
+                h, w = image.shape[:2]
+                K[:2] /= f
+            write_png(tmp / IMAGES_DIR / f"{stem}.png", image, bits=cfg.bit_depth)
+            if has_masks:
+                mpath = Path(masks_dir) / f"{stem}.png"
+                if not mpath.is_file():
+                    raise PipelineError("mask missing", path=mpath, fix="re-run 'rtsplat masks'")
+                mask = read_mask(mpath)
+                if mask.shape != (view.height, view.width):
+                    raise PipelineError(
+                        f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {view.width}x{view.height}",
+                        path=mpath, fix="re-run 'rtsplat masks' on the images the model uses",
+                    )
+                small = area_downsample(mask.astype(np.float32), f) >= 0.5
+                if small.shape != (h, w):  # pre-scaled images rounded differently
+                    import cv2
+
+                    small = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
+                write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
+                coverage.append(float(small.mean()))
+            cameras.append(CameraRecord(
+                name=stem, split=split[stem], width=int(w), height=int(h),
+                K=K.tolist(), world_to_camera=view.world_to_camera.tolist(), image=view.name,
+            ))
+        write_points_ply(tmp / POINTS_FILE, model.xyz, model.rgb)
+        versions = {"rtsplat": __version__, "scene_format": "1"}
+        scene = PreparedScene(
+            cameras=sorted(cameras, key=lambda c: c.name), roi=roi, downsample=f,
+            source=str(scene_dir.resolve()), has_transparency=has_masks, versions=versions,
+        )
+        scene.save(tmp)
+        scene.validate(check_files=True, where=tmp / "scene.json")
+    return PrepareSummary(
+        num_train=len(scene.train_cameras), num_test=len(scene.test_cameras),
+        width=cameras[0].width, height=cameras[0].height, downsample=f, roi=roi,
+        has_transparency=has_masks, mask_coverage=float(np.mean(coverage)) if coverage else 0.0,
+        num_points=len(model.xyz), used_prescaled=use_prescaled,
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene-dir", type=Path, required=True, help="dataset scene (<data>/<scene>)")
+    parser.add_argument("--sfm", type=Path, required=True, help="output folder of 'rtsplat sfm'")
+    parser.add_argument("--masks", type=Path, help="output folder of 'rtsplat masks' (none: no transparency)")
+    parser.add_argument("--out", type=Path, required=True, help="prepared scene folder to write")
+    parser.add_argument("--downsample", type=int, help="override prepare.downsample")
+    add_config_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        cfg = stage_config_from_args(args, "prepare")
+        if args.downsample is not None:
+            cfg.downsample = args.downsample
+        s = prepare_scene(args.scene_dir, args.sfm, args.out, cfg, args.masks)
+    except PipelineError as exc:
+        print(f"rtsplat prepare: error: {exc}", file=sys.stderr)
+        return 1
+    print(
+        f"prepared {args.out}: {s.num_train} train + {s.num_test} test views at {s.width}x{s.height} "
+        f"(downsample {s.downsample}{', pre-scaled images' if s.used_prescaled else ''}), "
+        f"{s.num_points} points, ROI {s.roi.source} center={np.round(s.roi.center, 3).tolist()} "
+        f"radius={s.roi.radius:.3f}, transparency={'yes' if s.has_transparency else 'no'}"
+        + (f" (mask coverage {100 * s.mask_coverage:.1f}%)" if s.has_transparency else "")
+    )
+    return 0

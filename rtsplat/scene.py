@@ -1,0 +1,240 @@
+"""The prepared scene: the contract between ``rtsplat prepare`` and the trainer / renderer / metrics.
+
+On disk::
+
+    prepared/
+      scene.json          this module's PreparedScene (format below)
+      images/<name>.png   downsampled sRGB images (8- or 16-bit)
+      masks/<name>.png    transparent-surface masks (white = see-through), same size; only when
+                          has_transparency is true
+      points.ply          SfM points with colours (initialisation), may hold zero points
+
+``scene.json``::
+
+    {
+      "format": 1,
+      "cameras": [{"name": "IMG_0001", "image": "IMG_0001.JPG", "split": "train" | "test",
+                   "width": W, "height": H, "K": 3x3, "world_to_camera": 4x4}, ...],
+      "roi": {"center": [x, y, z], "radius": r, "source": "config" | "estimated"},
+      "downsample": 4,
+      "source": "/path/to/dataset/scene",
+      "has_transparency": true,
+      "versions": {"rtsplat": "0.1.0", ...}
+    }
+
+Cameras follow :mod:`rtsplat.camera` (OpenCV axes, world-to-camera, pixel corner at (0, 0)), sorted
+by name; the test split is every ``test_every``-th camera of that order starting with the first.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from rtsplat.errors import PipelineError
+
+FORMAT_VERSION = 1
+SCENE_FILE = "scene.json"
+IMAGES_DIR = "images"
+MASKS_DIR = "masks"
+POINTS_FILE = "points.ply"
+
+
+@dataclass
+class CameraRecord:
+    name: str
+    split: Literal["train", "test"]
+    width: int
+    height: int
+    K: list[list[float]]
+    world_to_camera: list[list[float]]
+    image: str = ""  # the source image file name in the dataset
+
+    @property
+    def K_array(self) -> np.ndarray:
+        return np.asarray(self.K, dtype=np.float64)
+
+    @property
+    def w2c_array(self) -> np.ndarray:
+        return np.asarray(self.world_to_camera, dtype=np.float64)
+
+    def to_camera(self, dtype=None, device=None):
+        """This camera as :class:`rtsplat.camera.Camera` (torch tensors)."""
+        import torch
+
+        from rtsplat.camera import Camera
+
+        dtype = dtype or torch.float32
+        return Camera(
+            torch.tensor(self.K, dtype=dtype, device=device),
+            torch.tensor(self.world_to_camera, dtype=dtype, device=device),
+            int(self.width),
+            int(self.height),
+        )
+
+
+@dataclass
+class Roi:
+    center: list[float]
+    radius: float
+    source: Literal["config", "estimated"]
+
+
+@dataclass
+class PreparedScene:
+    cameras: list[CameraRecord]
+    roi: Roi
+    downsample: int = 1
+    source: str = ""
+    has_transparency: bool = False
+    versions: dict[str, str] = field(default_factory=dict)
+    format: int = FORMAT_VERSION
+    root: Path | None = field(default=None, compare=False, repr=False)
+
+    # -- access ------------------------------------------------------------------------------
+    @property
+    def train_cameras(self) -> list[CameraRecord]:
+        return [c for c in self.cameras if c.split == "train"]
+
+    @property
+    def test_cameras(self) -> list[CameraRecord]:
+        return [c for c in self.cameras if c.split == "test"]
+
+    def _root(self) -> Path:
+        if self.root is None:
+            raise ValueError("this PreparedScene has no directory (load() or save() it first)")
+        return self.root
+
+    def image_path(self, name: str) -> Path:
+        return self._root() / IMAGES_DIR / f"{name}.png"
+
+    def mask_path(self, name: str) -> Path:
+        return self._root() / MASKS_DIR / f"{name}.png"
+
+    @property
+    def points_path(self) -> Path:
+        return self._root() / POINTS_FILE
+
+    def load_image(self, name: str) -> np.ndarray:
+        from rtsplat.io.images import read_image
+
+        return read_image(self.image_path(name))
+
+    def load_mask(self, name: str) -> np.ndarray | None:
+        """The camera's mask (bool [H, W]), or None when the scene has no transparency."""
+        if not self.has_transparency:
+            return None
+        from rtsplat.io.images import read_mask
+
+        return read_mask(self.mask_path(name))
+
+    def load_points(self) -> tuple[np.ndarray, np.ndarray]:
+        from rtsplat.io.ply import read_points_ply
+
+        return read_points_ply(self.points_path)
+
+    # -- (de)serialisation -------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data.pop("root")
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], where: str = SCENE_FILE) -> PreparedScene:
+        try:
+            cams = [CameraRecord(**c) for c in data["cameras"]]
+            roi = Roi(**data["roi"])
+            rest = {k: data[k] for k in ("downsample", "source", "has_transparency", "versions", "format")
+                    if k in data}
+        except (KeyError, TypeError) as exc:
+            raise PipelineError(
+                f"malformed prepared scene ({exc})", path=where, fix="re-run 'rtsplat prepare' for this scene"
+            ) from exc
+        scene = cls(cameras=cams, roi=roi, **rest)
+        scene.validate(check_files=False, where=where)
+        return scene
+
+    def save(self, directory: str | Path) -> Path:
+        """Write ``scene.json`` into ``directory`` (images/masks/points are written by the caller)."""
+        self.validate(check_files=False)
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        path = directory / SCENE_FILE
+        path.write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+        self.root = directory
+        return path
+
+    @classmethod
+    def load(cls, directory: str | Path, check_files: bool = True) -> PreparedScene:
+        directory = Path(directory)
+        path = directory / SCENE_FILE
+        if not path.is_file():
+            raise PipelineError("no prepared scene here (scene.json missing)", path=directory,
+                                fix="run 'rtsplat prepare' for this scene first")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise PipelineError(f"scene.json is not valid JSON ({exc})", path=path,
+                                fix="re-run 'rtsplat prepare'") from exc
+        scene = cls.from_dict(data, where=str(path))
+        scene.root = directory
+        if check_files:
+            scene.validate(check_files=True, where=str(path))
+        return scene
+
+    # -- validation --------------------------------------------------------------------------
+    def validate(self, check_files: bool = False, where: str | Path = SCENE_FILE) -> None:
+        """Raise :class:`PipelineError` when the scene breaks the contract (see the module docstring)."""
+
+        def bad(problem: str) -> PipelineError:
+            return PipelineError(problem, path=where, fix="re-run 'rtsplat prepare' for this scene")
+
+        if self.format != FORMAT_VERSION:
+            raise bad(f"format {self.format} is not supported (expected {FORMAT_VERSION})")
+        if not self.cameras:
+            raise bad("no cameras")
+        names = [c.name for c in self.cameras]
+        if len(set(names)) != len(names):
+            raise bad("camera names are not unique")
+        if not any(c.split == "train" for c in self.cameras):
+            raise bad("no training cameras")
+        for c in self.cameras:
+            if c.split not in ("train", "test"):
+                raise bad(f"camera {c.name}: split must be 'train' or 'test', got {c.split!r}")
+            if int(c.width) <= 0 or int(c.height) <= 0:
+                raise bad(f"camera {c.name}: size {c.width}x{c.height} is not positive")
+            K, w2c = np.asarray(c.K, dtype=float), np.asarray(c.world_to_camera, dtype=float)
+            if K.shape != (3, 3) or w2c.shape != (4, 4):
+                raise bad(f"camera {c.name}: K must be 3x3 and world_to_camera 4x4")
+            if not (np.all(np.isfinite(K)) and np.all(np.isfinite(w2c))):
+                raise bad(f"camera {c.name}: non-finite intrinsics or pose")
+            if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+                raise bad(f"camera {c.name}: K is not a pinhole intrinsic matrix")
+            R = w2c[:3, :3]
+            if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or abs(np.linalg.det(R) - 1) > 1e-4 or \
+                    not np.allclose(w2c[3], [0, 0, 0, 1]):
+                raise bad(f"camera {c.name}: world_to_camera is not a rigid transform")
+        if len(self.roi.center) != 3 or not float(self.roi.radius) > 0:
+            raise bad("roi must have a 3D center and a positive radius")
+        if self.roi.source not in ("config", "estimated"):
+            raise bad(f"roi.source must be 'config' or 'estimated', got {self.roi.source!r}")
+        if check_files:
+            self._check_files(bad)
+
+    def _check_files(self, bad) -> None:
+        from rtsplat.io.images import read_header
+
+        for c in self.cameras:
+            paths = [self.image_path(c.name)] + ([self.mask_path(c.name)] if self.has_transparency else [])
+            for p in paths:
+                if not p.is_file():
+                    raise bad(f"missing file {p}")
+                h = read_header(p)
+                if (h.width, h.height) != (int(c.width), int(c.height)):
+                    raise bad(f"{p} is {h.width}x{h.height}, camera {c.name} says {c.width}x{c.height}")
+        if not self.points_path.is_file():
+            raise bad(f"missing file {self.points_path}")
