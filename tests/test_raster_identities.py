@@ -184,7 +184,7 @@ def test_stacked_full_screen_layers_clamp_and_stop_like_2dgs():
     # at the image centre (G ~ 1) layer 2 (occupancy 1) is clamped to alpha 0.99; the two layers
     # leave T = 0.03 * 0.01 = 3e-4, and layer 3 (alpha 0.98) would bring it below 1e-4: it is
     # never composited there, nor is layer 4
-    centre = out.features[camera.height // 2, camera.width // 2]
+    centre = out.features.detach()[camera.height // 2, camera.width // 2]
     assert abs(float(centre[1]) - 0.99 * (1.0 - float(centre[0]))) < 1e-12
     assert float(centre[0]) > 0.96
     assert centre[2:].abs().max() == 0

@@ -1,0 +1,177 @@
+"""The RT-Splatting model and its hybrid deferred/forward render (paper section 3.2).
+
+    C = C_spec + beta * (tau * C_trans + (1 - tau) * C_scatter)
+
+* ``C_trans``: volume colour of the forward pass (SH colours, weights occupancy x opacity);
+* G-buffers from the surface pass (weights occupancy): normal, roughness, material feature,
+  reflectance, tau, C_scatter, region-of-interest membership and the blended opacity;
+* ``C_spec``, ``beta``: specular network fed with the environment feature at the reflected
+  direction. Shading happens only where the surface alpha exceeds 0.05; outside the spherical
+  region of interest a pixel shows plain volume radiance (blended by ROI membership).
+
+Which branches exist is decided once per scene (:class:`ActiveEffects`): without transmission
+there is one opacity (opacity = 1, so both weight sets coincide) and no tau / C_scatter; without
+specular there is no environment map and no specular network (plain 2DGS radiance).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rtsplat.camera import PIXEL_CENTER_OFFSET, Camera
+from rtsplat.model.envmap import EnvironmentMap
+from rtsplat.model.gating import gate_factor, gate_gradient
+from rtsplat.model.sh import eval_sh
+from rtsplat.model.specular import SpecularNetwork
+from rtsplat.model.surfels import SurfelParameters
+from rtsplat.raster import RasterOutput, RasterSettings, Surfels, rasterize
+from rtsplat.train.config import Ablations, Gating, ModelSettings
+
+STAGES = ("volume", "subsurface", "full")
+
+# surface G-buffer channels blended with the occupancy weights
+GBUFFER = {"scatter": slice(0, 3), "tau": slice(3, 4), "roughness": slice(4, 5), "material": slice(5, 9),
+           "reflectance": slice(9, 10), "roi": slice(10, 11), "opacity": slice(11, 12)}
+GBUFFER_CHANNELS = 12
+
+
+@dataclass(frozen=True)
+class ActiveEffects:
+    transmission: bool = True  # occupancy/opacity factorization, tau and C_scatter
+    specular: bool = True  # environment map + specular network
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class RenderResult:
+    color: Tensor  # [H,W,3] final colour
+    raster: RasterOutput
+    layers: dict[str, Tensor] = field(default_factory=dict)  # [H,W,C] decomposition and G-buffers
+
+
+class RTModel(nn.Module):
+    def __init__(
+        self, surfels: SurfelParameters, *, effects: ActiveEffects, ablations: Ablations | None = None,
+        settings: ModelSettings | None = None, roi_center=(0.0, 0.0, 0.0), roi_radius: float = 1e9,
+    ):
+        super().__init__()
+        self.surfels = surfels
+        self.effects = effects
+        self.ablations = ablations or Ablations()
+        self.settings = settings or ModelSettings()
+        s = self.settings
+        self.env = EnvironmentMap(s.env_channels, s.env_height, s.env_width, s.env_levels) if effects.specular else None
+        self.specular_net = SpecularNetwork(s.env_channels, 4, s.mlp_width) if effects.specular else None
+        self.register_buffer("roi_center", torch.as_tensor(roi_center, dtype=torch.float32).reshape(3))
+        self.register_buffer("roi_radius", torch.as_tensor(float(roi_radius), dtype=torch.float32))
+        self.register_buffer("background", torch.as_tensor(s.background, dtype=torch.float32).reshape(3))
+
+    @property
+    def uses_opacity(self) -> bool:
+        """False when one opacity does both jobs (no transmission, or the occupancy ablation)."""
+        return self.effects.transmission and self.ablations.occupancy
+
+    @property
+    def uses_scatter(self) -> bool:
+        return self.effects.transmission and self.ablations.scattering
+
+    # -- rasterizer inputs -------------------------------------------------------------------
+    def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None) -> Surfels:
+        p = self.surfels
+        view = p.means - camera.center
+        colors = eval_sh(p.sh, F.normalize(view, dim=-1), p.sh_degree if sh_degree is None else sh_degree)
+        occupancy = p.occupancy
+        opacity = p.opacity if self.uses_opacity else torch.ones_like(occupancy)
+        inside = ((p.means - self.roi_center).norm(dim=-1) <= self.roi_radius).to(p.means.dtype)
+        features = torch.cat(
+            [p.scatter, p.transmissivity[:, None], p.roughness[:, None], p.material, p.reflectance[:, None],
+             inside[:, None], opacity[:, None]], 1,
+        )
+        return Surfels(p.means, p.quats, p.scales, occupancy, opacity, features, colors)
+
+    # -- the hybrid render --------------------------------------------------------------------
+    def render(
+        self, camera: Camera, *, stage: str = "full", gating: Gating | None = None,
+        raster_settings: RasterSettings | None = None, backend: str = "auto", sh_degree: int | None = None,
+    ) -> RenderResult:
+        if stage not in STAGES:
+            raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+        out = rasterize(self.rasterizer_surfels(camera, sh_degree), camera, raster_settings, backend=backend)
+        c_trans = out.color + (1.0 - out.volume_alpha) * self.background
+        alpha = out.alpha
+        alpha_safe = alpha.clamp_min(1e-6)
+        g = {name: out.features[..., sl] for name, sl in GBUFFER.items()}
+        normal = F.normalize(out.normal, dim=-1)
+        layers = {
+            "trans": c_trans, "normal": normal, "depth": out.depth, "alpha": alpha,
+            "volume_alpha": out.volume_alpha, "blended_opacity": g["opacity"],
+        }
+        if stage == "volume" or not (self.effects.transmission or self.effects.specular):
+            return RenderResult(c_trans, out, layers)
+
+        shade = alpha > self.settings.shade_alpha_threshold  # [H,W,1]
+        roi = (g["roi"] / alpha_safe).clamp(0, 1)
+        specular_on = stage == "full" and self.effects.specular
+        if specular_on:
+            spec, beta = self._specular(camera, normal, g, alpha_safe, shade)
+            if not self.ablations.attenuation:
+                beta = torch.ones_like(beta)
+            layers.update(spec=spec, beta=beta)
+            if self.ablations.gating and gating is not None and torch.is_grad_enabled():
+                gate = gate_factor(spec, alpha, gating.k, gating.mode)
+                c_trans_in = gate_gradient(c_trans, gate)
+                layers["gate"] = gate
+            else:
+                c_trans_in = c_trans
+        else:
+            spec, beta, c_trans_in = torch.zeros_like(c_trans), torch.ones_like(alpha), c_trans
+        if self.uses_scatter:
+            tau = (g["tau"] / alpha_safe).clamp(0, 1)
+            scatter = (g["scatter"] / alpha_safe).clamp(0, 1)
+            sub = tau * c_trans_in + (1.0 - tau) * scatter
+            layers.update(tau=tau, scatter=scatter)
+        else:
+            sub = c_trans_in
+        shaded = spec + beta * sub
+        color = torch.where(shade, roi * shaded + (1.0 - roi) * c_trans, c_trans)
+        layers.update(roi=roi, sub=sub, shade=shade.to(color.dtype))
+        layers["transmission"] = torch.where(shade, roi * beta * (sub if not self.uses_scatter else tau * c_trans)
+                                             + (1 - roi) * c_trans, c_trans)
+        layers["reflection"] = torch.where(shade, roi * spec, torch.zeros_like(spec))
+        return RenderResult(color, out, layers)
+
+    def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor):
+        H, W = normal.shape[:2]
+        flat = shade.reshape(-1)
+        idx = torch.nonzero(flat, as_tuple=False).flatten()
+        spec = torch.zeros(H * W, 3, dtype=normal.dtype, device=normal.device)
+        beta = torch.ones(H * W, 1, dtype=normal.dtype, device=normal.device)
+        if idx.numel() > 0:
+            incident = pixel_rays(camera).reshape(-1, 3)[idx]
+            n = normal.reshape(-1, 3)[idx]
+            reflected = F.normalize(incident - 2.0 * (incident * n).sum(-1, keepdim=True) * n, dim=-1)
+            rough = (g["roughness"] / alpha_safe).reshape(-1)[idx].clamp(0, 1)
+            material = F.normalize(g["material"].reshape(-1, 4)[idx], dim=-1)
+            reflectance = (g["reflectance"] / alpha_safe).reshape(-1, 1)[idx].clamp(0, 1)
+            env = self.env(reflected, rough)
+            s, b = self.specular_net(env, material, reflectance)
+            spec = spec.index_copy(0, idx, s)
+            beta = beta.index_copy(0, idx, b)
+        return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
+
+
+def pixel_rays(camera: Camera) -> Tensor:
+    """Unit world-space directions [H,W,3] from the camera centre through each pixel centre."""
+    dtype, device = camera.K.dtype, camera.K.device
+    ys = torch.arange(camera.height, dtype=dtype, device=device) + PIXEL_CENTER_OFFSET
+    xs = torch.arange(camera.width, dtype=dtype, device=device) + PIXEL_CENTER_OFFSET
+    yy, xx = torch.meshgrid(ys, xs, indexing="ij")
+    pix = torch.stack([xx, yy, torch.ones_like(xx)], -1)
+    cam_dirs = pix @ torch.linalg.inv(camera.K).T
+    return F.normalize(cam_dirs @ camera.rotation, dim=-1)  # R^T d, row-vector form

@@ -1,0 +1,128 @@
+"""Trainable surfel parameters (raw, unconstrained) and their activations (METHOD.md section 1)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rtsplat.model.sh import num_coefficients, rgb_to_sh_dc
+
+# raw parameter names; this order is the order of the optimizer groups
+PARAMETERS = (
+    "means", "quats", "log_scales", "occupancy_logit", "opacity_logit", "sh_dc", "sh_rest",
+    "scatter_logit", "transmissivity_logit", "roughness_logit", "material_raw", "reflectance_logit",
+)
+
+
+def logit(p: float) -> float:
+    p = min(max(p, 1e-6), 1 - 1e-6)
+    return math.log(p / (1 - p))
+
+
+class SurfelParameters(nn.Module):
+    """All per-surfel tensors as ``nn.Parameter`` rows (one row per surfel)."""
+
+    def __init__(self, tensors: dict[str, Tensor]):
+        super().__init__()
+        missing = set(PARAMETERS) - set(tensors)
+        if missing:
+            raise ValueError(f"missing surfel parameters: {sorted(missing)}")
+        for name in PARAMETERS:
+            self.register_parameter(name, nn.Parameter(tensors[name].contiguous()))
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(math.sqrt(self.sh_rest.shape[1] + 1))) - 1
+
+    # -- activations -------------------------------------------------------------------------
+    @property
+    def scales(self) -> Tensor:
+        return torch.exp(self.log_scales)
+
+    @property
+    def occupancy(self) -> Tensor:
+        return torch.sigmoid(self.occupancy_logit)
+
+    @property
+    def opacity(self) -> Tensor:
+        return torch.sigmoid(self.opacity_logit)
+
+    @property
+    def scatter(self) -> Tensor:
+        return torch.sigmoid(self.scatter_logit)
+
+    @property
+    def transmissivity(self) -> Tensor:
+        return torch.sigmoid(self.transmissivity_logit)
+
+    @property
+    def roughness(self) -> Tensor:
+        return torch.sigmoid(self.roughness_logit)
+
+    @property
+    def material(self) -> Tensor:
+        return torch.tanh(self.material_raw)
+
+    @property
+    def reflectance(self) -> Tensor:
+        return torch.sigmoid(self.reflectance_logit)
+
+    @property
+    def sh(self) -> Tensor:
+        return torch.cat([self.sh_dc, self.sh_rest], 1)
+
+    def tensors(self) -> dict[str, Tensor]:
+        return {name: getattr(self, name) for name in PARAMETERS}
+
+
+def nearest_neighbour_scale(points: Tensor, k: int = 3, chunk: int = 4096) -> Tensor:
+    """RMS distance to the ``k`` nearest other points (the 3DGS initial scale), chunked."""
+    n = points.shape[0]
+    if n <= 1:
+        return torch.full((n,), 0.01, dtype=points.dtype, device=points.device)
+    k = min(k, n - 1)
+    out = []
+    for start in range(0, n, chunk):
+        d2 = torch.cdist(points[start : start + chunk], points).square()
+        d2[torch.arange(d2.shape[0]), torch.arange(start, start + d2.shape[0])] = float("inf")
+        out.append(d2.topk(k, largest=False).values.mean(-1))
+    return torch.cat(out).clamp_min(1e-7).sqrt()
+
+
+def init_from_points(
+    xyz: Tensor, rgb: Tensor, *, sh_degree: int = 3, occupancy: float = 0.1, opacity: float = 0.5,
+    transmissivity: float = 0.5, roughness: float = 0.1, reflectance: float = 0.5,
+    generator: torch.Generator | None = None,
+) -> SurfelParameters:
+    """Surfels at the SfM points: colours from the points, scales from neighbour distances.
+
+    ``rgb`` in [0,1]. Rotations are random (as in 2DGS); the material feature starts small and
+    random so that the specular network sees distinct inputs.
+    """
+    n = xyz.shape[0]
+    dtype = torch.float32
+    xyz = xyz.to(dtype)
+    scale = nearest_neighbour_scale(xyz)
+    quats = F.normalize(torch.rand(n, 4, generator=generator, dtype=dtype), dim=-1)
+    full = lambda value, *shape: torch.full((n, *shape), value, dtype=dtype)  # noqa: E731
+    tensors = {
+        "means": xyz.clone(),
+        "quats": quats,
+        "log_scales": torch.log(scale)[:, None].repeat(1, 2),
+        "occupancy_logit": full(logit(occupancy)),
+        "opacity_logit": full(logit(opacity)),
+        "sh_dc": rgb_to_sh_dc(rgb.to(dtype).clamp(0, 1))[:, None, :],
+        "sh_rest": torch.zeros(n, num_coefficients(sh_degree) - 1, 3, dtype=dtype),
+        "scatter_logit": torch.logit(rgb.to(dtype).clamp(0.02, 0.98)),
+        "transmissivity_logit": full(logit(transmissivity)),
+        "roughness_logit": full(logit(roughness)),
+        "material_raw": 0.1 * torch.randn(n, 4, generator=generator, dtype=dtype),
+        "reflectance_logit": full(logit(reflectance)),
+    }
+    return SurfelParameters(tensors)

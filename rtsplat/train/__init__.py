@@ -1,0 +1,1 @@
+"""RT-Splatting training: config, data, losses, density control, optimizer surgery, the loop."""

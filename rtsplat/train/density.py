@@ -1,0 +1,165 @@
+"""Density control as a strategy object (2DGS rules with RT-Splatting's occupancy pruning).
+
+* statistics: per surfel, the accumulated norm of the 2DGS densification signal over the views
+  where it was visible, the largest screen radius, and whether it was seen since the last reset;
+* every ``densify_every`` iterations in [densify_from, densify_until): clone small surfels whose
+  mean gradient exceeds the threshold, split large ones in two (scale / 1.6, samples drawn in the
+  surfel's tangent plane), then prune: occupancy below 0.05 (never opacity: a clear window has
+  low opacity) among surfels seen since the last reset, and over-large surfels;
+* every ``reset_every`` iterations, alternately clamp occupancy then opacity to <= 0.01.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from rtsplat.model.surfels import PARAMETERS, SurfelParameters, logit
+from rtsplat.raster import RasterOutput
+from rtsplat.raster.projection import quat_to_rotmat
+from rtsplat.train.config import Densification, Schedule
+from rtsplat.train.optim import append_rows, keep_rows, reset_rows
+
+
+@dataclass
+class DensityEvents:
+    cloned: int = 0
+    split: int = 0
+    pruned: int = 0
+    reset: str = ""
+
+    def any(self) -> bool:
+        return bool(self.cloned or self.split or self.pruned or self.reset)
+
+
+@dataclass
+class DensityControl:
+    config: Densification
+    schedule: Schedule
+    extent: float
+    grad_sum: Tensor = field(default_factory=lambda: torch.zeros(0))
+    grad_count: Tensor = field(default_factory=lambda: torch.zeros(0))
+    max_radius: Tensor = field(default_factory=lambda: torch.zeros(0))
+    seen_since_reset: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
+    resets_done: int = 0
+
+    def _ensure(self, n: int, device) -> None:
+        if self.grad_sum.shape[0] != n:
+            self.grad_sum = torch.zeros(n, device=device)
+            self.grad_count = torch.zeros(n, device=device)
+            self.max_radius = torch.zeros(n, device=device)
+            self.seen_since_reset = torch.zeros(n, dtype=torch.bool, device=device)
+
+    @torch.no_grad()
+    def observe(self, out: RasterOutput, trainable: Tensor | None = None) -> None:
+        """Accumulate statistics after backward()."""
+        n = out.visible.shape[0]
+        self._ensure(n, out.visible.device)
+        visible = out.visible
+        self.seen_since_reset |= visible
+        signal = out.densification_grad()
+        if signal is not None:
+            norm = signal.norm(dim=-1)
+            if trainable is not None:
+                norm = norm * trainable
+            self.grad_sum[visible] += norm[visible]
+            self.grad_count[visible] += 1
+        radius = out.radii.amax(-1).to(self.max_radius.dtype)
+        self.max_radius[visible] = torch.maximum(self.max_radius[visible], radius[visible])
+
+    def state_dict(self) -> dict:
+        return {"grad_sum": self.grad_sum, "grad_count": self.grad_count, "max_radius": self.max_radius,
+                "seen_since_reset": self.seen_since_reset, "resets_done": self.resets_done}
+
+    def load_state_dict(self, state: dict) -> None:
+        for key, value in state.items():
+            setattr(self, key, value)
+
+    @torch.no_grad()
+    def step(self, iteration: int, surfels: SurfelParameters, optimizer, generator: torch.Generator,
+             frozen: Tensor | None = None) -> tuple[DensityEvents, Tensor]:
+        """Run the scheduled density operations after ``iteration`` (1-based). Returns the events
+        and the new ``frozen`` mask (frozen surfels are never cloned, split or pruned)."""
+        s = self.schedule
+        n = len(surfels)
+        self._ensure(n, surfels.means.device)
+        frozen = torch.zeros(n, dtype=torch.bool) if frozen is None else frozen
+        events = DensityEvents()
+        if s.densify_from <= iteration < s.densify_until and iteration % s.densify_every == 0:
+            frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events)
+        if s.reset_every > 0 and iteration % s.reset_every == 0 and iteration < s.densify_until:
+            self._reset(surfels, optimizer, events)
+        return events, frozen
+
+    def _densify_and_prune(self, surfels, optimizer, generator, frozen, events) -> Tensor:
+        c = self.config
+        mean_grad = self.grad_sum / self.grad_count.clamp_min(1)
+        big = surfels.scales.amax(-1) > c.percent_dense * self.extent
+        candidates = (mean_grad >= c.grad_threshold) & ~frozen
+        room = max(c.max_surfels - len(surfels), 0)
+        clone = candidates & ~big
+        split = candidates & big
+        if int(clone.sum()) + 2 * int(split.sum()) > room:  # keep the strongest within the budget
+            score = torch.where(candidates, mean_grad, torch.full_like(mean_grad, -1.0))
+            order = torch.argsort(score, descending=True)
+            allowed = torch.zeros_like(candidates)
+            allowed[order[: room // 2]] = True
+            clone &= allowed
+            split &= allowed
+        new_rows = {name: [] for name in PARAMETERS}
+        tensors = surfels.tensors()
+        if clone.any():
+            for name in PARAMETERS:
+                new_rows[name].append(tensors[name].detach()[clone])
+        if split.any():
+            idx = torch.nonzero(split).flatten()
+            rot = quat_to_rotmat(surfels.quats.detach()[idx])
+            scales = surfels.scales.detach()[idx]
+            for _ in range(2):
+                local = torch.randn(idx.shape[0], 2, generator=generator) * scales
+                offset = (rot[:, :, :2] @ local[:, :, None])[..., 0]
+                for name in PARAMETERS:
+                    value = tensors[name].detach()[idx]
+                    if name == "means":
+                        value = value + offset
+                    elif name == "log_scales":
+                        value = value - torch.log(torch.tensor(c.split_factor))
+                    new_rows[name].append(value)
+        added = {name: torch.cat(v) if v else tensors[name].detach()[:0] for name, v in new_rows.items()}
+        n_added = added["means"].shape[0]
+        if n_added:
+            append_rows(optimizer, surfels, added)
+        events.cloned, events.split = int(clone.sum()), int(split.sum())
+        frozen = torch.cat([frozen, torch.zeros(n_added, dtype=torch.bool)])
+        grown = lambda t, fill: torch.cat([t, torch.full((n_added,), fill, dtype=t.dtype)])  # noqa: E731
+        seen = grown(self.seen_since_reset, False)
+        max_radius = grown(self.max_radius, 0)
+        remove = torch.cat([split, torch.zeros(n_added, dtype=torch.bool)])
+
+        low_occupancy = (surfels.occupancy.detach() < c.prune_occupancy) & seen
+        too_big = surfels.scales.detach().amax(-1) > c.max_world_scale * self.extent
+        if c.max_screen_size > 0:
+            too_big |= max_radius > c.max_screen_size
+        remove |= (low_occupancy | too_big) & ~frozen
+        keep = ~remove
+        if not keep.any():  # never prune the scene away entirely: drop only the split parents
+            keep = ~torch.cat([split, torch.zeros(n_added, dtype=torch.bool)])
+        keep_rows(optimizer, surfels, keep)
+        events.pruned = int((~keep).sum()) - events.split
+        self.seen_since_reset = seen[keep]
+        n_new = int(keep.sum())
+        self.grad_sum = torch.zeros(n_new)
+        self.grad_count = torch.zeros(n_new)
+        self.max_radius = torch.zeros(n_new)
+        return frozen[keep]
+
+    def _reset(self, surfels, optimizer, events) -> None:
+        cap = logit(self.config.reset_value)
+        name = "occupancy_logit" if self.resets_done % 2 == 0 else "opacity_logit"
+        value = getattr(surfels, name).detach().clamp_max(cap)
+        reset_rows(optimizer, surfels, name, value)
+        self.resets_done += 1
+        self.seen_since_reset = torch.zeros(len(surfels), dtype=torch.bool)
+        events.reset = "occupancy" if name == "occupancy_logit" else "opacity"

@@ -1,0 +1,353 @@
+"""The training loop, kept small: data, model, losses, density control, checkpoints and logging
+each live in their own module; this file only sequences them.
+
+Run directory layout::
+
+    <out>/config.json        resolved TrainConfig
+    <out>/effects.json       which branches run and why (effects: auto)
+    <out>/train_log.jsonl    one JSON line per logging step: losses, PSNR, surfels, seconds
+    <out>/checkpoints/last.pt  resumable state (written atomically)
+    <out>/model.pt           final state;  <out>/point_cloud.ply  3DGS-viewer PLY
+    <out>/summary.json       written last: a run without it is not finished
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rtsplat.model.export import write_surfel_ply
+from rtsplat.model.rtmodel import RTModel
+from rtsplat.model.surfels import PARAMETERS, SurfelParameters, init_from_points
+from rtsplat.scene import PreparedScene
+from rtsplat.train import losses
+from rtsplat.train.config import TrainConfig
+from rtsplat.train.data import ViewSet, load_views, scene_extent
+from rtsplat.train.density import DensityControl
+from rtsplat.train.effects import decide_effects
+from rtsplat.train.lpips import load_lpips
+from rtsplat.train.optim import append_rows, build_optimizer, position_lr
+
+CHECKPOINT_VERSION = 1
+
+
+class CheckpointError(RuntimeError):
+    pass
+
+
+@dataclass
+class StepResult:
+    iteration: int
+    loss: float
+    psnr: float
+    terms: dict[str, float]
+    stage: str
+
+
+def stage_at(iteration: int, cfg: TrainConfig) -> str:
+    s = cfg.schedule
+    if iteration <= s.volume_until:
+        return "volume"
+    if iteration <= s.specular_from:
+        return "subsurface"
+    return "full"
+
+
+def _write_json(path: Path, data) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+class Trainer:
+    def __init__(
+        self, scene: PreparedScene, cfg: TrainConfig, out_dir: str | Path, *, log: Callable[[str], None] = print,
+        progress: bool = True,
+    ):
+        self.cfg = cfg.validate()
+        self.scene = scene
+        self.out = Path(out_dir)
+        self.log = log
+        self.progress = progress
+        self.device = torch.device(cfg.device)
+        torch.manual_seed(cfg.seed)
+        self.rng = torch.Generator().manual_seed(cfg.seed)
+        self.train_views = load_views(scene, "train", self.device)
+        self.test_views = load_views(scene, "test", self.device)
+        self.extent = scene_extent(self.train_views.cameras)
+        has_roi = getattr(scene, "roi", None) is not None and float(scene.roi.radius) > 0
+        self.effects, self.effect_reasons = decide_effects(
+            cfg.effects, self.train_views.transparent_fraction, has_roi
+        )
+        xyz, rgb = scene.load_points()
+        self.points = (torch.as_tensor(np.asarray(xyz), dtype=torch.float32),
+                       torch.as_tensor(np.asarray(rgb), dtype=torch.float32) / 255.0)
+        if self.points[0].shape[0] == 0:
+            raise CheckpointError(f"{scene.points_path}: the point cloud is empty; cannot initialise surfels")
+        self.model = self._new_model(self._init_surfels())
+        self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
+        self.density = DensityControl(cfg.densify, cfg.schedule, self.extent)
+        self.frozen = torch.zeros(len(self.model.surfels), dtype=torch.bool)
+        self.iteration = 0
+        self.elapsed = 0.0
+        self.order: list[int] = []
+        self.perceptual, why = load_lpips(cfg.losses.lpips_weights)
+        self.perceptual_note = why
+
+    # -- construction ------------------------------------------------------------------------
+    def _init_surfels(self) -> SurfelParameters:
+        m = self.cfg.model
+        return init_from_points(
+            *self.points, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
+            transmissivity=m.transmissivity_init, roughness=m.roughness_init, reflectance=m.reflectance_init,
+            generator=self.rng,
+        )
+
+    def _new_model(self, surfels: SurfelParameters) -> RTModel:
+        roi = self.scene.roi
+        return RTModel(
+            surfels, effects=self.effects, ablations=self.cfg.ablations, settings=self.cfg.model,
+            roi_center=roi.center, roi_radius=roi.radius,
+        ).to(self.device)
+
+    # -- one iteration -----------------------------------------------------------------------
+    def _next_view(self) -> int:
+        if not self.order:
+            self.order = torch.randperm(len(self.train_views), generator=self.rng).tolist()
+        return self.order.pop()
+
+    def _background_phase(self) -> bool:
+        return (not self.cfg.ablations.joint_optimization
+                and self.iteration <= self.cfg.schedule.separate_background_until)
+
+    def step(self) -> StepResult:
+        cfg = self.cfg
+        self.iteration += 1
+        it = self.iteration
+        if not cfg.ablations.joint_optimization and it == cfg.schedule.separate_background_until + 1:
+            self._freeze_background()
+        for group in self.optimizer.param_groups:
+            if group.get("name") == "means":
+                group["lr"] = position_lr(it, cfg.lr, self.extent)
+        idx = self._next_view()
+        camera, target = self.train_views.cameras[idx], self.train_views.images[idx]
+        mask = self.train_views.masks[idx]
+        background_phase = self._background_phase()
+        stage = "volume" if background_phase else stage_at(it, cfg)
+        sh_degree = min(it // 1000, cfg.model.sh_degree)
+        result = self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
+                                   backend=cfg.backend, sh_degree=sh_degree)
+        weight = (1.0 - mask) if (background_phase and mask is not None) else None
+        terms = {"image": losses.image_loss(result.color, target, cfg.losses.ssim_weight, weight)}
+        L = cfg.losses
+        if L.normal_weight > 0 and it > L.normal_from:
+            terms["normal"] = L.normal_weight * losses.normal_consistency(
+                result.layers["normal"], result.raster.depth, result.layers["alpha"], camera)
+        if (cfg.ablations.mask_loss and L.mask_weight > 0 and mask is not None and self.model.uses_opacity):
+            terms["mask"] = L.mask_weight * losses.transparent_mask_loss(result.layers["blended_opacity"], mask)
+        if L.distortion_weight > 0:
+            terms["distortion"] = L.distortion_weight * result.raster.distortion.mean()
+        if self.perceptual is not None and L.perceptual_weight > 0 and it >= L.perceptual_from:
+            terms["perceptual"] = L.perceptual_weight * self.perceptual(result.color, target)
+        if L.transmissivity_bce_weight > 0 and "tau" in result.layers and mask is not None:
+            terms["tau"] = L.transmissivity_bce_weight * losses.masked_mean(
+                -torch.log((1 - result.layers["tau"]).clamp_min(1e-6)), 1 - mask)
+        if L.occupancy_decay_weight > 0:
+            visible = result.raster.visible
+            if visible.any():
+                terms["occupancy_decay"] = L.occupancy_decay_weight * self.model.surfels.occupancy[visible].mean()
+        loss = sum(terms.values())
+        loss.backward()
+        trainable = (~self.frozen).float()
+        self.density.observe(result.raster, trainable)
+        self._optimizer_step()
+        _, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
+        with torch.no_grad():
+            value = losses.psnr(result.color.detach().clamp(0, 1), target).item()
+        return StepResult(it, float(loss.detach()), value, {k: float(v.detach()) for k, v in terms.items()}, stage)
+
+    def _optimizer_step(self) -> None:
+        frozen = self.frozen
+        saved = {}
+        if frozen.any():
+            for name in PARAMETERS:
+                p = getattr(self.model.surfels, name)
+                if p.grad is not None:
+                    p.grad[frozen] = 0
+                saved[name] = p.detach()[frozen].clone()
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        if saved:
+            with torch.no_grad():
+                for name, value in saved.items():
+                    getattr(self.model.surfels, name)[frozen] = value
+
+    def _freeze_background(self) -> None:
+        """joint_optimization off: freeze what was learnt on the background pixels and start fresh
+        surfels (from the SfM points) for the see-through surfaces."""
+        fresh = self._init_surfels()
+        n_old = len(self.model.surfels)
+        append_rows(self.optimizer, self.model.surfels, {k: v.detach() for k, v in fresh.tensors().items()})
+        self.frozen = torch.cat([torch.ones(n_old, dtype=torch.bool), torch.zeros(len(fresh), dtype=torch.bool)])
+        self.log(f"joint_optimization off: froze {n_old} background surfels, added {len(fresh)} new ones")
+
+    # -- evaluation --------------------------------------------------------------------------
+    @torch.no_grad()
+    def evaluate(self, views: ViewSet | None = None) -> dict[str, float]:
+        views = views or self.test_views
+        if len(views) == 0:
+            return {}
+        stage = stage_at(max(self.iteration, 1), self.cfg)
+        full, region = [], []
+        for camera, image, mask in zip(views.cameras, views.images, views.masks, strict=True):
+            color = self.model.render(camera, stage=stage, raster_settings=self.cfg.raster,
+                                      backend=self.cfg.backend).color.clamp(0, 1)
+            full.append(losses.psnr(color, image).item())
+            if mask is not None and mask.sum() > 0:
+                region.append(losses.psnr(color, image, mask).item())
+        out = {"test_psnr": float(np.mean(full))}
+        if region:
+            out["test_psnr_transparent"] = float(np.mean(region))
+        return out
+
+    # -- checkpoints ---------------------------------------------------------------------------
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out / "checkpoints" / "last.pt"
+
+    def state(self) -> dict:
+        return {
+            "version": CHECKPOINT_VERSION,
+            "iteration": self.iteration,
+            "elapsed": self.elapsed,
+            "config": self.cfg.to_dict(),
+            "effects": self.effects.to_dict(),
+            "surfels": {k: v.detach().cpu() for k, v in self.model.surfels.tensors().items()},
+            "model": {k: v for k, v in self.model.state_dict().items() if not k.startswith("surfels.")},
+            "optimizer": self.optimizer.state_dict(),
+            "density": self.density.state_dict(),
+            "frozen": self.frozen,
+            "order": list(self.order),
+            "rng": self.rng.get_state(),
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    def save_checkpoint(self, path: Path | None = None) -> Path:
+        path = path or self.checkpoint_path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.state(), tmp)
+        os.replace(tmp, path)
+        return path
+
+    def load_checkpoint(self, path: Path) -> None:
+        try:
+            state = torch.load(path, map_location=self.device, weights_only=False)
+        except Exception as exc:  # truncated or foreign files
+            raise CheckpointError(
+                f"{path}: cannot read checkpoint ({exc.__class__.__name__}: {exc}); delete it to start over"
+            ) from exc
+        if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
+            raise CheckpointError(f"{path}: not an rtsplat checkpoint (version {CHECKPOINT_VERSION}); delete it")
+        if state["effects"] != self.effects.to_dict():
+            raise CheckpointError(
+                f"{path}: written with effects {state['effects']}, this run uses {self.effects.to_dict()}; "
+                "use a new --out directory or delete the checkpoint"
+            )
+        self.model = self._new_model(SurfelParameters({k: v.to(self.device) for k, v in state["surfels"].items()}))
+        self.model.load_state_dict(state["model"], strict=False)
+        self.optimizer = build_optimizer(self.model, self.model.surfels, self.cfg.lr, self.extent)
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.density.load_state_dict(state["density"])
+        self.frozen = state["frozen"]
+        self.order = list(state["order"])
+        self.rng.set_state(state["rng"])
+        torch.set_rng_state(state["torch_rng"])
+        self.iteration = int(state["iteration"])
+        self.elapsed = float(state["elapsed"])
+
+    # -- the loop ------------------------------------------------------------------------------
+    def train(self, resume: bool = True) -> dict:
+        cfg = self.cfg
+        self.out.mkdir(parents=True, exist_ok=True)
+        log_path = self.out / "train_log.jsonl"
+        if resume and self.checkpoint_path.exists():
+            self.load_checkpoint(self.checkpoint_path)
+            self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
+            _truncate_log(log_path, self.iteration)
+        else:
+            log_path.unlink(missing_ok=True)
+        _write_json(self.out / "config.json", cfg.to_dict())
+        _write_json(self.out / "effects.json", {**self.effects.to_dict(), "reasons": self.effect_reasons,
+                                                "perceptual": self.perceptual_note})
+        self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
+                 f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
+        self.log(f"perceptual loss: {self.perceptual_note}")
+        total = cfg.schedule.iterations
+        bar = _progress(total, self.iteration, self.progress)
+        with open(log_path, "a") as log_file:
+            while self.iteration < total:
+                start = time.perf_counter()
+                step = self.step()
+                self.elapsed += time.perf_counter() - start
+                bar.update(1)
+                bar.set_postfix(loss=f"{step.loss:.4f}", psnr=f"{step.psnr:.2f}", surfels=len(self.model.surfels))
+                if step.iteration % cfg.schedule.log_every == 0 or step.iteration == total:
+                    record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4), "loss": step.loss,
+                              "psnr": step.psnr, "surfels": len(self.model.surfels), "stage": step.stage,
+                              **{f"loss_{k}": v for k, v in step.terms.items()}}
+                    log_file.write(json.dumps(record) + "\n")
+                    log_file.flush()
+                if cfg.schedule.checkpoint_every > 0 and step.iteration % cfg.schedule.checkpoint_every == 0:
+                    self.save_checkpoint()
+        bar.close()
+        return self.finish()
+
+    def finish(self) -> dict:
+        metrics = self.evaluate()
+        torch.save(self.state(), self.out / "model.pt.tmp")
+        os.replace(self.out / "model.pt.tmp", self.out / "model.pt")
+        write_surfel_ply(self.out / "point_cloud.ply", self.model.surfels, self.model.uses_opacity)
+        summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
+                   "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
+                   "surfels": len(self.model.surfels), "effects": self.effects.to_dict(), **metrics}
+        _write_json(self.out / "summary.json", summary)
+        self.log(f"done: {json.dumps(summary)}")
+        return summary
+
+
+def _truncate_log(path: Path, iteration: int) -> None:
+    """Drop log lines written after the checkpoint (they will be written again)."""
+    if not path.exists():
+        return
+    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    kept = [line for line in lines if json.loads(line)["iteration"] <= iteration]
+    path.write_text("".join(line + "\n" for line in kept))
+
+
+def _progress(total: int, initial: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, disable=not enabled, desc="train", unit="it", dynamic_ncols=True)
+
+
+def load_model(path: str | Path, device: str = "cpu") -> tuple[RTModel, dict]:
+    """Rebuild a trained model from ``model.pt`` (or a checkpoint) for rendering."""
+    from rtsplat.model.rtmodel import ActiveEffects
+
+    state = torch.load(path, map_location=device, weights_only=False)
+    cfg = TrainConfig.from_dict(state["config"])
+    surfels = SurfelParameters({k: v.to(device) for k, v in state["surfels"].items()})
+    roi_center = state["model"].get("roi_center", torch.zeros(3))
+    roi_radius = state["model"].get("roi_radius", torch.tensor(1e9))
+    model = RTModel(surfels, effects=ActiveEffects(**state["effects"]), ablations=cfg.ablations,
+                    settings=cfg.model, roi_center=roi_center, roi_radius=float(roi_radius)).to(device)
+    model.load_state_dict(state["model"], strict=False)
+    return model, state

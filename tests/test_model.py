@@ -1,0 +1,188 @@
+"""Model components: environment map, specular network, gating, ablation switches, effects."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from raster_scenes import small_camera
+
+from rtsplat.model import rtmodel
+from rtsplat.model.envmap import EnvironmentMap
+from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
+from rtsplat.model.rtmodel import ActiveEffects, RTModel
+from rtsplat.model.sh import eval_sh, rgb_to_sh_dc
+from rtsplat.model.specular import SpecularNetwork
+from rtsplat.model.surfels import init_from_points
+from rtsplat.train.config import Ablations, Effects, Gating, ModelSettings
+from rtsplat.train.effects import decide_effects
+
+SMALL = ModelSettings(env_height=16, env_width=32, env_levels=3, mlp_width=32)
+
+
+def test_sh_degree_zero_reproduces_the_point_colour():
+    rgb = torch.rand(10, 3)
+    coeffs = torch.zeros(10, 16, 3)
+    coeffs[:, 0] = rgb_to_sh_dc(rgb)
+    torch.testing.assert_close(eval_sh(coeffs, torch.nn.functional.normalize(torch.randn(10, 3), dim=-1), 3), rgb)
+
+
+def test_environment_map_wraps_around_in_longitude():
+    env = EnvironmentMap(channels=2, height=8, width=16, levels=3)
+    with torch.no_grad():
+        env.features.normal_()
+    eps = 1e-4
+    # just either side of the seam at phi = +-pi (direction -x)
+    a = torch.tensor([[-1.0, eps, 0.0], [-1.0, -eps, 0.0]])
+    a = torch.nn.functional.normalize(a, dim=-1)
+    out = env(a, torch.zeros(2))
+    torch.testing.assert_close(out[0], out[1], atol=1e-2, rtol=0)
+    # and across the seam the value is the blend of the first and last columns
+    col_first, col_last = env.features[0, :, 4, 0], env.features[0, :, 4, -1]
+    mid = env(torch.tensor([[-1.0, 0.0, 0.0]]), torch.zeros(1))[0]
+    v = math.acos(0.0) / math.pi * 8 - 0.5  # row coordinate of the equator: between rows 3 and 4
+    expected_row4 = 0.5 * (col_first + col_last)
+    row3 = 0.5 * (env.features[0, :, 3, 0] + env.features[0, :, 3, -1])
+    torch.testing.assert_close(mid, row3 + (v - 3) * (expected_row4 - row3), atol=1e-5, rtol=1e-5)
+
+
+def test_environment_map_roughness_selects_blurrier_levels():
+    env = EnvironmentMap(channels=1, height=16, width=32, levels=3)
+    with torch.no_grad():
+        env.features.normal_()
+    dirs = torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    sharp = env(dirs, torch.zeros(500))
+    blurry = env(dirs, torch.ones(500))
+    assert blurry.std() < 0.6 * sharp.std()
+
+
+def test_specular_network_shapes_and_ranges():
+    net = SpecularNetwork(16, 4, 32)
+    spec, beta = net(torch.randn(7, 16), torch.nn.functional.normalize(torch.randn(7, 4), dim=-1), torch.rand(7, 1))
+    assert spec.shape == (7, 3) and beta.shape == (7, 1)
+    assert (spec >= 0).all() and ((beta >= 0) & (beta <= 1)).all()
+
+
+def test_gate_gradient_keeps_the_value_and_scales_the_gradient_exactly():
+    x = torch.rand(5, 4, 3, dtype=torch.float64, requires_grad=True)
+    g = torch.rand(5, 4, 3, dtype=torch.float64)
+    y = gate_gradient(x, g)
+    torch.testing.assert_close(y, x, rtol=0, atol=1e-15)
+    upstream = torch.rand_like(x)
+    y.backward(upstream)
+    torch.testing.assert_close(x.grad, g * upstream, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("mode", ["variance", "weighted_std"])
+def test_gate_is_one_on_flat_specular_and_small_on_busy_specular(mode):
+    flat = torch.full((6, 6, 3), 0.7)
+    alpha = torch.zeros(6, 6, 1)
+    assert torch.allclose(gate_factor(flat, alpha, 4.0, mode), torch.ones(6, 6, 3))
+    busy = (torch.arange(36).reshape(6, 6, 1) % 2).float().expand(6, 6, 3) * 3
+    assert gate_factor(busy, alpha, 4.0, mode).max() < 0.2
+    if mode == "variance":  # plain 3x3 variance at an interior pixel
+        window = busy[1:4, 1:4, 0].flatten()
+        assert torch.isclose(specular_complexity(busy, alpha, mode)[2, 2, 0], window.var(unbiased=False))
+
+
+def _model(effects=None, ablations=None, seed=0):
+    torch.manual_seed(seed)  # the specular network's initialisation
+    g = torch.Generator().manual_seed(seed)
+    xyz = torch.rand(300, 3, generator=g) * 1.2 - 0.6
+    rgb = torch.rand(300, 3, generator=g)
+    surfels = init_from_points(xyz, rgb, occupancy=0.6, opacity=0.5, generator=g)
+    model = RTModel(surfels, effects=effects or ActiveEffects(), ablations=ablations or Ablations(), settings=SMALL,
+                    roi_center=(0.0, 0.0, 0.0), roi_radius=5.0)
+    with torch.no_grad():
+        model.env.features.normal_(generator=g) if model.env is not None else None
+    return model
+
+
+def _render(model, **kw):
+    return model.render(small_camera(24, 18, torch.float32), stage="full", backend="reference", **kw)
+
+
+def test_occupancy_ablation_uses_one_opacity_for_both_weight_sets():
+    out = _render(_model(ablations=Ablations(occupancy=False))).raster
+    assert torch.equal(out.alpha, out.volume_alpha)
+    out_on = _render(_model()).raster
+    assert (out_on.alpha - out_on.volume_alpha).abs().max() > 0.05
+
+
+def test_attenuation_ablation_sets_beta_to_one():
+    layers = _render(_model(ablations=Ablations(attenuation=False))).layers
+    assert torch.equal(layers["beta"], torch.ones_like(layers["beta"]))
+    assert (_render(_model()).layers["beta"] - 1).abs().max() > 1e-3
+
+
+def test_scattering_ablation_removes_tau_and_scatter():
+    result = _render(_model(ablations=Ablations(scattering=False)))
+    assert "tau" not in result.layers and "scatter" not in result.layers
+    L = result.layers
+    shaded = L["spec"] + L["beta"] * L["trans"]
+    expected = torch.where(L["shade"] > 0, L["roi"] * shaded + (1 - L["roi"]) * L["trans"], L["trans"])
+    torch.testing.assert_close(result.color, expected)
+
+
+def test_composite_equation_with_every_branch_on():
+    result = _render(_model())
+    L = result.layers
+    shaded = L["spec"] + L["beta"] * (L["tau"] * L["trans"] + (1 - L["tau"]) * L["scatter"])
+    expected = torch.where(L["shade"] > 0, L["roi"] * shaded + (1 - L["roi"]) * L["trans"], L["trans"])
+    torch.testing.assert_close(result.color, expected)
+    assert L["shade"].sum() > 10  # the test exercises shaded pixels
+
+
+def _sh_grad(model, gating, weight):
+    model.zero_grad(set_to_none=True)
+    result = _render(model, gating=gating)
+    (result.color * weight(result)).sum().backward()
+    return model.surfels.sh_dc.grad.clone(), result
+
+
+def test_gating_off_leaves_the_transmission_gradient_untouched(monkeypatch):
+    """gating off == gating on with g forced to exactly 1."""
+    weight = lambda r: torch.ones_like(r.color)  # noqa: E731
+    off, _ = _sh_grad(_model(ablations=Ablations(gating=False)), Gating(), weight)
+    monkeypatch.setattr(rtmodel, "gate_factor", lambda spec, *a, **k: torch.ones_like(spec))
+    forced, result = _sh_grad(_model(), Gating(), weight)
+    assert "gate" in result.layers
+    torch.testing.assert_close(forced, off, rtol=0, atol=0)
+
+
+def test_gating_scales_the_transmission_gradient_by_g():
+    """Undo g in the loss weights (on the gated path only): gradients must equal the ungated ones."""
+    base = _model(seed=3)
+    on = _model(seed=3)
+    reference = _render(base, gating=Gating()).layers
+    g = reference["gate"]
+    L = reference
+    tau_beta_roi = (L["roi"] * L["beta"] * L["tau"]).detach()
+    shade = L["shade"]
+    path_on = torch.where(shade > 0, tau_beta_roi * g + (1 - L["roi"].detach()), torch.ones_like(g))
+    path_off = torch.where(shade > 0, tau_beta_roi + (1 - L["roi"].detach()), torch.ones_like(g))
+    assert (g < 0.99).any(), "the scene has no specular variation to gate"
+    grad_off, _ = _sh_grad(_model(seed=3, ablations=Ablations(gating=False)), Gating(), lambda r: path_off / path_off)
+    grad_on, _ = _sh_grad(on, Gating(), lambda r: path_off / path_on)
+    torch.testing.assert_close(grad_on, grad_off, rtol=1e-4, atol=1e-7)
+    # and the forward value does not depend on gating
+    torch.testing.assert_close(_render(on, gating=Gating()).color, _render(on, gating=None).color)
+
+
+def test_no_transmission_no_specular_is_plain_2dgs_radiance():
+    model = _model(effects=ActiveEffects(transmission=False, specular=False))
+    assert model.env is None and model.specular_net is None
+    result = _render(model)
+    assert torch.equal(result.raster.alpha, result.raster.volume_alpha)
+    torch.testing.assert_close(result.color, result.layers["trans"])
+
+
+def test_effects_auto_decides_from_masks_and_roi():
+    effects, why = decide_effects(Effects(), transparent_fraction=0.0, has_roi=False)
+    assert effects == ActiveEffects(transmission=False, specular=False)
+    assert "no transparent pixel" in why["transmission"]
+    effects, _ = decide_effects(Effects(), transparent_fraction=0.1, has_roi=True)
+    assert effects == ActiveEffects(True, True)
+    effects, why = decide_effects(Effects(transmission="on", specular="off"), 0.0, True)
+    assert effects == ActiveEffects(True, False) and why["specular"] == "config: off"
