@@ -179,10 +179,14 @@ def test_no_transmission_no_specular_is_plain_2dgs_radiance():
 
 
 def test_effects_auto_decides_from_masks_and_roi():
-    effects, why = decide_effects(Effects(), transparent_fraction=0.0, has_roi=False)
+    effects, why = decide_effects(Effects(), transparent_fraction=0.0, roi_source=None)
     assert effects == ActiveEffects(transmission=False, specular=False)
     assert "no transparent pixel" in why["transmission"]
-    effects, _ = decide_effects(Effects(), transparent_fraction=0.1, has_roi=True)
+    # an ROI that prepare estimated does not ask for reflections; one given in the config does
+    assert decide_effects(Effects(), 0.0, "estimated")[0] == ActiveEffects(False, False)
+    effects, why = decide_effects(Effects(), 0.0, "config")
+    assert effects == ActiveEffects(False, True) and "config" in why["specular"]
+    effects, _ = decide_effects(Effects(), transparent_fraction=0.1, roi_source="estimated")
     assert effects == ActiveEffects(True, True)
-    effects, why = decide_effects(Effects(transmission="on", specular="off"), 0.0, True)
+    effects, why = decide_effects(Effects(transmission="on", specular="off"), 0.0, "config")
     assert effects == ActiveEffects(True, False) and why["specular"] == "config: off"

@@ -82,9 +82,10 @@ class Trainer:
         self.train_views = load_views(scene, "train", self.device)
         self.test_views = load_views(scene, "test", self.device)
         self.extent = scene_extent(self.train_views.cameras)
-        has_roi = getattr(scene, "roi", None) is not None and float(scene.roi.radius) > 0
+        roi = getattr(scene, "roi", None)
+        roi_source = roi.source if roi is not None and float(roi.radius) > 0 else None
         self.effects, self.effect_reasons = decide_effects(
-            cfg.effects, self.train_views.transparent_fraction, has_roi
+            cfg.effects, self.train_views.transparent_fraction, roi_source
         )
         xyz, rgb = scene.load_points()
         self.points = (torch.as_tensor(np.asarray(xyz), dtype=torch.float32),

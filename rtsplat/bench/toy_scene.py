@@ -1,4 +1,4 @@
-"""A tiny prepared scene for trainer tests: a photo-textured wall seen through a glass-like pane.
+"""A tiny prepared scene for trainer tests and benchmarks: a photo-textured wall seen through a glass-like pane.
 
 Ground truth is rendered with the rasterizer's volume colour from known surfels (the wall: opaque
 surfels coloured by a scikit-image photograph; the pane: full occupancy, opacity 0.15, bluish),
@@ -60,12 +60,12 @@ def ground_truth_surfels(n_side: int = 20, with_pane: bool = True) -> tuple[Surf
 
 
 def write_scene(root: Path, *, views: int = 12, width: int = 64, height: int = 48, with_pane: bool = True,
-                test_every: int = 4, seed: int = 0) -> PreparedScene:
+                n_side: int = 20, test_every: int = 4, seed: int = 0, roi_source: str = "config") -> PreparedScene:
     root = Path(root)
     (root / "images").mkdir(parents=True, exist_ok=True)
     if with_pane:
         (root / "masks").mkdir(parents=True, exist_ok=True)
-    surfels, is_glass = ground_truth_surfels(with_pane=with_pane)
+    surfels, is_glass = ground_truth_surfels(n_side=n_side, with_pane=with_pane)
     records = []
     for i in range(views):
         angle = -0.5 + i / max(views - 1, 1)
@@ -90,6 +90,6 @@ def write_scene(root: Path, *, views: int = 12, width: int = 64, height: int = 4
     pts = surfels.means.numpy() + g.normal(0, 0.02, surfels.means.shape)
     rgb = (surfels.colors.numpy() * 255).astype(np.uint8)
     write_points_ply(root / "points.ply", pts, rgb)
-    scene = PreparedScene(cameras=records, roi=Roi([0.0, -0.3, 0.0], 1.0, "config"), has_transparency=with_pane)
+    scene = PreparedScene(cameras=records, roi=Roi([0.0, -0.3, 0.0], 1.0, roi_source), has_transparency=with_pane)
     scene.save(root)
     return PreparedScene.load(root)
