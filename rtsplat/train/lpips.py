@@ -63,6 +63,22 @@ class LPIPSVGG(nn.Module):
             total = total + lin((na - nb) ** 2).mean()
         return total
 
+    def distance_map(self, a: Tensor, b: Tensor) -> Tensor:
+        """Per-pixel LPIPS [H,W]: each layer's map upsampled (bilinear) to the image size and summed
+        (the ``spatial`` variant of the lpips package); its mean over a region scores that region."""
+        H, W = a.shape[:2]
+
+        def prep(img: Tensor) -> Tensor:
+            return ((img.permute(2, 0, 1)[None] * 2 - 1) - self.shift) / self.scale
+
+        total = a.new_zeros(H, W)
+        for fa, fb, lin in zip(self._features(prep(a)), self._features(prep(b)), self.lins, strict=True):
+            na = fa / (fa.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            nb = fb / (fb.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            layer = lin((na - nb) ** 2)
+            total = total + F.interpolate(layer, size=(H, W), mode="bilinear", align_corners=False)[0, 0]
+        return total
+
     def load_weights(self, vgg_state: dict, lin_state: dict) -> LPIPSVGG:
         for index, _ in VGG_CONVS:
             self.convs[str(index)].weight.data.copy_(vgg_state[f"features.{index}.weight"])

@@ -1,0 +1,166 @@
+"""``rtsplat metrics``: PSNR, SSIM and LPIPS-VGG on the entire image and on the transparent region.
+
+Definitions (METHOD.md section 7), images in [0,1]:
+
+* PSNR: ``-10 log10(MSE)``; the region's MSE averages the pixels whose mask is 1 (all channels).
+* SSIM: the 3DGS definition (11x11 Gaussian window, sigma 1.5, C1 = 0.01^2, C2 = 0.03^2, zero
+  padding); the entire-image value is the mean of the SSIM map, the region's value the mean of the
+  map over mask pixels. Inside the image (5 px from the border) the map equals scikit-image's
+  ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+  data_range=1)``, which a test checks; at the border 3DGS pads with zeros.
+* LPIPS-VGG: real weights only (``--lpips-weights`` or the torch hub cache, see
+  :mod:`rtsplat.train.lpips`); the region's value is the mean of the spatial LPIPS map over mask
+  pixels. Without weights the value is the string ``"n/a (weights not found)"``.
+
+Views are the renders of ``rtsplat render`` (``<renders>/color/<name>.png``) against the prepared
+scene's images and masks. The JSON records per-view values, means, the run's config hash, package
+versions and the machine. With ``--gt-layers DIR`` (synthetic scenes: ``DIR/reflection/<name>.png``,
+``DIR/transmission/<name>.png`` at the prepared resolution) it also scores the decomposition.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import platform
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rtsplat.errors import PipelineError
+from rtsplat.train.losses import psnr, ssim_map
+
+NOT_AVAILABLE = "n/a (weights not found)"
+
+
+def image_metrics(render: Tensor, target: Tensor, mask: Tensor | None, lpips_model=None) -> dict:
+    """Metrics of one [H,W,3] render against its target; ``mask`` [H,W] bool or None."""
+    out = {"psnr": float(psnr(render, target)), "ssim": float(ssim_map(render, target).mean())}
+    lp = None
+    if lpips_model is not None:
+        with torch.no_grad():
+            lp = lpips_model.distance_map(render, target)
+        out["lpips"] = float(lp.mean())
+    else:
+        out["lpips"] = NOT_AVAILABLE
+    if mask is not None and bool(mask.any()):
+        weight = mask[..., None].to(render.dtype)
+        smap = ssim_map(render, target)
+        out["psnr_transparent"] = float(psnr(render, target, weight))
+        out["ssim_transparent"] = float((smap * weight).sum() / (weight.sum() * smap.shape[-1]))
+        out["lpips_transparent"] = float(lp[mask].mean()) if lp is not None else NOT_AVAILABLE
+    return out
+
+
+def _mean(values: list) -> float | str | None:
+    numbers = [v for v in values if isinstance(v, float)]
+    if not values:
+        return None
+    if len(numbers) < len(values):
+        return NOT_AVAILABLE
+    return float(np.mean(numbers))
+
+
+def config_hash(run_dir: Path) -> str | None:
+    path = run_dir / "config.json"
+    if not path.is_file():
+        return None
+    return hashlib.sha256(json.dumps(json.loads(path.read_text()), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def environment() -> dict:
+    from importlib import metadata
+
+    versions = {}
+    for package in ("rtsplat", "torch", "numpy", "numba", "pycolmap", "mitsuba", "scikit-image"):
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            continue
+    return {"versions": versions, "machine": {"platform": platform.platform(), "processor": platform.processor(),
+                                              "cpus": os.cpu_count(), "python": platform.python_version()}}
+
+
+def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str | Path | None = None,
+                    lpips_weights: str = "", gt_layers: str | Path | None = None) -> dict:
+    from rtsplat.io.images import read_image
+    from rtsplat.scene import PreparedScene
+    from rtsplat.train.lpips import load_lpips
+
+    renders = Path(renders)
+    info_path = renders / "render.json"
+    if not info_path.is_file():
+        raise PipelineError("not a render directory (no render.json)", path=renders,
+                            fix="run `rtsplat render` first and pass its --out here")
+    info = json.loads(info_path.read_text())
+    scene = PreparedScene.load(data_dir)
+    lpips_model, lpips_note = load_lpips(lpips_weights)
+    per_view = {}
+    for name in info["views"]:
+        path = renders / "color" / f"{name}.png"
+        if not path.is_file():
+            raise PipelineError("render missing for a view listed in render.json", path=path,
+                                fix="rerun `rtsplat render`")
+        render = torch.from_numpy(read_image(path))
+        target = torch.from_numpy(scene.load_image(name))
+        if render.shape != target.shape:
+            raise PipelineError(f"render is {tuple(render.shape)} but the image is {tuple(target.shape)}", path=path,
+                                fix="render from the same prepared scene the metrics use")
+        mask = scene.load_mask(name)
+        mask_t = None if mask is None else torch.from_numpy(mask)
+        values = image_metrics(render, target, mask_t, lpips_model)
+        if gt_layers is not None:
+            for layer in ("reflection", "transmission"):
+                truth = torch.from_numpy(read_image(Path(gt_layers) / layer / f"{name}.png"))
+                ours = torch.from_numpy(read_image(renders / layer / f"{name}.png"))
+                values[f"psnr_{layer}_layer"] = float(psnr(ours, truth))
+        per_view[name] = values
+    keys = sorted({k for v in per_view.values() for k in v})
+    means = {k: _mean([v[k] for v in per_view.values() if k in v]) for k in keys}
+    return {
+        "mean": means, "views": per_view, "lpips": lpips_note, "fps": info.get("fps"),
+        "render_device": info.get("device"), "renders": str(renders), "data": str(data_dir),
+        "run": str(run_dir) if run_dir else info.get("run"),
+        "config_hash": config_hash(Path(run_dir or info.get("run", ""))),
+        **environment(),
+    }
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as handle:
+        json.dump(data, handle, indent=2)
+        handle.write("\n")
+    os.replace(tmp, path)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = __doc__
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("--renders", type=Path, required=True, help="output directory of `rtsplat render`")
+    parser.add_argument("--data", type=Path, required=True, help="the prepared scene (images and masks)")
+    parser.add_argument("--out", type=Path, required=True, help="metrics JSON file (written atomically)")
+    parser.add_argument("--run", type=Path, help="run directory (for the config hash; default: from render.json)")
+    parser.add_argument("--lpips-weights", default="", help="directory with vgg16-397923af.pth and vgg.pth")
+    parser.add_argument("--gt-layers", type=Path, help="ground-truth reflection/transmission layers (synthetic)")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        result = compute_metrics(args.renders, args.data, run_dir=args.run, lpips_weights=args.lpips_weights,
+                                 gt_layers=args.gt_layers)
+    except PipelineError as exc:
+        print(f"rtsplat metrics: error: {exc}", file=sys.stderr)
+        return 2
+    write_json_atomic(args.out, result)
+    m = result["mean"]
+    parts = [f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in m.items()]
+    print(f"{args.out}: " + ", ".join(parts))
+    return 0

@@ -1,0 +1,221 @@
+"""``rtsplat render``: test views, the decomposed layers and the rendering speed of a trained run.
+
+Writes, for every view of the chosen split, into ``<out>/``:
+
+* ``color/<name>.png``          the final image;
+* ``reflection/<name>.png``     ``C_spec`` inside the region of interest (black where none);
+* ``transmission/<name>.png``   ``beta * tau * C_trans`` (plus the plain radiance outside the ROI);
+* ``scatter/<name>.png``        the rest, ``beta * (1 - tau) * C_scatter``: the three layers sum to ``color``;
+* ``normal/<name>.png``         world normals mapped to [0,1];  ``depth/<name>.png``: inverse depth;
+* ``render.json``               views, device, backend, edits and frames per second.
+
+FPS is measured over the views after ``--warmup`` untimed renders (inference mode, no files written
+while timing), on the device the model is on.
+
+Scene edits (the paper's applications) are exact operations on the trained model:
+``roughness=S`` scales every surfel's roughness (blurrier or sharper reflections),
+``transparency=S`` scales the optical opacity of the surfels (S < 1: clearer glass),
+``reflections=off`` removes ``C_spec`` from the image, ``tint=R,G,B`` multiplies the transmission layer.
+Everything is written into a temporary directory that replaces ``<out>`` only when all views are
+done, so a failed run leaves no partial output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from rtsplat.errors import PipelineError
+
+LAYER_DIRS = ("color", "reflection", "transmission", "scatter", "normal", "depth")
+
+
+@dataclass
+class Edits:
+    roughness: float = 1.0  # multiply roughness (clamped to [0, 1])
+    transparency: float = 1.0  # multiply the optical opacity (clamped to [0, 1])
+    reflections: bool = True  # False: remove C_spec from the image
+    tint: tuple[float, float, float] = (1.0, 1.0, 1.0)  # multiply the transmission layer
+
+    @property
+    def is_identity(self) -> bool:
+        return self == Edits()
+
+    @classmethod
+    def parse(cls, items: list[str]) -> Edits:
+        """``["roughness=2", "reflections=off", "tint=1,0.8,0.6"]`` -> Edits; clear errors otherwise."""
+        edits = cls()
+        for item in items:
+            key, sep, value = item.partition("=")
+            key = key.strip()
+            try:
+                if not sep:
+                    raise ValueError("expected key=value")
+                if key in ("roughness", "transparency"):
+                    number = float(value)
+                    if not math.isfinite(number) or number < 0:
+                        raise ValueError("must be a finite number >= 0")
+                    setattr(edits, key, number)
+                elif key == "reflections":
+                    if value not in ("on", "off"):
+                        raise ValueError("must be 'on' or 'off'")
+                    edits.reflections = value == "on"
+                elif key == "tint":
+                    rgb = tuple(float(v) for v in value.split(","))
+                    if len(rgb) != 3 or not all(math.isfinite(v) and v >= 0 for v in rgb):
+                        raise ValueError("must be three numbers >= 0, e.g. tint=1,0.8,0.6")
+                    edits.tint = rgb
+                else:
+                    raise ValueError("unknown edit; use roughness=S, transparency=S, reflections=off, tint=R,G,B")
+            except ValueError as exc:
+                raise PipelineError(f"bad --edit {item!r}: {exc}") from None
+        return edits
+
+
+def apply_parameter_edits(model, edits: Edits) -> None:
+    """Edit the surfels in place (roughness and optical opacity live in logit space)."""
+    p = model.surfels
+    with torch.no_grad():
+        if edits.roughness != 1.0:
+            p.roughness_logit.copy_(torch.logit((p.roughness * edits.roughness).clamp(1e-6, 1 - 1e-6)))
+        if edits.transparency != 1.0:
+            p.opacity_logit.copy_(torch.logit((p.opacity * edits.transparency).clamp(1e-6, 1 - 1e-6)))
+
+
+def decompose(result, edits: Edits) -> dict[str, Tensor]:
+    """Colour and its three additive layers, after the image-space edits."""
+    color = result.color
+    zero = torch.zeros_like(color)
+    reflection = result.layers.get("reflection", zero)
+    transmission = result.layers.get("transmission", color)
+    scatter = color - reflection - transmission
+    if not edits.reflections:
+        reflection = zero
+    transmission = transmission * torch.as_tensor(edits.tint, dtype=color.dtype, device=color.device)
+    return {"color": reflection + transmission + scatter, "reflection": reflection, "transmission": transmission,
+            "scatter": scatter}
+
+
+def _normal_image(normal: Tensor) -> Tensor:
+    return normal * 0.5 + 0.5
+
+
+def _depth_image(depth: Tensor, alpha: Tensor) -> Tensor:
+    inv = torch.where(alpha > 0.5, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
+    top = inv.max().clamp_min(1e-12)
+    return (inv / top).expand(*inv.shape[:2], 3)
+
+
+def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, split: str = "test",
+               edits: Edits | None = None, backend: str = "auto", warmup: int = 2, device: str = "cpu",
+               progress: bool = True) -> dict:
+    """Render ``split`` views of the prepared scene with the model of ``run_dir``; returns render.json."""
+    from tqdm.auto import tqdm
+
+    from rtsplat.io.images import write_png
+    from rtsplat.scene import PreparedScene
+    from rtsplat.train.config import TrainConfig
+    from rtsplat.train.trainer import load_model
+
+    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    model_path = run_dir / "model.pt"
+    if not model_path.is_file():
+        raise PipelineError("no trained model here", path=model_path,
+                            fix="run `rtsplat train` to completion for this run directory first")
+    scene = PreparedScene.load(data_dir)
+    records = scene.test_cameras if split == "test" else scene.train_cameras if split == "train" else scene.cameras
+    if not records:
+        raise PipelineError(f"the prepared scene has no {split!r} views", path=data_dir)
+    edits = edits or Edits()
+    model, state = load_model(model_path, device=device)
+    model.eval()
+    apply_parameter_edits(model, edits)
+    raster = TrainConfig.from_dict(state["config"]).raster
+    cameras = [rec.to_camera(device=device) for rec in records]
+
+    def render(camera):
+        return model.render(camera, stage="full", raster_settings=raster, backend=backend)
+
+    with torch.inference_mode():
+        for camera in cameras[: max(warmup, 0)]:
+            render(camera)
+        start = time.perf_counter()
+        for camera in cameras:
+            render(camera)
+        seconds = time.perf_counter() - start
+
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        for layer in LAYER_DIRS:
+            (tmp / layer).mkdir()
+        with torch.inference_mode():
+            for rec, camera in tqdm(list(zip(records, cameras, strict=True)), desc="render", disable=not progress):
+                result = render(camera)
+                images = decompose(result, edits)
+                images["normal"] = _normal_image(result.layers["normal"])
+                images["depth"] = _depth_image(result.layers["depth"], result.layers["alpha"])
+                for layer in LAYER_DIRS:
+                    write_png(tmp / layer / f"{rec.name}.png", images[layer].clamp(0, 1).cpu().numpy())
+        info = {
+            "views": [rec.name for rec in records], "split": split, "device": _device_name(device),
+            "backend": backend, "edits": asdict(edits), "fps": len(cameras) / max(seconds, 1e-12),
+            "seconds": seconds, "warmup": warmup, "surfels": len(model.surfels),
+            "width": records[0].width, "height": records[0].height, "effects": state["effects"],
+            "run": str(run_dir),
+        }
+        (tmp / "render.json").write_text(json.dumps(info, indent=2) + "\n")
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return info
+
+
+def _device_name(device: str) -> str:
+    if str(device).startswith("cuda") and torch.cuda.is_available():
+        return torch.cuda.get_device_name(torch.device(device))
+    import platform
+
+    return f"CPU {platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = __doc__
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("--run", type=Path, required=True, help="run directory of `rtsplat train` (has model.pt)")
+    parser.add_argument("--data", type=Path, required=True, help="the prepared scene the run was trained on")
+    parser.add_argument("--out", type=Path, required=True, help="output directory (replaced atomically)")
+    parser.add_argument("--split", choices=("test", "train", "all"), default="test")
+    parser.add_argument("--edit", action="append", default=[], metavar="KEY=VALUE",
+                        help="scene edit, repeatable: roughness=S, transparency=S, reflections=off, tint=R,G,B")
+    parser.add_argument("--backend", default="auto", help="rasterizer backend (auto, cpu, reference)")
+    parser.add_argument("--warmup", type=int, default=2, help="untimed renders before measuring FPS")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        edits = Edits.parse(args.edit)
+        info = render_run(args.run, args.data, args.out, split=args.split, edits=edits, backend=args.backend,
+                          warmup=args.warmup, device=args.device, progress=not args.quiet)
+    except PipelineError as exc:
+        print(f"rtsplat render: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"rendered {len(info['views'])} views to {args.out}: {info['fps']:.2f} FPS on {info['device']}")
+    return 0
+

@@ -1,0 +1,158 @@
+"""Render and metrics stages: layers add up, edits do what they say, metrics match their definitions."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from rtsplat.bench.toy_scene import write_scene
+from rtsplat.io.images import read_image
+from rtsplat.metrics import NOT_AVAILABLE, image_metrics
+from rtsplat.render import Edits, apply_parameter_edits, render_run
+from rtsplat.train.config import TrainConfig
+from rtsplat.train.losses import ssim_map
+from rtsplat.train.trainer import Trainer, load_model
+
+QUANT = 1.5 / 255  # 8-bit PNGs: each layer is rounded separately
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("render")
+    scene = write_scene(root / "scene", views=8, width=48, height=36)
+    cfg = TrainConfig.from_dict({
+        "schedule": {"iterations": 30, "volume_until": 5, "specular_from": 10, "densify_from": 1000,
+                     "reset_every": 0, "checkpoint_every": 0, "log_every": 10},
+        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
+    })
+    trainer = Trainer(scene, cfg, root / "run", progress=False, log=lambda m: None)
+    summary = trainer.train()
+    return root, scene, summary
+
+
+def read_layers(out, name):
+    return {layer: read_image(out / layer / f"{name}.png") for layer in ("color", "reflection", "transmission",
+                                                                          "scatter")}
+
+
+def test_ssim_matches_scikit_image_inside_the_border():
+    g = np.random.default_rng(0)
+    a = g.random((40, 50, 3))
+    b = np.clip(a + 0.1 * g.standard_normal(a.shape), 0, 1)
+    ours = ssim_map(torch.from_numpy(a), torch.from_numpy(b))[5:-5, 5:-5].mean().item()
+    theirs = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                   data_range=1, channel_axis=-1)
+    assert ours == pytest.approx(theirs, abs=1e-6)
+
+
+def test_region_psnr_and_ssim_follow_their_definitions():
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(30, 40, 3, generator=g, dtype=torch.float64) * 0.8
+    mask = torch.zeros(30, 40, dtype=torch.bool)
+    mask[10:20, 5:25] = True
+    render = target.clone()
+    render[mask] += 0.1
+    m = image_metrics(render, target, mask)
+    assert m["psnr_transparent"] == pytest.approx(20.0, abs=1e-9)  # MSE 0.01 inside the region
+    assert m["psnr"] == pytest.approx(-10 * np.log10(0.01 * mask.double().mean().item()), abs=1e-6)
+    smap = ssim_map(render, target)
+    assert m["ssim_transparent"] == pytest.approx(smap[mask].mean().item(), abs=1e-12)
+    assert m["ssim"] == pytest.approx(smap.mean().item(), abs=1e-12)
+    assert m["lpips"] == NOT_AVAILABLE and m["lpips_transparent"] == NOT_AVAILABLE
+    assert "psnr_transparent" not in image_metrics(render, target, torch.zeros_like(mask))
+
+
+def test_render_writes_layers_that_add_up_and_fps(trained, tmp_path):
+    root, scene, _ = trained
+    info = render_run(root / "run", scene.root, tmp_path / "renders", progress=False)
+    assert info["fps"] > 0 and info["views"] == [c.name for c in scene.test_cameras]
+    assert json.loads((tmp_path / "renders" / "render.json").read_text())["fps"] == info["fps"]
+    for name in info["views"]:
+        layers = read_layers(tmp_path / "renders", name)
+        total = layers["reflection"] + layers["transmission"] + layers["scatter"]
+        # layers are clamped to [0,1] before writing; compare where the colour is not clipped
+        ok = (layers["color"] > QUANT) & (layers["color"] < 1 - QUANT)
+        np.testing.assert_allclose(total[ok], layers["color"][ok], atol=3 * QUANT)
+        for layer in ("normal", "depth"):
+            assert (tmp_path / "renders" / layer / f"{name}.png").is_file()
+    assert any(read_layers(tmp_path / "renders", n)["reflection"].max() > 0 for n in info["views"])
+
+
+def test_edits_remove_reflections_and_tint_the_transmission(trained, tmp_path):
+    root, scene, _ = trained
+    plain = render_run(root / "run", scene.root, tmp_path / "plain", progress=False)
+    render_run(root / "run", scene.root, tmp_path / "noref", progress=False, edits=Edits(reflections=False))
+    render_run(root / "run", scene.root, tmp_path / "black", progress=False, edits=Edits(tint=(0.0, 0.0, 0.0)))
+    for name in plain["views"]:
+        base = read_layers(tmp_path / "plain", name)
+        noref = read_layers(tmp_path / "noref", name)
+        black = read_layers(tmp_path / "black", name)
+        assert noref["reflection"].max() == 0
+        np.testing.assert_allclose(noref["transmission"], base["transmission"], atol=QUANT)
+        ok = base["color"] < 1 - QUANT
+        np.testing.assert_allclose(noref["color"][ok], (base["color"] - base["reflection"])[ok].clip(0, 1),
+                                   atol=2 * QUANT)
+        assert black["transmission"].max() == 0
+        np.testing.assert_allclose(black["reflection"], base["reflection"], atol=QUANT)
+
+
+def test_roughness_and_transparency_edits_change_the_model(trained):
+    root, scene, _ = trained
+    camera = scene.test_cameras[0].to_camera()
+
+    def render(edits):
+        model, _ = load_model(root / "run" / "model.pt")
+        with torch.no_grad():  # a textured environment, so that blur is visible (30 iterations learn little)
+            model.env.features.copy_(torch.randn(model.env.features.shape, generator=torch.Generator().manual_seed(0)))
+        apply_parameter_edits(model, edits)
+        with torch.no_grad():
+            return model.render(camera), model
+
+    base, model = render(Edits())
+    sharp, sharp_model = render(Edits(roughness=0.25))
+    clear, clear_model = render(Edits(transparency=0.0))
+    torch.testing.assert_close(sharp_model.surfels.roughness, 0.25 * model.surfels.roughness, rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(clear_model.surfels.opacity, torch.full_like(model.surfels.opacity, 1e-6),
+                               rtol=1e-3, atol=1e-9)
+    again, _ = render(Edits())
+    assert torch.equal(again.layers["reflection"], base.layers["reflection"])  # deterministic without edits
+    assert (base.layers["reflection"] - sharp.layers["reflection"]).abs().max() > 1e-3
+    assert (base.color - clear.color).abs().max() > 1e-2
+    # the transparency edit leaves surface (G-buffer) weights alone: occupancy is untouched
+    torch.testing.assert_close(base.raster.alpha, clear.raster.alpha)
+
+
+def test_metrics_cli_writes_json_with_both_regions(trained, tmp_path):
+    root, scene, summary = trained
+    render_run(root / "run", scene.root, tmp_path / "renders", progress=False)
+    out = tmp_path / "metrics" / "rt.json"
+    result = subprocess.run([sys.executable, "-m", "rtsplat.cli", "metrics", "--renders", str(tmp_path / "renders"),
+                             "--data", str(scene.root), "--out", str(out), "--lpips-weights", str(tmp_path / "none")],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    data = json.loads(out.read_text())
+    assert set(data["views"]) == {c.name for c in scene.test_cameras}
+    # PNG quantisation moves PSNR a little from the trainer's float evaluation
+    assert data["mean"]["psnr"] == pytest.approx(summary["test_psnr"], abs=0.3)
+    assert data["mean"]["psnr_transparent"] == pytest.approx(summary["test_psnr_transparent"], abs=0.3)
+    assert data["mean"]["lpips"] == NOT_AVAILABLE and data["lpips"].startswith("off")
+    assert data["config_hash"] and data["versions"]["torch"] == torch.__version__
+    assert data["fps"] > 0 and data["machine"]["cpus"] >= 1
+
+
+def test_bad_edit_and_missing_model_fail_cleanly(trained, tmp_path):
+    root, scene, _ = trained
+    base = [sys.executable, "-m", "rtsplat.cli", "render", "--data", str(scene.root), "--quiet"]
+    bad = subprocess.run(base + ["--run", str(root / "run"), "--out", str(tmp_path / "x"), "--edit", "glossy=2"],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "glossy=2" in bad.stderr and "roughness=S" in bad.stderr
+    missing = subprocess.run(base + ["--run", str(tmp_path / "norun"), "--out", str(tmp_path / "y")],
+                             capture_output=True, text=True)
+    assert missing.returncode == 2 and "model.pt" in missing.stderr and "rtsplat train" in missing.stderr
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
