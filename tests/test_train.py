@@ -66,11 +66,15 @@ def test_training_reduces_loss_and_raises_heldout_psnr(tmp_path):
 
 def test_run_directory_contents_and_ply_export(glass_scene, tmp_path):
     run = tmp_path / "run"
-    trainer = Trainer(glass_scene, config(12), run, progress=False, log=lambda m: None)
+    trainer = Trainer(glass_scene, config(12, schedule={"eval_every": 8}), run, progress=False, log=lambda m: None)
     summary = trainer.train()
     for name in ("config.json", "effects.json", "train_log.jsonl", "model.pt", "point_cloud.ply", "summary.json"):
         assert (run / name).is_file(), name
-    assert [r["iteration"] for r in read_log(run)] == [5, 10, 12]
+    assert [r["iteration"] for r in read_log(run)] == [5, 8, 10, 12]
+    # test-view PSNR at the evaluation steps (for accuracy-against-time curves), final = summary
+    assert ["test_psnr" in r for r in read_log(run)] == [False, True, False, True]
+    assert read_log(run)[-1]["test_psnr"] == pytest.approx(summary["test_psnr"])
+    assert "test_psnr_transparent" in read_log(run)[-1]
     assert all(r["seconds"] > 0 for r in read_log(run))
     ply = read_surfel_ply(run / "point_cloud.ply")
     n = summary["surfels"]

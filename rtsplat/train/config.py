@@ -58,6 +58,9 @@ class Schedule:
     reset_every: int = 1500  # alternating occupancy / opacity resets
     log_every: int = 10
     checkpoint_every: int = 500
+    # test-view PSNR (entire / transparent) every N iterations into the log, for accuracy-against-
+    # time curves; 0: only at the end. Evaluation time is not counted in the log's "seconds".
+    eval_every: int = 0
 
 
 @dataclass

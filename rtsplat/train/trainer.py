@@ -300,10 +300,14 @@ class Trainer:
                 self.elapsed += time.perf_counter() - start
                 bar.update(1)
                 bar.set_postfix(loss=f"{step.loss:.4f}", psnr=f"{step.psnr:.2f}", surfels=len(self.model.surfels))
-                if step.iteration % cfg.schedule.log_every == 0 or step.iteration == total:
+                last = step.iteration == total
+                evaluate_now = cfg.schedule.eval_every > 0 and (step.iteration % cfg.schedule.eval_every == 0 or last)
+                if step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now:
                     record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4), "loss": step.loss,
                               "psnr": step.psnr, "surfels": len(self.model.surfels), "stage": step.stage,
                               **{f"loss_{k}": v for k, v in step.terms.items()}}
+                    if evaluate_now:
+                        record.update(self.evaluate())
                     log_file.write(json.dumps(record) + "\n")
                     log_file.flush()
                 if cfg.schedule.checkpoint_every > 0 and step.iteration % cfg.schedule.checkpoint_every == 0:
