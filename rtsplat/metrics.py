@@ -74,6 +74,17 @@ def config_hash(run_dir: Path) -> str | None:
     return hashlib.sha256(json.dumps(json.loads(path.read_text()), sort_keys=True).encode()).hexdigest()[:16]
 
 
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo`` on Linux; ``platform.processor()`` elsewhere)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def environment() -> dict:
     from importlib import metadata
 
@@ -83,7 +94,7 @@ def environment() -> dict:
             versions[package] = metadata.version(package)
         except metadata.PackageNotFoundError:
             continue
-    return {"versions": versions, "machine": {"platform": platform.platform(), "processor": platform.processor(),
+    return {"versions": versions, "machine": {"platform": platform.platform(), "processor": cpu_model(),
                                               "cpus": os.cpu_count(), "python": platform.python_version()}}
 
 

@@ -188,9 +188,9 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
 def _device_name(device: str) -> str:
     if str(device).startswith("cuda") and torch.cuda.is_available():
         return torch.cuda.get_device_name(torch.device(device))
-    import platform
+    from rtsplat.metrics import cpu_model
 
-    return f"CPU {platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads"
+    return f"CPU {cpu_model()}, {torch.get_num_threads()} torch threads"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

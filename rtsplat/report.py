@@ -1,0 +1,354 @@
+"""``rtsplat report``: the benchmark report, ``index.html`` plus a Markdown twin ``index.md``.
+
+It reads what the other stages wrote under ``--results`` (the layout of ``docs/architecture.md``)::
+
+    <scene>/runs/<method>/{summary.json, train_log.jsonl, config.json}    rtsplat train
+    <scene>/renders/<method>/{render.json, color/, reflection/, ...}       rtsplat render
+    <scene>/renders/<method>@<edit>/                                       rtsplat render --edit ...
+    <scene>/metrics/<method>.json                                          rtsplat metrics
+
+and writes, per scene: the quality table (entire image / transparent region, FPS, training time),
+the ablation table (methods named ``ablation_*`` against ``rtsplat``), decomposition scores when the
+scene has ground-truth layers, the accuracy-against-time plots and table with the Pareto front
+(every run's final test PSNR against its training time, and the test-PSNR curves logged during
+training), test-view comparisons (ground truth / ours / baseline), decomposition and editing
+images; then the machine, the package versions, the exact commands and the config. Noise: when
+the results contain ``<method>_repeat`` runs (the same config and seed run twice), the report
+prints the measured run-to-run differences; otherwise it says that none were measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import html
+import json
+import os
+import shutil
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rtsplat.errors import PipelineError
+
+MAIN = "rtsplat"
+ABLATION_PREFIX = "ablation_"
+REPEAT_SUFFIX = "_repeat"
+
+
+@dataclass
+class Run:
+    scene: str
+    method: str
+    summary: dict = field(default_factory=dict)
+    log: list[dict] = field(default_factory=list)
+    metrics: dict = field(default_factory=dict)
+
+    @property
+    def mean(self) -> dict:
+        return self.metrics.get("mean", {})
+
+    @property
+    def seconds(self) -> float | None:
+        return self.summary.get("train_seconds")
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise PipelineError(f"cannot read ({exc})", path=path, fix="rerun the stage that writes it") from None
+
+
+def collect(results: Path) -> dict[str, dict[str, Run]]:
+    """{scene: {method: Run}} for every run that has a summary (finished training)."""
+    scenes: dict[str, dict[str, Run]] = {}
+    for summary in sorted(results.glob("*/runs/*/summary.json")):
+        run_dir = summary.parent
+        scene, method = run_dir.parent.parent.name, run_dir.name
+        run = Run(scene, method, summary=_read_json(summary))
+        log = run_dir / "train_log.jsonl"
+        if log.is_file():
+            run.log = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+        metrics = results / scene / "metrics" / f"{method}.json"
+        if metrics.is_file():
+            run.metrics = _read_json(metrics)
+        scenes.setdefault(scene, {})[method] = run
+    if not scenes:
+        raise PipelineError("no finished training runs found (no <scene>/runs/<method>/summary.json)", path=results,
+                            fix="run the workflow (snakemake) or `rtsplat train` first")
+    return scenes
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
+    """For (time, quality) points: True where no other point is at least as fast AND at least as good
+    with one of the two strictly better."""
+    flags = []
+    for i, (t, q) in enumerate(points):
+        dominated = any((t2 <= t and q2 >= q and (t2 < t or q2 > q)) for j, (t2, q2) in enumerate(points) if j != i)
+        flags.append(not dominated)
+    return flags
+
+
+def _fmt(value, digits: int = 2) -> str:
+    if isinstance(value, bool) or value is None:
+        return "-" if value is None else str(value)
+    if isinstance(value, (int, float)):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+class Document:
+    """Builds the HTML and the Markdown twin side by side."""
+
+    def __init__(self, title: str):
+        self.html = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
+                     "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:"
+                     "collapse}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
+                     "td:first-child{text-align:left}img{max-width:100%}.pareto{font-weight:bold}</style>"
+                     "</head><body>", f"<h1>{html.escape(title)}</h1>"]
+        self.md = [f"# {title}", ""]
+
+    def heading(self, text: str, level: int = 2) -> None:
+        self.html.append(f"<h{level}>{html.escape(text)}</h{level}>")
+        self.md += ["#" * level + " " + text, ""]
+
+    def paragraph(self, text: str) -> None:
+        self.html.append(f"<p>{html.escape(text)}</p>")
+        self.md += [text, ""]
+
+    def code(self, text: str) -> None:
+        self.html.append(f"<pre>{html.escape(text)}</pre>")
+        self.md += ["```", text, "```", ""]
+
+    def table(self, header: list[str], rows: list[list[str]]) -> None:
+        self.html.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
+        for row in rows:
+            self.html.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>")
+        self.html.append("</table>")
+        self.md += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        self.md += ["| " + " | ".join(row) + " |" for row in rows]
+        self.md.append("")
+
+    def images(self, items: list[tuple[str, str]]) -> None:
+        """(relative path, caption) shown in one row."""
+        cells = "".join(f"<figure style='display:inline-block;margin:4px'><img src='{html.escape(p)}'>"
+                        f"<figcaption>{html.escape(c)}</figcaption></figure>" for p, c in items)
+        self.html.append(f"<div>{cells}</div>")
+        self.md += [" ".join(f"![{c}]({p})" for p, c in items), ""]
+
+    def finish(self) -> tuple[str, str]:
+        return "\n".join(self.html + ["</body></html>"]) + "\n", "\n".join(self.md) + "\n"
+
+
+def quality_rows(runs: dict[str, Run]) -> list[list[str]]:
+    rows = []
+    for method in sorted(runs, key=lambda m: (m != MAIN, m)):
+        r = runs[method]
+        m = r.mean
+        fps = r.metrics.get("fps")
+        rows.append([method] + [_fmt(m.get(k), d) for k, d in (
+            ("psnr", 2), ("ssim", 3), ("lpips", 3), ("psnr_transparent", 2), ("ssim_transparent", 3),
+            ("lpips_transparent", 3))] + [_fmt(fps, 1), _fmt(r.seconds, 1), _fmt(r.summary.get("surfels"), 0)])
+    return rows
+
+
+def time_points(runs: dict[str, Run], key: str) -> list[tuple[str, float, float]]:
+    """(method, training seconds, test metric) of every run with both."""
+    points = []
+    for method, r in runs.items():
+        value = r.mean.get(key, r.summary.get("test_" + key))
+        if isinstance(value, float) and r.seconds:
+            points.append((method, float(r.seconds), value))
+    return points
+
+
+def plot_accuracy_time(scene: str, runs: dict[str, Run], out: Path) -> list[str]:
+    """One PNG per quality key; returns the file names written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    for key, label in (("psnr", "PSNR entire image (dB)"), ("psnr_transparent", "PSNR transparent region (dB)")):
+        points = time_points(runs, key)
+        if not points:
+            continue
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        for method, r in sorted(runs.items()):
+            curve = [(e["seconds"], e[f"test_{key}"]) for e in r.log if f"test_{key}" in e]
+            if len(curve) > 1:
+                ax.plot(*zip(*curve, strict=True), "-", alpha=0.5, label=f"{method} (during training)")
+        flags = pareto_front([(t, q) for _, t, q in points])
+        front = sorted((t, q) for (_, t, q), f in zip(points, flags, strict=True) if f)
+        for (method, t, q), on_front in zip(points, flags, strict=True):
+            ax.plot(t, q, "o" if on_front else "x", color="k")
+            ax.annotate(method, (t, q), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        if front:
+            ax.step(*zip(*front, strict=True), where="post", color="r", lw=1, label="Pareto front (final runs)")
+        ax.set_xlabel("training time (s)")
+        ax.set_ylabel(label)
+        ax.set_title(f"{scene}: accuracy against training time")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
+        name = f"{scene}_{key}_vs_time.png"
+        fig.tight_layout()
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+        written.append(name)
+    return written
+
+
+def _copy_image(src: Path, out: Path, name: str) -> str | None:
+    if not src.is_file():
+        return None
+    (out / "images").mkdir(exist_ok=True)
+    shutil.copyfile(src, out / "images" / name)
+    return f"images/{name}"
+
+
+def _noise_rows(runs: dict[str, Run]) -> list[list[str]]:
+    rows = []
+    for method, r in runs.items():
+        if not method.endswith(REPEAT_SUFFIX) or method[: -len(REPEAT_SUFFIX)] not in runs:
+            continue
+        base = runs[method[: -len(REPEAT_SUFFIX)]]
+        row = [method[: -len(REPEAT_SUFFIX)]]
+        for key in ("psnr", "psnr_transparent"):
+            a, b = base.mean.get(key), r.mean.get(key)
+            row.append(_fmt(abs(a - b), 3) if isinstance(a, float) and isinstance(b, float) else "-")
+        ta, tb = base.seconds, r.seconds
+        row.append(_fmt(100 * abs(ta - tb) / max(ta, 1e-9), 1) if ta and tb else "-")
+        rows.append(row)
+    return rows
+
+
+def build_report(results: str | Path, out: str | Path, *, config_file: str | Path | None = None,
+                 commands: list[str] | None = None) -> Path:
+    results, out = Path(results), Path(out)
+    scenes = collect(results)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        _write(results, scenes, tmp, config_file, commands)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out / "index.html"
+
+
+def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_file, commands) -> None:
+    doc = Document("rtsplat benchmark report")
+    any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
+    machine = any_metrics.get("machine", {})
+    doc.paragraph(f"Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
+                  f"{machine.get('platform', '?')}; rendering device: {any_metrics.get('render_device', '?')}. "
+                  f"Packages: {', '.join(f'{k} {v}' for k, v in any_metrics.get('versions', {}).items())}.")
+    doc.paragraph("LPIPS: " + str(any_metrics.get("lpips", "not computed")))
+    header = ["method", "PSNR", "SSIM", "LPIPS", "PSNR (transp.)", "SSIM (transp.)", "LPIPS (transp.)", "FPS",
+              "train s", "surfels"]
+    for scene, runs in scenes.items():
+        doc.heading(f"Scene {scene}")
+        doc.heading("Quality, speed and training time", 3)
+        doc.table(header, quality_rows(runs))
+
+        ablations = sorted(m for m in runs if m.startswith(ABLATION_PREFIX))
+        if ablations and MAIN in runs:
+            doc.heading("Ablations (transparent-region PSNR)", 3)
+            full = runs[MAIN].mean.get("psnr_transparent")
+            rows = [[MAIN, _fmt(full), "0.00"]]
+            for m in ablations:
+                v = runs[m].mean.get("psnr_transparent")
+                delta = v - full if isinstance(v, float) and isinstance(full, float) else None
+                rows.append([m, _fmt(v), _fmt(delta)])
+            doc.table(["method", "PSNR (transp.)", "vs rtsplat"], rows)
+
+        layer_rows = [[m, _fmt(r.mean.get("psnr_reflection_layer")), _fmt(r.mean.get("psnr_transmission_layer"))]
+                      for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]
+        if layer_rows:
+            doc.heading("Decomposition against the ground-truth layers (PSNR)", 3)
+            doc.table(["method", "reflection", "transmission"], layer_rows)
+
+        doc.heading("Accuracy against training time", 3)
+        for name in plot_accuracy_time(scene, runs, out):
+            doc.images([(name, name)])
+        points = time_points(runs, "psnr_transparent") or time_points(runs, "psnr")
+        key = "psnr_transparent" if time_points(runs, "psnr_transparent") else "psnr"
+        flags = pareto_front([(t, q) for _, t, q in points])
+        doc.table(["method", "train s", key, "Pareto front"],
+                  [[m, _fmt(t, 1), _fmt(q), "yes" if f else ""] for (m, t, q), f in
+                   sorted(zip(points, flags, strict=True), key=lambda x: x[0][1])])
+
+        test_names = next((r.metrics.get("views") for r in runs.values() if r.metrics.get("views")), {})
+        if test_names:
+            view = sorted(test_names)[0]
+            items = []
+            prepared = results / scene / "prepared" / "images" / f"{view}.png"
+            gt = _copy_image(prepared, out, f"{scene}_{view}_gt.png")
+            if gt:
+                items.append((gt, "ground truth"))
+            for method in [MAIN] + sorted(m for m in runs if m != MAIN and not m.startswith(ABLATION_PREFIX)):
+                img = _copy_image(results / scene / "renders" / method / "color" / f"{view}.png", out,
+                                  f"{scene}_{view}_{method}.png")
+                if img:
+                    items.append((img, method))
+            if items:
+                doc.heading(f"Test view {view}", 3)
+                doc.images(items)
+            layers = []
+            for layer in ("reflection", "transmission", "scatter", "normal", "depth"):
+                img = _copy_image(results / scene / "renders" / MAIN / layer / f"{view}.png", out,
+                                  f"{scene}_{view}_{layer}.png")
+                if img:
+                    layers.append((img, layer))
+            if layers:
+                doc.heading("Decomposition (rtsplat)", 3)
+                doc.images(layers)
+            edits = []
+            for edit_dir in sorted((results / scene / "renders").glob(f"{MAIN}@*")):
+                img = _copy_image(edit_dir / "color" / f"{view}.png", out, f"{scene}_{view}_{edit_dir.name}.png")
+                if img:
+                    edits.append((img, edit_dir.name.split("@", 1)[1]))
+            if edits:
+                doc.heading("Scene editing", 3)
+                doc.images(edits)
+
+    doc.heading("Noise")
+    noise = [row for runs in scenes.values() for row in _noise_rows(runs)]
+    if noise:
+        doc.paragraph("Run-to-run differences of identical runs (same config and seed) on this machine: quality "
+                      "differences come from non-deterministic floating-point reductions, time differences from "
+                      "machine load. Expect numbers to reproduce within these.")
+        doc.table(["method", "|dPSNR|", "|dPSNR transp.|", "time diff %"], noise)
+    else:
+        doc.paragraph("No repeated runs in these results, so run-to-run noise was not measured here.")
+    doc.heading("Reproduce")
+    doc.code("\n".join(commands or ["make demo"]))
+    if config_file and Path(config_file).is_file():
+        doc.code(Path(config_file).read_text())
+    page, markdown = doc.finish()
+    (out / "index.html").write_text(page)
+    (out / "index.md").write_text(markdown)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = __doc__
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("--results", type=Path, required=True, help="results directory of the workflow")
+    parser.add_argument("--out", type=Path, required=True, help="report directory (replaced atomically)")
+    parser.add_argument("--config", type=Path, help="the config file to print in the Reproduce section")
+    parser.add_argument("--command", action="append", default=[], help="a command to print in Reproduce")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        index = build_report(args.results, args.out, config_file=args.config, commands=args.command or None)
+    except PipelineError as exc:
+        print(f"rtsplat report: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"report: {index}")
+    return 0
