@@ -31,6 +31,7 @@ __all__ = [
 #   fn(surfels, camera, settings, screen_probe) -> RasterOutput
 BACKENDS: dict[str, str] = {
     "reference": "rtsplat.raster.reference:rasterize_reference",
+    "cpu": "rtsplat.raster.cpu:rasterize_cpu",
 }
 
 

@@ -16,6 +16,8 @@ class TileBins:
     surfel_ids: Tensor  # [P] int64, surfel index of each (tile, surfel) pair, sorted by tile then depth
     tile_start: Tensor  # [tiles_x * tiles_y] int64, first pair of each tile
     tile_count: Tensor  # [tiles_x * tiles_y] int64, pairs of each tile
+    width: int = 0  # image size in pixels (border tiles reach past it)
+    height: int = 0
 
     @property
     def num_tiles(self) -> int:
@@ -60,4 +62,4 @@ def bin_tiles(
     surfel_ids = pair_surfel[perm]
     tile_count = torch.bincount(tile_id, minlength=tiles_x * tiles_y)
     tile_start = torch.cumsum(tile_count, 0) - tile_count
-    return TileBins(tiles_x, tiles_y, tile_size, surfel_ids, tile_start, tile_count)
+    return TileBins(tiles_x, tiles_y, tile_size, surfel_ids, tile_start, tile_count, width, height)

@@ -152,7 +152,9 @@ def _composite_chunk(
     channels = torch.cat(
         [surface, alpha, depth_sum, depth_median, distortion, color, volume_alpha, volume_depth_sum], -1
     )
-    used = (keep_s | keep_v).any(1)  # [T,K]
+    # visible: contributed to a pixel of the image (border tiles extend past the image edge)
+    inside = ((px < bins.width) & (py < bins.height))[:, :, None]  # [T,P,1]
+    used = ((keep_s | keep_v) & inside).any(1)  # [T,K]
     return channels, ids, used & in_list
 
 
