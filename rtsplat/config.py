@@ -104,7 +104,9 @@ class MasksConfig:
     dir: str = _f("transparent_masks", help="mask folder inside the scene, one <image stem>.png per image")
     threshold: float = _f(0.5, help="binarisation threshold (of the mask value or segmenter probability)",
                           minimum=0.0, maximum=1.0)
-    allow_missing: bool = _f(False, help="ingest: an image without a mask gets an empty mask instead of an error")
+    allow_missing: bool = _f(
+        False, help="ingest: an image without a mask gets an empty mask instead of an error"
+    )
     onnx: OnnxSegmenterConfig = _f(help="the ONNX segmenter", factory=OnnxSegmenterConfig)
 
 
@@ -112,8 +114,8 @@ class MasksConfig:
 class RoiConfig:
     """Spherical region of interest."""
 
-    center: list[float] = _f(help="sphere centre [x, y, z] in SfM coordinates", factory=lambda: [0.0, 0.0, 0.0],
-                             minItems=3, maxItems=3)
+    center: list[float] = _f(help="sphere centre [x, y, z] in SfM coordinates",
+                             factory=lambda: [0.0, 0.0, 0.0], minItems=3, maxItems=3)
     radius: float = _f(1.0, help="sphere radius in SfM units", exclusiveMinimum=0.0)
 
 
@@ -125,7 +127,8 @@ class PrepareConfig:
     roi: RoiConfig | None = _f(None, help="region of interest; estimated from the SfM points when not given")
     roi_percentile: float = _f(95.0, help="estimated ROI: radius covers this percentile of the SfM points",
                                exclusiveMinimum=0.0, maximum=100.0)
-    test_every: int = _f(8, help="every n-th image of the name-sorted list is a test view (llffhold)", minimum=2)
+    test_every: int = _f(8, help="every n-th image of the name-sorted list is a test view (llffhold)",
+                         minimum=2)
     bit_depth: Literal[8, 16] = _f(8, help="bit depth of the prepared PNG images")
     use_prescaled: bool = _f(True, help="use <scene>/images_<factor> when present instead of resizing")
 
@@ -135,7 +138,7 @@ class TrainConfig:
     """Training (pass-through to ``rtsplat train``)."""
 
     iterations: int = _f(30000, help="optimisation iterations", minimum=1)
-    effects: str = _f("auto", help="modelled effects: auto | full | an ablation name (see rtsplat train --help)")
+    effects: str = _f("auto", help="modelled effects: auto | full | an ablation (see rtsplat train --help)")
     backend: str = _f("auto", help="rasterizer backend: auto | reference | a fast backend")
     options: dict[str, Any] = _f(help="further trainer options, passed through unchanged", factory=dict)
 
@@ -183,7 +186,7 @@ class PipelineConfig:
     overrides: dict[str, SceneConfig] = _f(help="per-scene settings merged over the defaults", factory=dict)
 
 
-STAGE_SECTIONS = {f.name: f.type for f in dataclasses.fields(SceneConfig)}
+STAGE_SECTIONS: dict[str, type] = typing.get_type_hints(SceneConfig)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -245,7 +248,7 @@ def _dataclass_schema(cls: type) -> dict[str, Any]:
 
 
 def json_schema() -> dict[str, Any]:
-    schema = {"$schema": "http://json-schema.org/draft-07/schema#", "title": "rtsplat config"}
+    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "rtsplat config"}
     schema.update(_dataclass_schema(PipelineConfig))
     return schema
 
@@ -283,7 +286,8 @@ def _message(error: Any, source: str) -> str:
             )
         return "\n".join(lines)
     if error.validator == "enum":
-        return f"{source}: config key '{where}' is {error.instance!r}. Fix: use one of {error.validator_value}"
+        options = error.validator_value
+        return f"{source}: config key '{where}' is {error.instance!r}. Fix: use one of {options}"
     if error.validator in ("type", "anyOf"):
         expected = error.schema.get("type") or " or ".join(
             str(s.get("type")) for s in error.schema.get("anyOf", [])
@@ -298,7 +302,7 @@ def validate_config(data: Any, source: str = "config") -> None:
 
     if data is None:
         data = {}
-    validator = jsonschema.Draft7Validator(json_schema())
+    validator = jsonschema.Draft202012Validator(json_schema())
     errors = sorted(validator.iter_errors(data), key=lambda e: list(map(str, e.absolute_path)))
     if errors:
         raise ConfigError("\n".join(_message(e, source) for e in errors))

@@ -27,7 +27,7 @@ from rtsplat import __version__
 from rtsplat.config import PrepareConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import atomic_dir
-from rtsplat.io.colmap import ColmapModel, load_model
+from rtsplat.io.colmap import ColmapModel, ColmapView, load_model
 from rtsplat.io.images import area_downsample, read_header, read_image, read_mask, write_mask, write_png
 from rtsplat.io.ply import write_points_ply
 from rtsplat.scene import IMAGES_DIR, MASKS_DIR, POINTS_FILE, CameraRecord, PreparedScene, Roi
@@ -87,6 +87,24 @@ def estimate_roi(model: ColmapModel, percentile: float = 95.0) -> Roi:
     return Roi(center=[float(x) for x in center], radius=radius, source="estimated")
 
 
+def undistort_mask(mask: np.ndarray, distorted: ColmapView, size: tuple[int, int]) -> np.ndarray:
+    """Warp a mask of a distorted image exactly like ``rtsplat sfm`` undistorted the image."""
+    import pycolmap
+
+    cam = pycolmap.Camera.create_from_model_name(1, distorted.model, 1.0, distorted.width, distorted.height)
+    cam.params = distorted.params.tolist()
+    bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(mask.astype(np.uint8) * 255))
+    out, _ = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), bitmap, cam)
+    arr = np.asarray(out.to_array())
+    arr = arr[..., 0] if arr.ndim == 3 else arr
+    if arr.shape != (size[1], size[0]):
+        raise PipelineError(
+            f"undistorted mask is {arr.shape[1]}x{arr.shape[0]}, the undistorted image {size[0]}x{size[1]}",
+            fix="re-run 'rtsplat sfm' (the undistorted model and the distorted one do not match)",
+        )
+    return arr >= 128
+
+
 def _test_split(names: list[str], test_every: int) -> dict[str, str]:
     return {n: ("test" if i % test_every == 0 else "train") for i, n in enumerate(sorted(names))}
 
@@ -127,6 +145,10 @@ def prepare_scene(
         raise PipelineError("two images share a file stem (e.g. a.jpg and a.png)", path=image_dir,
                             fix="rename the images so their names without extension are unique")
 
+    # masks belong to the original images: when SfM undistorted those, undistort the masks too
+    distorted = None
+    if has_masks and sfm.get("undistorted"):
+        distorted = {v.name: v for v in load_model(Path(sfm_dir) / "sparse" / "0").views}
     prescaled_dir = scene_dir / f"images_{f}"
     use_prescaled = (
         f > 1 and cfg.use_prescaled and not sfm.get("undistorted", False) and prescaled_dir.is_dir()
@@ -149,7 +171,8 @@ def prepare_scene(
             header = read_header(src)
             if (header.width, header.height) != (view.width, view.height):
                 raise PipelineError(
-                    f"image is {header.width}x{header.height} but its COLMAP camera is {view.width}x{view.height}",
+                    f"image is {header.width}x{header.height} but its COLMAP camera is "
+                    f"{view.width}x{view.height}",
                     path=src,
                     fix="use the images the model was computed from (or re-run 'rtsplat sfm'); "
                     "all images of a scene must have the size of their camera",
@@ -176,6 +199,14 @@ def prepare_scene(
                 if not mpath.is_file():
                     raise PipelineError("mask missing", path=mpath, fix="re-run 'rtsplat masks'")
                 mask = read_mask(mpath)
+                if distorted is not None and view.name in distorted:
+                    d = distorted[view.name]
+                    if mask.shape != (d.height, d.width):
+                        raise PipelineError(
+                            f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {d.width}x{d.height}",
+                            path=mpath, fix="re-run 'rtsplat masks' on the scene's images",
+                        )
+                    mask = undistort_mask(mask, d, (view.width, view.height))
                 if mask.shape != (view.height, view.width):
                     raise PipelineError(
                         f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {view.width}x{view.height}",
@@ -192,6 +223,11 @@ def prepare_scene(
                 name=stem, split=split[stem], width=int(w), height=int(h),
                 K=K.tolist(), world_to_camera=view.world_to_camera.tolist(), image=view.name,
             ))
+        if has_masks and not any(coverage):  # masks without a single transparent pixel
+            import shutil
+
+            shutil.rmtree(tmp / MASKS_DIR)
+            has_masks = False
         write_points_ply(tmp / POINTS_FILE, model.xyz, model.rgb)
         versions = {"rtsplat": __version__, "scene_format": "1"}
         scene = PreparedScene(

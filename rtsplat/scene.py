@@ -6,7 +6,7 @@ On disk::
       scene.json          this module's PreparedScene (format below)
       images/<name>.png   downsampled sRGB images (8- or 16-bit)
       masks/<name>.png    transparent-surface masks (white = see-through), same size; only when
-                          has_transparency is true
+                          has_transparency is true (masks exist and at least one pixel is white)
       points.ply          SfM points with colours (initialisation), may hold zero points
 
 ``scene.json``::

@@ -38,7 +38,7 @@ class SfmSummary:
     registered: int
     total: int
     num_points: int
-    mean_reprojection_error: float
+    mean_reprojection_error: float | None  # None: the model has no point observations
     undistorted: bool
     camera_model: str
     model_dir: str
@@ -46,9 +46,14 @@ class SfmSummary:
     matcher: str = ""
 
 
-def _check_registration(registered: int, total: int, cfg: SfmConfig, where: Path, computed: bool) -> None:
+def _check_registration(
+    registered: list[str], names: list[str], cfg: SfmConfig, where: Path, computed: bool
+) -> None:
+    total = len(names)
     need = max(cfg.min_registered_images, int(round(cfg.min_registered_fraction * total)))
-    if registered < need:
+    if len(registered) < need:
+        missing = sorted(set(names) - set(registered))
+        shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
         fix = (
             "take more overlapping, textured photos; try sfm.matcher: exhaustive; or lower "
             "sfm.min_registered_fraction / sfm.min_registered_images"
@@ -57,7 +62,8 @@ def _check_registration(registered: int, total: int, cfg: SfmConfig, where: Path
             "or lower sfm.min_registered_fraction"
         )
         raise PipelineError(
-            f"only {registered} of {total} images are registered in the COLMAP model (need at least {need})",
+            f"only {len(registered)} of {total} images are registered in the COLMAP model "
+            f"(need at least {need}); not registered: {shown}",
             path=where,
             fix=fix,
         )
@@ -136,7 +142,7 @@ def run_sfm(
         if is_model_dir(given):
             model = load_model(given)  # validates
             on_disk = [v.name for v in model.views if (images_dir / v.name).is_file()]
-            _check_registration(len(on_disk), len(names), cfg, given, computed=False)
+            _check_registration(on_disk, names, cfg, given, computed=False)
             rec = pycolmap.Reconstruction(str(given))
             source = "dataset"
         else:
@@ -153,7 +159,8 @@ def run_sfm(
                         fix="take more overlapping, textured photos, or try sfm.matcher: exhaustive",
                     )
                 rec = max(recs.values(), key=lambda r: r.num_reg_images())
-                _check_registration(rec.num_reg_images(), len(names), cfg, images_dir, computed=True)
+                reg = [rec.image(i).name for i in rec.reg_image_ids()]
+                _check_registration(reg, names, cfg, images_dir, computed=True)
             source = "sfm"
         model_dir.mkdir(parents=True)
         rec.write_binary(str(model_dir))
@@ -163,14 +170,19 @@ def run_sfm(
         if distorted:
             und = tmp / "undistorted"
             pycolmap.undistort_images(str(und), str(model_dir), str(images_dir), output_type="COLMAP")
-            final_model, final_images = out_dir / "undistorted" / "sparse", out_dir.resolve() / "undistorted" / "images"
+            final_model = out_dir / "undistorted" / "sparse"
+            final_images = out_dir.resolve() / "undistorted" / "images"
             rec = pycolmap.Reconstruction(str(und / "sparse"))
+            shutil.rmtree(und / "stereo", ignore_errors=True)  # dense-stereo scaffolding we do not use
+            for script in und.glob("*.sh"):
+                script.unlink()
         summary = SfmSummary(
             source=source,
             registered=int(rec.num_reg_images()),
             total=len(names),
             num_points=int(rec.num_points3D()),
-            mean_reprojection_error=float(rec.compute_mean_reprojection_error()),
+            mean_reprojection_error=(float(rec.compute_mean_reprojection_error())
+                                     if rec.compute_num_observations() > 0 else None),
             undistorted=distorted,
             camera_model=",".join(sorted({c.model_name for c in cams})),
             model_dir=str(final_model.resolve()),
@@ -185,7 +197,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene-dir", type=Path, required=True, help="dataset scene (<data>/<scene>)")
     parser.add_argument("--out", type=Path, required=True, help="output folder (results/<scene>/sfm)")
     parser.add_argument("--masks", type=Path, help="output of 'rtsplat masks' (used when sfm.use_masks)")
-    parser.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"], help="override sfm.matcher")
+    parser.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"],
+                        help="override sfm.matcher")
     add_config_arguments(parser)
 
 
@@ -198,10 +211,11 @@ def run(args: argparse.Namespace) -> int:
     except PipelineError as exc:
         print(f"rtsplat sfm: error: {exc}", file=sys.stderr)
         return 1
+    err = "n/a" if s.mean_reprojection_error is None else f"{s.mean_reprojection_error:.3f} px"
     how = "model from the dataset" if s.source == "dataset" else f"SfM ({s.matcher} matching)"
     print(
         f"sfm {args.scene_dir}: {how}: {s.registered}/{s.total} images registered, {s.num_points} points, "
-        f"mean reprojection error {s.mean_reprojection_error:.3f} px, camera {s.camera_model}"
+        f"mean reprojection error {err}, camera {s.camera_model}"
         + (", undistorted to PINHOLE" if s.undistorted else "")
     )
     return 0

@@ -83,7 +83,8 @@ def _hard_scenes():
         yield f"scale_{scale}", small_camera(32, 24, f64), replace(base, scales=torch.full_like(base.scales, scale))
     for occ in (0.0, 1.0):
         for opa in (0.0, 1.0):
-            s = replace(base, occupancy=torch.full_like(base.occupancy, occ), opacity=torch.full_like(base.opacity, opa))
+            s = replace(base, occupancy=torch.full_like(base.occupancy, occ),
+                        opacity=torch.full_like(base.opacity, opa))
             yield f"occ{occ}_opa{opa}", small_camera(32, 24, f64), s
     yield "behind", small_camera(32, 24, f64, eye=CAMERA_EYE), surfels_at(
         [[0.0, -4.0, 0.0], [0.0, -3.1, 0.0], [0.0, -3.0, 0.0]], (0.0, 1.0, 0.0), 1.0, f64)

@@ -64,7 +64,8 @@ def _bad(path: Path, why: str) -> PipelineError:
     return PipelineError(
         f"cannot read image ({why.strip() or 'unknown error'})",
         path=path,
-        fix="re-export or re-copy the file (it may be truncated or not an image), or delete it from the scene",
+        fix="re-export or re-copy the file (it may be truncated or not an image), "
+        "or delete it from the scene",
     )
 
 
@@ -204,7 +205,9 @@ def area_downsample(image: np.ndarray, factor: int) -> np.ndarray:
     return crop.reshape(shape).mean(axis=(1, 3)).astype(np.float32)
 
 
-def validate_image_set(directory: str | Path, decode: bool = True, progress: bool = False) -> list[ImageHeader]:
+def validate_image_set(
+    directory: str | Path, decode: bool = True, progress: bool = False
+) -> list[ImageHeader]:
     """Check a scene's image folder: not empty, every file readable (fully decoded when ``decode``),
     all the same size. Returns the headers in name order; raises :class:`PipelineError` otherwise."""
     from collections import Counter
