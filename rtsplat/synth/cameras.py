@@ -1,0 +1,110 @@
+"""Ground-truth camera paths and the conversion of :class:`rtsplat.camera.Camera` to Mitsuba.
+
+rtsplat cameras use OpenCV axes (x right, y down, z forward) and COLMAP pixel centres
+(i + 0.5, j + 0.5). Mitsuba's ``perspective`` sensor looks along its local +z with +y up and +x
+to the *left*, so its camera-to-world matrix is ours with the x and y axes negated. Mitsuba's
+film maps the sensor's field of view onto the image corners exactly like COLMAP (pixel (0, 0) is
+the top-left corner), so a centred pinhole with square pixels converts without offsets; the test
+suite checks this by projecting a bright marker.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rtsplat.camera import Camera, camera_from_fov
+
+
+@dataclass(frozen=True)
+class OrbitPath:
+    """An orbit around ``target`` with a sinusoidal height variation.
+
+    View ``i`` of ``n`` has azimuth ``azimuth_start + i * azimuth_span / n`` (degrees; the last
+    view does not repeat the first on a full 360-degree orbit) and camera height
+    ``height_mid + height_amplitude * sin(2 pi * height_cycles * i / n)``.
+    """
+
+    target: tuple[float, float, float] = (0.0, 0.0, 0.5)
+    radius: float = 4.0
+    height_mid: float = 2.0
+    height_amplitude: float = 0.6
+    height_cycles: float = 2.0
+    azimuth_start: float = 0.0
+    azimuth_span: float = 360.0
+    fov_x_deg: float = 55.0
+
+    def eyes(self, n: int) -> np.ndarray:
+        """Camera centres [n, 3] (world, z up)."""
+        i = np.arange(n, dtype=np.float64)
+        full = abs(self.azimuth_span) >= 360.0
+        step = self.azimuth_span / (n if full else max(n - 1, 1))
+        az = np.radians(self.azimuth_start + i * step)
+        z = self.height_mid + self.height_amplitude * np.sin(2 * np.pi * self.height_cycles * i / n)
+        tx, ty, _ = self.target
+        return np.stack([tx + self.radius * np.cos(az), ty + self.radius * np.sin(az), z], axis=1)
+
+    def cameras(self, n: int, width: int, height: int) -> list[Camera]:
+        """The ``n`` ground-truth cameras (float64), all with the same centred intrinsics."""
+        return [
+            camera_from_fov(
+                tuple(eye), self.target, width=width, height=height, fov_x_deg=self.fov_x_deg,
+                dtype=torch.float64,
+            )
+            for eye in self.eyes(n)
+        ]
+
+
+def camera_to_world_np(camera: Camera) -> np.ndarray:
+    """4x4 camera-to-world matrix (OpenCV axes) as float64 numpy."""
+    return np.linalg.inv(camera.world_to_camera.detach().cpu().double().numpy())
+
+
+def mitsuba_sensor(camera: Camera, spp: int, seed: int = 0) -> dict:
+    """A Mitsuba ``perspective`` sensor dict that sees exactly what ``camera`` sees.
+
+    Only centred principal points and square pixels are supported (what :class:`OrbitPath`
+    produces); anything else raises ``ValueError``.
+    """
+    import mitsuba as mi
+
+    K = camera.K.detach().cpu().double().numpy()
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    w, h = int(camera.width), int(camera.height)
+    if abs(fx - fy) > 1e-6 * fx or abs(cx - w / 2) > 1e-6 or abs(cy - h / 2) > 1e-6 or K[0, 1] != 0:
+        raise ValueError("mitsuba_sensor supports centred principal points and square pixels only")
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # OpenCV camera axes -> Mitsuba camera axes
+    to_world = camera_to_world_np(camera) @ flip
+    return {
+        "type": "perspective",
+        "fov_axis": "x",
+        "fov": math.degrees(2.0 * math.atan(0.5 * w / fx)),
+        "near_clip": 0.01,
+        "far_clip": 1000.0,
+        "to_world": mi.ScalarTransform4f(to_world.tolist()),
+        "sampler": {"type": "independent", "sample_count": int(spp), "seed": int(seed)},
+        "film": {
+            "type": "hdrfilm",
+            "width": w,
+            "height": h,
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgb",
+        },
+    }
+
+
+def pixel_rays(camera: Camera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays through continuous pixel positions (u, v) (corner of the image = (0, 0)).
+
+    Returns (origin [3], unit directions [N, 3]), float64.
+    """
+    K = camera.K.detach().cpu().double().numpy()
+    w2c = camera.world_to_camera.detach().cpu().double().numpy()
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    d = d_cam @ R  # R^T applied to row vectors
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return -R.T @ t, d

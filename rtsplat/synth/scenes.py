@@ -1,0 +1,327 @@
+"""Procedural benchmark scenes: thin see-through surfaces over photo-textured content.
+
+Each scene is a function of a small parameter dataclass and a seed and returns a
+:class:`SceneSpec`: the Mitsuba scene dictionary (without sensor and integrator), the ids of
+the shapes that are *see-through* (their first hit is what ``transparent_masks`` marks), and the
+camera orbit. World units are metres, z is up, the floor is the plane z = 0.
+
+Scenes:
+
+* ``dome``   - a thin glass dome (``thindielectric``) over textured objects on a textured floor;
+* ``cabin``  - a closed car-like shell whose objects are visible only through glass windows;
+* ``film``   - a curved, tinted, partly scattering plastic film in front of a textured wall
+  (a ``blendbsdf`` of a tinted ``thindielectric`` and a ``diffuse`` lobe);
+* ``opaque`` - the ``dome`` content without the dome (control scene, no see-through surface).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rtsplat.synth.cameras import OrbitPath
+from rtsplat.synth.textures import FLOOR_PHOTOS, OBJECT_PHOTOS, environment_map, load_photo, mosaic
+
+
+@dataclass
+class SceneSpec:
+    """A built scene: Mitsuba elements, see-through shape ids, camera orbit, parameters."""
+
+    name: str
+    elements: dict
+    transparent: tuple[str, ...]
+    orbit: OrbitPath
+    params: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ContentParams:
+    """Textured objects on a textured floor, shared by all scenes."""
+
+    n_objects: int = 4
+    placement_radius: float = 0.7  # objects' centres lie within this distance of the centre
+    object_size: tuple[float, float] = (0.16, 0.28)  # half size of cubes / radius of spheres
+    floor_half_size: float = 6.0
+    env_radiance: float = 1.0  # scale of the environment map
+
+
+@dataclass(frozen=True)
+class DomeParams:
+    content: ContentParams = ContentParams()
+    dome_radius: float = 1.5
+    dome_center_z: float = -0.4  # the dome is the part of this sphere above the floor
+    eta: float = 1.5
+
+
+@dataclass(frozen=True)
+class CabinParams:
+    content: ContentParams = ContentParams(n_objects=3, placement_radius=0.55, object_size=(0.12, 0.2))
+    half_length: float = 1.2
+    half_width: float = 0.7
+    body_height: float = 0.6  # opaque lower body; the cabin floor is its top
+    window_height: float = 0.7
+    pillar_half: float = 0.04
+    eta: float = 1.5
+
+
+@dataclass(frozen=True)
+class FilmParams:
+    content: ContentParams = ContentParams(n_objects=2, placement_radius=0.4, object_size=(0.15, 0.25))
+    curvature_radius: float = 2.4
+    arc_deg: float = 70.0
+    height: float = 1.5
+    tint: tuple[float, float, float] = (0.95, 0.78, 0.5)
+    scatter_weight: float = 0.25  # blend weight of the diffuse (scattering) lobe
+    scatter_albedo: tuple[float, float, float] = (0.85, 0.85, 0.9)
+    eta: float = 1.5
+    wall_distance: float = 1.6
+
+
+@dataclass(frozen=True)
+class OpaqueParams:
+    content: ContentParams = ContentParams()
+
+
+def _xf(matrix: np.ndarray):
+    import mitsuba as mi
+
+    return mi.ScalarTransform4f(np.asarray(matrix, dtype=np.float64).tolist())
+
+
+def _trs(translate=(0.0, 0.0, 0.0), yaw_deg: float = 0.0, scale=(1.0, 1.0, 1.0), pitch_deg: float = 0.0):
+    """4x4 = translate @ rotate_z(yaw) @ rotate_x(pitch) @ scale."""
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    rz = np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=np.float64)
+    c, s = math.cos(math.radians(pitch_deg)), math.sin(math.radians(pitch_deg))
+    rx = np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1]], dtype=np.float64)
+    m = np.diag([*np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)), 1.0])
+    t = np.eye(4)
+    t[:3, 3] = translate
+    return t @ rz @ rx @ m
+
+
+def _textured(image: np.ndarray, tiles: float = 1.0) -> dict:
+    import mitsuba as mi
+
+    tex = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32))}
+    if tiles != 1.0:
+        tex["to_uv"] = mi.ScalarTransform4f().scale([tiles, tiles, 1.0])
+    return {"type": "diffuse", "reflectance": tex}
+
+
+def _environment(content: ContentParams) -> dict:
+    import mitsuba as mi
+
+    env = environment_map(128) * content.env_radiance
+    # Mitsuba's envmap is y-up; rotating +90 degrees about x maps local +y to world +z.
+    return {
+        "type": "envmap",
+        "bitmap": mi.Bitmap(env),
+        "to_world": _xf(_trs(pitch_deg=90.0)),
+    }
+
+
+def _floor(content: ContentParams, rng: np.random.Generator) -> dict:
+    """A square floor textured with a 3 x 3 mosaic of photographs (shuffled by ``rng``)."""
+    h = content.floor_half_size
+    photos = [FLOOR_PHOTOS[i] for i in rng.permutation(len(FLOOR_PHOTOS))]
+    return {
+        "type": "rectangle",
+        "to_world": _xf(_trs(scale=(h, h, 1.0))),
+        "bsdf": _textured(mosaic(photos, 3, 320)),
+    }
+
+
+def _objects(content: ContentParams, rng: np.random.Generator, base_z: float = 0.0,
+             center=(0.0, 0.0)) -> dict:
+    """Random photo-textured spheres and cubes resting on the plane z = base_z."""
+    out: dict = {}
+    placed: list[tuple[float, float, float]] = []
+    lo, hi = content.object_size
+    for k in range(content.n_objects):
+        for _attempt in range(200):
+            size = float(rng.uniform(lo, hi))
+            r = content.placement_radius * math.sqrt(float(rng.uniform(0.0, 1.0)))
+            a = float(rng.uniform(0.0, 2 * math.pi))
+            x, y = center[0] + r * math.cos(a), center[1] + r * math.sin(a)
+            if all(math.hypot(x - px, y - py) > 1.5 * (size + ps) for px, py, ps in placed):
+                break
+        placed.append((x, y, size))
+        photo = OBJECT_PHOTOS[int(rng.integers(len(OBJECT_PHOTOS)))]
+        bsdf = _textured(load_photo(photo, 256))
+        if k % 2 == 0:
+            yaw = float(rng.uniform(0.0, 90.0))
+            out[f"object_{k}"] = {
+                "type": "cube",
+                "to_world": _xf(_trs((x, y, base_z + size), yaw, size)),
+                "bsdf": bsdf,
+            }
+        else:
+            out[f"object_{k}"] = {
+                "type": "sphere",
+                "to_world": _xf(_trs((x, y, base_z + size), float(rng.uniform(0, 360)), size, 90.0)),
+                "bsdf": bsdf,
+            }
+    return out
+
+
+def _photo_order(rng: np.random.Generator) -> list[str]:
+    return [OBJECT_PHOTOS[i] for i in rng.permutation(len(OBJECT_PHOTOS))]
+
+
+def _glass(eta: float) -> dict:
+    return {"type": "thindielectric", "int_ior": float(eta), "ext_ior": 1.0}
+
+
+def build_dome(params: DomeParams, seed: int, workdir: Path) -> SceneSpec:
+    rng = np.random.default_rng(seed)
+    c = params.content
+    elements = {"env": _environment(c), "floor": _floor(c, rng)}
+    elements.update(_objects(c, rng))
+    r = params.dome_radius
+    elements["dome"] = {
+        "type": "sphere",
+        "center": [0.0, 0.0, float(params.dome_center_z)],
+        "radius": float(r),
+        "bsdf": _glass(params.eta),
+    }
+    top = params.dome_center_z + r
+    orbit = OrbitPath(target=(0.0, 0.0, 0.45 * top), radius=4.0, height_mid=2.0, height_amplitude=0.6)
+    return SceneSpec("dome", elements, ("dome",), orbit, asdict(params))
+
+
+def build_opaque(params: OpaqueParams, seed: int, workdir: Path) -> SceneSpec:
+    dome = build_dome(DomeParams(content=params.content), seed, workdir)
+    elements = {k: v for k, v in dome.elements.items() if k != "dome"}
+    return SceneSpec("opaque", elements, (), dome.orbit, asdict(params))
+
+
+def build_cabin(params: CabinParams, seed: int, workdir: Path) -> SceneSpec:
+    rng = np.random.default_rng(seed)
+    c = params.content
+    photos = _photo_order(rng)
+    L, W, B, H, p = (params.half_length, params.half_width, params.body_height,
+                     params.window_height, params.pillar_half)
+    elements = {"env": _environment(c), "floor": _floor(c, rng)}
+    elements["body"] = {
+        "type": "cube", "to_world": _xf(_trs((0, 0, B / 2), 0.0, (L, W, B / 2))),
+        "bsdf": _textured(load_photo(photos[0], 384)),
+    }
+    roof_t = 0.04
+    elements["roof"] = {
+        "type": "cube", "to_world": _xf(_trs((0, 0, B + H + roof_t), 0.0, (L + 0.05, W + 0.05, roof_t))),
+        "bsdf": _textured(load_photo(photos[1], 384)),
+    }
+    dark = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.08, 0.08, 0.09]}}
+    for i, (sx, sy) in enumerate([(1, 1), (1, -1), (-1, 1), (-1, -1)]):
+        elements[f"pillar_{i}"] = {
+            "type": "cube", "to_world": _xf(_trs((sx * L, sy * W, B + H / 2), 0.0, (p, p, H / 2 + 0.01))),
+            "bsdf": dark,
+        }
+    zc, hz = B + H / 2, H / 2 + 0.01  # panes reach slightly into body and roof: no cracks
+    # A rectangle spans [-1, 1]^2 in its local xy plane with normal +z.
+    panes = {
+        "window_front": _trs((L, 0, zc), 90.0, (W, hz, 1.0), 90.0),
+        "window_back": _trs((-L, 0, zc), 90.0, (W, hz, 1.0), 90.0),
+        "window_left": _trs((0, W, zc), 0.0, (L, hz, 1.0), 90.0),
+        "window_right": _trs((0, -W, zc), 0.0, (L, hz, 1.0), 90.0),
+    }
+    for name, m in panes.items():
+        elements[name] = {"type": "rectangle", "to_world": _xf(m), "bsdf": _glass(params.eta)}
+    inner = ContentParams(
+        n_objects=c.n_objects, placement_radius=c.placement_radius, object_size=c.object_size,
+        floor_half_size=c.floor_half_size, env_radiance=c.env_radiance,
+    )
+    elements.update(_objects(inner, rng, base_z=B))
+    orbit = OrbitPath(target=(0.0, 0.0, B + 0.3), radius=4.2, height_mid=1.4, height_amplitude=0.35)
+    return SceneSpec("cabin", elements, tuple(panes), orbit, asdict(params))
+
+
+def _write_film_obj(path: Path, params: FilmParams, n_u: int = 48, n_v: int = 2) -> None:
+    """A cylindrical sheet bulging towards -y; normals face -y (the cameras' side)."""
+    R, half = params.curvature_radius, math.radians(params.arc_deg) / 2
+    cy = R  # axis of the cylinder at y = R so the apex of the sheet is at y = 0
+    lines = []
+    for j in range(n_v):
+        z = params.height * j / (n_v - 1)
+        for i in range(n_u):
+            phi = -half + 2 * half * i / (n_u - 1)
+            lines.append(f"v {R * math.sin(phi):.6f} {cy - R * math.cos(phi):.6f} {z:.6f}")
+    for j in range(n_v):
+        for i in range(n_u):
+            lines.append(f"vt {i / (n_u - 1):.6f} {j / (n_v - 1):.6f}")
+    for _j in range(n_v):
+        for i in range(n_u):
+            phi = -half + 2 * half * i / (n_u - 1)
+            lines.append(f"vn {-math.sin(phi):.6f} {-math.cos(phi):.6f} 0.0")
+    for j in range(n_v - 1):
+        for i in range(n_u - 1):
+            a, b = j * n_u + i + 1, j * n_u + i + 2
+            c, d = a + n_u, b + n_u
+            # counter-clockwise seen from -y, consistent with the normals
+            lines.append(f"f {a}/{a}/{a} {c}/{c}/{c} {b}/{b}/{b}")
+            lines.append(f"f {b}/{b}/{b} {c}/{c}/{c} {d}/{d}/{d}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def build_film(params: FilmParams, seed: int, workdir: Path) -> SceneSpec:
+    rng = np.random.default_rng(seed)
+    c = params.content
+    photos = _photo_order(rng)
+    elements = {"env": _environment(c), "floor": _floor(c, rng)}
+    wall_w, wall_h = 3.0, 1.6
+    elements["wall"] = {
+        "type": "rectangle",
+        # local +z normal -> world -y (facing the film and the cameras)
+        "to_world": _xf(_trs((0, params.wall_distance, wall_h), 0.0, (wall_w, wall_h, 1.0), 90.0)),
+        "bsdf": _textured(mosaic(photos[:4], 2, 384)),
+    }
+    elements.update(_objects(c, rng, center=(0.0, 0.5 * (params.wall_distance + 0.3))))
+    obj = workdir / "film.obj"
+    _write_film_obj(obj, params)
+    elements["film"] = {
+        "type": "obj",
+        "filename": str(obj),
+        "face_normals": False,
+        "bsdf": {
+            "type": "blendbsdf",
+            "weight": float(params.scatter_weight),
+            "bsdf_0": {
+                "type": "thindielectric", "int_ior": float(params.eta), "ext_ior": 1.0,
+                "specular_transmittance": {"type": "rgb", "value": list(params.tint)},
+            },
+            "bsdf_1": {"type": "diffuse",
+                       "reflectance": {"type": "rgb", "value": list(params.scatter_albedo)}},
+        },
+    }
+    orbit = OrbitPath(
+        target=(0.0, 0.5, 0.7), radius=3.6, height_mid=1.3, height_amplitude=0.35,
+        azimuth_start=-145.0, azimuth_span=110.0,
+    )
+    return SceneSpec("film", elements, ("film",), orbit, asdict(params))
+
+
+@dataclass(frozen=True)
+class SceneKind:
+    builder: Callable[..., SceneSpec]
+    params: type
+
+
+SCENES: dict[str, SceneKind] = {
+    "dome": SceneKind(build_dome, DomeParams),
+    "cabin": SceneKind(build_cabin, CabinParams),
+    "film": SceneKind(build_film, FilmParams),
+    "opaque": SceneKind(build_opaque, OpaqueParams),
+}
+
+
+def build_scene(name: str, seed: int, workdir: Path, params=None) -> SceneSpec:
+    """Build scene ``name`` (one of :data:`SCENES`) with default or given parameters."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
+    kind = SCENES[name]
+    return kind.builder(params if params is not None else kind.params(), seed, workdir)
