@@ -1,0 +1,366 @@
+"""``rtsplat masks``: transparent-surface masks (white = see-through surface), one PNG per image.
+
+Two ways (function API :func:`make_masks`):
+
+* **ingest** ``<scene>/transparent_masks/<image stem>.png``: names and sizes are validated against
+  the images, masks are binarised, coverage is reported;
+* **segment** with a local ONNX model through onnxruntime (:class:`OnnxSegmenter`): the common SAM
+  and SAM2 exports (an image encoder plus a prompted mask decoder; the kind is detected from the
+  decoder's input names) prompted by the points/box of the config, or a plain "image in, mask
+  logits out" model.
+
+Output folder: ``<stem>.png`` masks (only when there are masks) and ``summary.json`` with
+``has_masks``, ``source`` and per-image coverage. A scene without masks gets ``has_masks: false``
+and is trained without transparency.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rtsplat.config import MasksConfig, OnnxSegmenterConfig, add_config_arguments, stage_config_from_args
+from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import atomic_dir, write_json_atomic
+from rtsplat.io.images import (
+    IMAGE_EXTENSIONS,
+    list_images,
+    read_header,
+    read_image,
+    read_mask,
+    validate_image_set,
+    write_mask,
+)
+
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+
+
+@dataclass
+class MasksSummary:
+    has_masks: bool
+    source: str  # "ingest" | "onnx" | "none"
+    num_images: int
+    mean_coverage: float = 0.0
+    coverage: dict[str, float] = field(default_factory=dict)
+    model_kind: str = ""
+
+
+# ----------------------------------------------------------------------------------------------
+# ONNX segmenter
+
+
+def _onnx_dtype(type_str: str):
+    return {
+        "tensor(float)": np.float32, "tensor(float16)": np.float16, "tensor(double)": np.float64,
+        "tensor(int64)": np.int64, "tensor(int32)": np.int32, "tensor(bool)": np.bool_,
+    }.get(type_str, np.float32)
+
+
+def _fixed(dim) -> int | None:
+    return dim if isinstance(dim, int) and dim > 0 else None
+
+
+class OnnxSegmenter:
+    """Run a SAM, SAM2 or plain segmentation ONNX model on one image at a time.
+
+    ``__call__(image)`` takes RGB float ``[H, W, 3]`` in [0, 1] and returns mask logits ``[H, W]``.
+
+    SAM (original export): the decoder takes ``image_embeddings``, ``point_coords``,
+    ``point_labels``, ``mask_input``, ``has_mask_input`` and usually ``orig_im_size``; the image is
+    resized so its longest side is the encoder size (1024) and padded at the right/bottom.
+    SAM2: the decoder takes ``image_embed`` and ``high_res_feats_0/1`` instead; the image is resized
+    to the square encoder size without keeping the aspect ratio. Both normalise with ImageNet
+    mean/std. Without ``orig_im_size`` the decoder returns low-resolution masks that are mapped back
+    here (undoing the padding for SAM). Multi-mask outputs are reduced to the mask with the best
+    predicted IoU.
+    """
+
+    def __init__(self, cfg: OnnxSegmenterConfig) -> None:
+        import onnxruntime as ort
+
+        self.cfg = cfg
+        if not cfg.model:
+            raise PipelineError("no ONNX model configured", path="config: masks.onnx.model",
+                                fix="set masks.onnx.model to a local .onnx file, or masks.source: none")
+        self.decoder = self._session(ort, cfg.model, "masks.onnx.model")
+        self.inputs = {i.name: i for i in self.decoder.get_inputs()}
+        self.kind = self.detect_kind() if cfg.kind == "auto" else cfg.kind
+        self.encoder = None
+        if self.kind in ("sam", "sam2"):
+            if not cfg.encoder:
+                raise PipelineError(
+                    f"{cfg.model} is a {self.kind.upper()} mask decoder; it needs the image encoder too",
+                    path="config: masks.onnx.encoder",
+                    fix="set masks.onnx.encoder to the encoder .onnx of the same export",
+                )
+            self.encoder = self._session(ort, cfg.encoder, "masks.onnx.encoder")
+            if not cfg.points and cfg.box is None:
+                raise PipelineError(
+                    f"a {self.kind.upper()} model needs a prompt", path="config: masks.onnx.points",
+                    fix="set masks.onnx.points ([[x, y], ...] as fractions of the image) or masks.onnx.box",
+                )
+            if cfg.points and len(cfg.point_labels) not in (0, len(cfg.points)):
+                raise PipelineError(
+                    "masks.onnx.point_labels must have one label per point",
+                    path="config: masks.onnx.point_labels",
+                    fix="give one label (1 = glass, 0 = background) per point, or leave it empty for all 1",
+                )
+
+    @staticmethod
+    def _session(ort, path: str, key: str):
+        if not Path(path).is_file():
+            raise PipelineError("ONNX model file not found", path=path,
+                                fix=f"set {key} to an existing local .onnx file (no download is attempted)")
+        try:
+            return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        except Exception as exc:
+            raise PipelineError(f"onnxruntime cannot load the model ({exc})", path=path,
+                                fix="export the model again (ONNX opset >= 13)") from exc
+
+    def detect_kind(self) -> str:
+        names = set(self.inputs)
+        if "image_embeddings" in names:
+            return "sam"
+        if "image_embed" in names or any(n.startswith("high_res_feats") for n in names):
+            return "sam2"
+        if len(names) == 1 and len(next(iter(self.inputs.values())).shape) == 4:
+            return "plain"
+        raise PipelineError(
+            f"cannot tell what kind of segmenter this is (inputs: {sorted(names)})",
+            path=self.cfg.model,
+            fix="use a SAM/SAM2 decoder export or a plain model with one [1, 3, H, W] input, "
+            "or set masks.onnx.kind",
+        )
+
+    # -- plain models ------------------------------------------------------------------------
+    def _plain(self, image: np.ndarray) -> np.ndarray:
+        import cv2
+
+        h, w = image.shape[:2]
+        inp = next(iter(self.inputs.values()))
+        th, tw = _fixed(inp.shape[2]) or h, _fixed(inp.shape[3]) or w
+        x = cv2.resize(image, (tw, th), interpolation=cv2.INTER_AREA) if (th, tw) != (h, w) else image
+        if self.cfg.normalize == "imagenet":
+            x = (x - IMAGENET_MEAN) / IMAGENET_STD
+        x = np.ascontiguousarray(x.transpose(2, 0, 1)[None]).astype(_onnx_dtype(inp.type))
+        out = np.asarray(self.decoder.run(None, {inp.name: x})[0], dtype=np.float32)
+        out = out.reshape((-1,) + out.shape[-2:])
+        logits = out[0] if out.shape[0] == 1 else out[-1] - out[0]  # 2 classes: glass - background
+        if logits.shape != (h, w):
+            logits = cv2.resize(logits, (w, h), interpolation=cv2.INTER_LINEAR)
+        return logits
+
+    # -- SAM / SAM2 --------------------------------------------------------------------------
+    def _encoder_size(self) -> tuple[int, int]:
+        inp = self.encoder.get_inputs()[0]
+        shape = inp.shape
+        if len(shape) == 4:
+            return _fixed(shape[2]) or 1024, _fixed(shape[3]) or 1024
+        return 1024, 1024
+
+    def _encode(self, image: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, tuple[int, int]]:
+        """Encoder outputs by name, the per-axis scale original -> model pixels, the resized size."""
+        import cv2
+
+        h, w = image.shape[:2]
+        sh, sw = self._encoder_size()
+        if self.kind == "sam":
+            s = min(sh / h, sw / w)
+            nh, nw = int(round(h * s)), int(round(w * s))
+            scale = np.array([s, s], dtype=np.float32)
+        else:
+            nh, nw = sh, sw
+            scale = np.array([sw / w, sh / h], dtype=np.float32)
+        resized = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_LINEAR)
+        inp = self.encoder.get_inputs()[0]
+        if len(inp.shape) == 3:  # HWC 0..255, the model normalises and pads itself
+            x = (resized * 255.0).astype(_onnx_dtype(inp.type))
+        else:
+            norm = (resized - IMAGENET_MEAN) / IMAGENET_STD
+            padded = np.zeros((sh, sw, 3), np.float32)
+            padded[:nh, :nw] = norm
+            x = np.ascontiguousarray(padded.transpose(2, 0, 1)[None]).astype(_onnx_dtype(inp.type))
+        outs = self.encoder.run(None, {inp.name: x})
+        names = [o.name for o in self.encoder.get_outputs()]
+        feats = dict(zip(names, outs, strict=True))
+        embed_name = "image_embeddings" if self.kind == "sam" else "image_embed"
+        if embed_name not in feats and len(outs) == 1:
+            feats = {embed_name: outs[0]}
+        return feats, scale, (nh, nw)
+
+    def _prompt(self, h: int, w: int, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cfg = self.cfg
+        coords, labels = [], []
+        for i, (x, y) in enumerate(cfg.points):
+            coords.append([x * w, y * h])
+            labels.append(cfg.point_labels[i] if cfg.point_labels else 1)
+        if cfg.box is not None:
+            x0, y0, x1, y1 = cfg.box
+            coords += [[x0 * w, y0 * h], [x1 * w, y1 * h]]
+            labels += [2, 3]
+        elif self.kind == "sam":
+            coords.append([0.0, 0.0])  # SAM's padding point when there is no box
+            labels.append(-1)
+        pts = np.asarray(coords, dtype=np.float32) * scale[None]
+        return pts[None], np.asarray(labels, dtype=np.float32)[None]
+
+    def _sam(self, image: np.ndarray) -> np.ndarray:
+        import cv2
+
+        h, w = image.shape[:2]
+        feats, scale, (nh, nw) = self._encode(image)
+        coords, labels = self._prompt(h, w, scale)
+        feeds = dict(feats)
+        feeds.update(
+            point_coords=coords, point_labels=labels,
+            mask_input=np.zeros((1, 1, 256, 256), np.float32), has_mask_input=np.zeros(1, np.float32),
+            orig_im_size=np.array([h, w], np.float32),
+        )
+        missing = sorted(set(self.inputs) - set(feeds))
+        if missing:
+            raise PipelineError(
+                f"the decoder needs inputs this pipeline cannot provide: {missing}", path=self.cfg.model,
+                fix="use the encoder of the same export (its outputs must be named like the decoder inputs)",
+            )
+        feeds = {k: np.asarray(v).astype(_onnx_dtype(self.inputs[k].type)) for k, v in feeds.items()
+                 if k in self.inputs}
+        outs = self.decoder.run(None, feeds)
+        names = [o.name for o in self.decoder.get_outputs()]
+        by_name = dict(zip(names, outs, strict=True))
+        masks = np.asarray(by_name.get("masks", outs[0]), dtype=np.float32)
+        masks = masks.reshape((-1,) + masks.shape[-2:])
+        iou = by_name.get("iou_predictions", by_name.get("iou_scores"))
+        best = int(np.argmax(np.asarray(iou).reshape(-1))) if iou is not None and masks.shape[0] > 1 else 0
+        logits = masks[best]
+        if logits.shape == (h, w):
+            return logits
+        # low-resolution masks cover the model input: undo the padding, then resize to the image
+        sh, sw = self._encoder_size()
+        full = cv2.resize(logits, (sw, sh), interpolation=cv2.INTER_LINEAR)
+        return cv2.resize(full[:nh, :nw], (w, h), interpolation=cv2.INTER_LINEAR)
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        return self._plain(image) if self.kind == "plain" else self._sam(image)
+
+
+# ----------------------------------------------------------------------------------------------
+# the stage
+
+
+def _find_mask(mask_dir: Path, stem: str) -> Path | None:
+    for ext in (".png",) + tuple(e for e in IMAGE_EXTENSIONS if e != ".png"):
+        p = mask_dir / f"{stem}{ext}"
+        if p.is_file():
+            return p
+    return None
+
+
+def ingest_masks(images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig, progress: bool) -> dict:
+    from tqdm import tqdm
+
+    stems = {p.stem for p in images}
+    extra = [p for p in list_images(mask_dir) if p.stem not in stems]
+    if extra:
+        raise PipelineError(
+            f"mask has no matching image (expected one of images/<{extra[0].stem}>.*)",
+            path=extra[0],
+            fix="name each mask after its image (<image stem>.png) or remove masks of deleted images",
+        )
+    coverage = {}
+    for img in tqdm(images, desc="masks", unit="img", disable=not progress):
+        header = read_header(img)
+        mpath = _find_mask(mask_dir, img.stem)
+        if mpath is None:
+            if not cfg.allow_missing:
+                raise PipelineError(
+                    f"no mask for image {img.name}",
+                    path=mask_dir / f"{img.stem}.png",
+                    fix="add the mask, or set masks.allow_missing: true to treat it as fully opaque",
+                )
+            mask = np.zeros((header.height, header.width), bool)
+        else:
+            mask = read_mask(mpath, cfg.threshold)
+            if mask.shape != (header.height, header.width):
+                raise PipelineError(
+                    f"mask is {mask.shape[1]}x{mask.shape[0]} but image {img.name} is "
+                    f"{header.width}x{header.height}",
+                    path=mpath,
+                    fix="export the mask at the image's resolution "
+                    "(masks of images_N folders do not fit images/)",
+                )
+        write_mask(out / f"{img.stem}.png", mask)
+        coverage[img.stem] = float(mask.mean())
+    return coverage
+
+
+def segment_masks(images: list[Path], out: Path, cfg: MasksConfig, progress: bool) -> tuple[dict, str]:
+    from tqdm import tqdm
+
+    seg = OnnxSegmenter(cfg.onnx)
+    thr = float(np.log(cfg.threshold / (1 - cfg.threshold))) if 0 < cfg.threshold < 1 else 0.0
+    coverage = {}
+    for img in tqdm(images, desc=f"segment ({seg.kind})", unit="img", disable=not progress):
+        mask = seg(read_image(img)) > thr
+        write_mask(out / f"{img.stem}.png", mask)
+        coverage[img.stem] = float(mask.mean())
+    return coverage, seg.kind
+
+
+def make_masks(scene_dir: str | Path, out_dir: str | Path, cfg: MasksConfig | None = None,
+               progress: bool = True) -> MasksSummary:
+    """Ingest or segment the masks of ``<scene_dir>/images`` into ``out_dir`` (atomically)."""
+    cfg = cfg or MasksConfig()
+    scene_dir = Path(scene_dir)
+    images = [h.path for h in validate_image_set(scene_dir / "images", decode=False)]
+    mask_dir = scene_dir / cfg.dir
+    source = cfg.source
+    if source == "auto":
+        source = "ingest" if list_images(mask_dir) else ("onnx" if cfg.onnx.model else "none")
+    if source == "ingest" and not mask_dir.is_dir():
+        raise PipelineError("mask folder not found", path=mask_dir,
+                            fix="put <image stem>.png masks there, set masks.dir, or masks.source: auto")
+    with atomic_dir(out_dir) as tmp:
+        kind = ""
+        if source == "ingest":
+            coverage = ingest_masks(images, mask_dir, tmp, cfg, progress)
+        elif source == "onnx":
+            coverage, kind = segment_masks(images, tmp, cfg, progress)
+        else:
+            coverage = {}
+        summary = MasksSummary(
+            has_masks=source != "none", source=source, num_images=len(images),
+            mean_coverage=float(np.mean(list(coverage.values()))) if coverage else 0.0,
+            coverage=coverage, model_kind=kind,
+        )
+        write_json_atomic(tmp / "summary.json", asdict(summary))
+    return summary
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene-dir", type=Path, required=True, help="dataset scene (<data>/<scene>)")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (results/<scene>/masks)")
+    parser.add_argument("--source", choices=["auto", "ingest", "onnx", "none"], help="override masks.source")
+    add_config_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        cfg = stage_config_from_args(args, "masks")
+        if args.source:
+            cfg.source = args.source
+        s = make_masks(args.scene_dir, args.out, cfg)
+    except PipelineError as exc:
+        print(f"rtsplat masks: error: {exc}", file=sys.stderr)
+        return 1
+    if s.has_masks:
+        how = "ingested" if s.source == "ingest" else f"segmented with ONNX ({s.model_kind})"
+        cover = f"{100 * s.mean_coverage:.2f}%"
+        print(f"masks {args.scene_dir}: {s.num_images} masks {how}, mean coverage {cover}")
+    else:
+        print(f"masks {args.scene_dir}: no masks (the scene is trained without transparency)")
+    return 0

@@ -1,0 +1,128 @@
+"""The pipeline config: dataclasses, generated schema, readable errors, per-scene overrides."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from rtsplat.config import (
+    SCHEMA_PATH,
+    ConfigError,
+    discover_scenes,
+    json_schema,
+    json_schema_text,
+    load_config,
+    load_config_dict,
+    scene_config,
+    section_from_dict,
+    section_json,
+    validate_config,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_schema_file_is_generated_from_the_dataclasses():
+    assert SCHEMA_PATH.read_text() == json_schema_text(), (
+        "workflow/schemas/config.schema.json is stale: run `python -m rtsplat.config --write-schema`"
+    )
+
+
+def test_repository_config_is_valid_and_matches_defaults():
+    cfg = load_config(ROOT / "config.yaml")
+    assert cfg.defaults.prepare.downsample == 4 and cfg.defaults.prepare.test_every == 8
+    assert cfg.methods == ["rtsplat"]
+    # every key in config.yaml exists in the schema (it validated) and the schema has every field
+    props = json_schema()["properties"]["defaults"]["properties"]
+    assert set(props) == {"sfm", "masks", "prepare", "train", "render", "metrics"}
+
+
+def test_schema_also_accepts_what_snakemake_validates():
+    import jsonschema
+
+    data = yaml.safe_load((ROOT / "config.yaml").read_text())
+    jsonschema.validate(data, json.loads(SCHEMA_PATH.read_text()))
+
+
+@pytest.mark.parametrize(
+    "data, expect",
+    [
+        ({"defaults": {"prepare": {"downsampel": 2}}},
+         ["'defaults.prepare.downsampel' does not exist", "did you mean 'downsample'"]),
+        ({"scenez": []}, ["'scenez' does not exist", "did you mean 'scenes'"]),
+        ({"defaults": {"sfm": {"matcher": "vocab"}}}, ["'defaults.sfm.matcher'", "exhaustive"]),
+        ({"defaults": {"prepare": {"downsample": "four"}}}, ["'defaults.prepare.downsample'", "integer"]),
+        ({"defaults": {"prepare": {"downsample": 0}}}, ["'defaults.prepare.downsample'", "minimum"]),
+        ({"overrides": {"sedan": {"prepare": {"roi": {"center": [0, 0], "radius": 1}}}}},
+         ["'overrides.sedan.prepare.roi.center'", "too short"]),
+        ({"overrides": {"sedan": {"train": {"iteration": 5}}}},
+         ["'overrides.sedan.train.iteration' does not exist", "did you mean 'iterations'"]),
+    ],
+)
+def test_errors_name_the_key_and_the_fix(data, expect):
+    with pytest.raises(ConfigError) as err:
+        validate_config(data, "my.yaml")
+    msg = str(err.value)
+    assert msg.startswith("my.yaml: ") and "Fix:" in msg
+    for text in expect:
+        assert text in msg, msg
+
+
+def test_per_scene_overrides_merge_over_defaults():
+    cfg = load_config_dict({
+        "defaults": {"prepare": {"downsample": 4}, "train": {"iterations": 100, "options": {"a": 1}}},
+        "overrides": {"sedan": {"prepare": {"downsample": 8, "roi": {"center": [1, 2, 3], "radius": 2}},
+                                "train": {"effects": "full"}}},
+    })
+    sedan, other = scene_config(cfg, "sedan"), scene_config(cfg, "truck")
+    assert sedan.prepare.downsample == 8 and sedan.prepare.roi.radius == 2.0
+    assert sedan.train.iterations == 100 and sedan.train.effects == "full" and sedan.train.options == {"a": 1}
+    assert other.prepare.downsample == 4 and other.prepare.roi is None and other.train.effects == "auto"
+    # the JSON a rule passes to the CLI round-trips into the same section
+    text = section_json(cfg, "sedan", "prepare", quote=False)
+    assert section_from_dict("prepare", json.loads(text)) == sedan.prepare
+
+
+def test_scene_discovery(tmp_path):
+    for s in ("b", "a"):
+        (tmp_path / s / "images").mkdir(parents=True)
+    (tmp_path / "notes").mkdir()
+    assert discover_scenes(load_config_dict({"data": str(tmp_path)})) == ["a", "b"]
+    assert discover_scenes(load_config_dict({"data": str(tmp_path), "scenes": ["b"]})) == ["b"]
+    with pytest.raises(ConfigError, match="listed scenes have no images/ folder: c"):
+        discover_scenes(load_config_dict({"data": str(tmp_path), "scenes": ["c"]}))
+    with pytest.raises(ConfigError, match="overrides given for unknown scenes: z"):
+        discover_scenes(load_config_dict({"data": str(tmp_path), "overrides": {"z": {}}}))
+    with pytest.raises(ConfigError, match="no scenes found"):
+        discover_scenes(load_config_dict({"data": str(tmp_path / "notes")}))
+
+
+def test_config_file_errors(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("defaults: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(p)
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_stage_cli_reads_config_file_with_scene_overrides(tmp_path):
+    import argparse
+
+    from rtsplat.config import add_config_arguments, stage_config_from_args
+
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump({"defaults": {"prepare": {"downsample": 2}},
+                                 "overrides": {"sedan": {"prepare": {"downsample": 8}}}}))
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser)
+    sedan = parser.parse_args(["--config", str(p), "--scene", "sedan"])
+    assert stage_config_from_args(sedan, "prepare").downsample == 8
+    assert stage_config_from_args(parser.parse_args(["--config", str(p)]), "prepare").downsample == 2
+    assert stage_config_from_args(parser.parse_args([]), "prepare").downsample == 1
+    args = parser.parse_args(["--config-json", '{"downsampel": 3}'])
+    with pytest.raises(ConfigError, match="'defaults.prepare.downsampel' does not exist"):
+        stage_config_from_args(args, "prepare")

@@ -1,0 +1,264 @@
+"""rtsplat masks: ingesting masks and segmenting with tiny SAM / SAM2 / plain ONNX models."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from fixtures_pipeline import make_corner_scene  # noqa: E402
+
+from rtsplat.cli import main as cli_main  # noqa: E402
+from rtsplat.config import MasksConfig, OnnxSegmenterConfig  # noqa: E402
+from rtsplat.errors import PipelineError  # noqa: E402
+from rtsplat.io.images import read_mask, write_mask, write_png  # noqa: E402
+from rtsplat.masks import OnnxSegmenter, make_masks  # noqa: E402
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("onnxruntime")
+pytestmark = pytest.mark.filterwarnings("ignore")  # torch.onnx exporter deprecation/tracer chatter
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("masks") / "scene"
+    make_corner_scene(d, n_views=4, width=80, height=60, with_masks=True)
+    return d
+
+
+def test_ingest_validates_and_reports_coverage(scene, tmp_path):
+    s = make_masks(scene, tmp_path / "out", progress=False)
+    assert s.has_masks and s.source == "ingest" and s.num_images == 4
+    for stem, cov in s.coverage.items():
+        gt = read_mask(scene / "transparent_masks" / f"{stem}.png")
+        out = read_mask(tmp_path / "out" / f"{stem}.png")
+        assert np.array_equal(gt, out)
+        assert cov == pytest.approx(gt.mean())
+    assert 0.0 < s.mean_coverage < 0.5
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["has_masks"] is True
+
+
+def test_ingest_binarises_grey_masks(tmp_path):
+    d = tmp_path / "s"
+    make_corner_scene(d, n_views=2, width=40, height=30)
+    (d / "transparent_masks").mkdir()
+    grey = np.zeros((30, 40), np.float32)
+    grey[:, :10] = 200 / 255  # counts as white
+    grey[:, 10:20] = 100 / 255  # counts as black
+    for stem in ("view_000", "view_001"):
+        write_png(d / "transparent_masks" / f"{stem}.png", grey)
+    make_masks(d, tmp_path / "out", progress=False)
+    m = read_mask(tmp_path / "out" / "view_000.png")
+    assert m[:, :10].all() and not m[:, 10:].any()
+
+
+def test_no_masks_means_no_transparency(tmp_path):
+    d = tmp_path / "s"
+    make_corner_scene(d, n_views=2, width=40, height=30)
+    s = make_masks(d, tmp_path / "out", progress=False)
+    assert not s.has_masks and s.source == "none"
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["summary.json"]
+
+
+@pytest.mark.parametrize("problem", ["size", "extra", "missing"])
+def test_bad_masks_name_the_file_and_keep_old_output(scene, tmp_path, problem):
+    d = tmp_path / "s"
+    import shutil
+
+    shutil.copytree(scene, d)
+    out = tmp_path / "out"
+    make_masks(d, out, progress=False)
+    before = (out / "summary.json").read_text()
+    if problem == "size":
+        bad = d / "transparent_masks" / "view_001.png"
+        write_mask(bad, np.zeros((10, 10), bool))
+        expect = ["view_001.png", "10x10", "80x60"]
+    elif problem == "extra":
+        bad = d / "transparent_masks" / "view_999.png"
+        write_mask(bad, np.zeros((60, 80), bool))
+        expect = ["view_999.png", "no matching image"]
+    else:
+        (d / "transparent_masks" / "view_002.png").unlink()
+        expect = ["view_002", "allow_missing"]
+    with pytest.raises(PipelineError) as err:
+        make_masks(d, out, progress=False)
+    for text in expect:
+        assert text in str(err.value)
+    assert (out / "summary.json").read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "s"]  # no temporary leftovers
+    if problem == "missing":
+        s = make_masks(d, out, MasksConfig(allow_missing=True), progress=False)
+        assert s.coverage["view_002"] == 0.0
+
+
+def test_masks_cli(scene, tmp_path, capsys):
+    assert cli_main(["masks", "--scene-dir", str(scene), "--out", str(tmp_path / "o")]) == 0
+    assert "4 masks ingested" in capsys.readouterr().out
+    assert cli_main(["masks", "--scene-dir", str(tmp_path / "nothing"), "--out", str(tmp_path / "o2")]) == 1
+    assert "image folder does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "o2").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# tiny ONNX models with the input/output names of the real exports
+
+
+class PlainNet(torch.nn.Module):
+    """Logits > 0 where the red channel > 0.5."""
+
+    def forward(self, image):
+        return 20.0 * (image[:, :1] - 0.5)
+
+
+class SamEncoder(torch.nn.Module):
+    """[1, 3, 1024, 1024] normalised image -> 64x64 'embeddings' (16x16 average pooling)."""
+
+    def __init__(self, out_names=("image_embeddings",)):
+        super().__init__()
+        self.n = len(out_names)
+
+    def forward(self, image):
+        e = torch.nn.functional.avg_pool2d(image, 16)
+        if self.n == 1:
+            return e
+        return torch.nn.functional.avg_pool2d(image, 4), torch.nn.functional.avg_pool2d(image, 8), e
+
+
+def _box_and_red(embed, point_coords, ys, xs):
+    """Logits > 0 inside the box (first two prompt points, in model pixels) where red > mean."""
+    x0, y0 = point_coords[0, 0, 0], point_coords[0, 0, 1]
+    x1, y1 = point_coords[0, 1, 0], point_coords[0, 1, 1]
+    inside = (ys[:, None] > y0) & (ys[:, None] < y1) & (xs[None, :] > x0) & (xs[None, :] < x1)
+    iy = torch.clamp((ys / 16).floor().long(), 0, 63)
+    ix = torch.clamp((xs / 16).floor().long(), 0, 63)
+    red = embed[0, 0][iy][:, ix] > 0
+    return torch.where(inside & red, 5.0, -5.0)[None, None]
+
+
+class SamDecoder(torch.nn.Module):
+    """SAM-style decoder with orig_im_size: masks at the original size (SAM's resize + no padding)."""
+
+    def forward(self, image_embeddings, point_coords, point_labels, mask_input, has_mask_input, orig_im_size):
+        h, w = orig_im_size[0], orig_im_size[1]
+        s = 1024.0 / torch.maximum(h, w)
+        ys = (torch.arange(h.to(torch.int64), dtype=torch.float32) + 0.5) * s
+        xs = (torch.arange(w.to(torch.int64), dtype=torch.float32) + 0.5) * s
+        m = _box_and_red(image_embeddings, point_coords, ys, xs) + 0 * point_labels.sum()
+        m = m + 0 * mask_input.sum() + 0 * has_mask_input.sum()
+        return torch.cat([-m, m], 1), torch.tensor([[0.1, 0.9]])  # the best-IoU mask is the 2nd
+
+
+class Sam2Decoder(torch.nn.Module):
+    """SAM2-style decoder without orig_im_size: 256x256 low-resolution masks over the model input."""
+
+    def forward(self, image_embed, high_res_feats_0, high_res_feats_1, point_coords, point_labels,
+                mask_input, has_mask_input):
+        c = (torch.arange(256, dtype=torch.float32) + 0.5) * 4.0
+        m = _box_and_red(image_embed, point_coords, c, c)
+        extra = 0 * (high_res_feats_0.mean() + high_res_feats_1.mean() + point_labels.sum()
+                     + mask_input.sum() + has_mask_input.sum())
+        return m + extra, torch.tensor([[0.9]])
+
+
+def _export(module, args, names, outputs, path, dynamic=None):
+    torch.onnx.export(module, args, str(path), input_names=names, output_names=outputs,
+                      dynamic_axes=dynamic or {}, dynamo=False, opset_version=17)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def onnx_models(tmp_path_factory):
+    d = tmp_path_factory.mktemp("onnx")
+    plain = _export(PlainNet(), (torch.zeros(1, 3, 32, 32),), ["input"], ["logits"], d / "plain.onnx",
+                    {"input": {2: "h", 3: "w"}, "logits": {2: "h", 3: "w"}})
+    img = (torch.zeros(1, 3, 1024, 1024),)
+    sam_enc = _export(SamEncoder(), img, ["image"], ["image_embeddings"], d / "sam_enc.onnx")
+    pts = torch.zeros(1, 3, 2)
+    lab = torch.zeros(1, 3)
+    mi, hm = torch.zeros(1, 1, 256, 256), torch.zeros(1)
+    sam_dec = _export(
+        SamDecoder(), (torch.zeros(1, 3, 64, 64), pts, lab, mi, hm, torch.tensor([60.0, 80.0])),
+        ["image_embeddings", "point_coords", "point_labels", "mask_input", "has_mask_input", "orig_im_size"],
+        ["masks", "iou_predictions"], d / "sam_dec.onnx",
+        {"point_coords": {1: "n"}, "point_labels": {1: "n"}, "masks": {2: "h", 3: "w"}},
+    )
+    names2 = ("high_res_feats_0", "high_res_feats_1", "image_embed")
+    sam2_enc = _export(SamEncoder(names2), img, ["image"], list(names2), d / "sam2_enc.onnx")
+    sam2_dec = _export(
+        Sam2Decoder(),
+        (torch.zeros(1, 3, 64, 64), torch.zeros(1, 3, 256, 256), torch.zeros(1, 3, 128, 128),
+         pts, lab, mi, hm),
+        ["image_embed", "high_res_feats_0", "high_res_feats_1", "point_coords", "point_labels", "mask_input",
+         "has_mask_input"],
+        ["masks", "iou_predictions"], d / "sam2_dec.onnx",
+        {"point_coords": {1: "n"}, "point_labels": {1: "n"}},
+    )
+    return {"plain": (plain, None), "sam": (sam_dec, sam_enc), "sam2": (sam2_dec, sam2_enc)}
+
+
+def _test_image(h=150, w=200):
+    """Dark image with a bright red rectangle: columns 60..140, rows 30..110."""
+    img = np.full((h, w, 3), 0.1, np.float32)
+    img[30:110, 60:140, 0] = 0.95
+    return img
+
+
+BOX = [0.2, 0.1, 0.55, 0.9]  # x0, y0, x1, y1 fractions -> columns 40..110, rows 15..135
+
+
+def _expected(h=150, w=200):
+    m = np.zeros((h, w), bool)
+    m[30:110, 60:110] = True  # red rectangle inside the box
+    return m
+
+
+def test_plain_model_end_to_end(onnx_models):
+    seg = OnnxSegmenter(OnnxSegmenterConfig(model=onnx_models["plain"][0]))
+    assert seg.kind == "plain"
+    mask = seg(_test_image()) > 0
+    assert np.array_equal(mask, _test_image()[..., 0] > 0.5)
+
+
+@pytest.mark.parametrize("kind", ["sam", "sam2"])
+def test_sam_like_models_with_box_prompt(onnx_models, kind):
+    dec, enc = onnx_models[kind]
+    seg = OnnxSegmenter(OnnxSegmenterConfig(model=dec, encoder=enc, box=BOX))
+    assert seg.kind == kind  # detected from the decoder's input names
+    mask = seg(_test_image()) > 0
+    gt = _expected()
+    iou = (mask & gt).sum() / (mask | gt).sum()
+    assert iou > 0.9, iou
+    # nothing outside the prompt box (a wrong coordinate transform would leak or shift the mask)
+    outside = np.ones_like(gt)
+    outside[13:138, 38:113] = False
+    assert not mask[outside].any()
+
+
+def test_sam_needs_encoder_and_prompt(onnx_models):
+    dec, enc = onnx_models["sam"]
+    with pytest.raises(PipelineError, match="masks.onnx.encoder"):
+        OnnxSegmenter(OnnxSegmenterConfig(model=dec))
+    with pytest.raises(PipelineError, match="prompt"):
+        OnnxSegmenter(OnnxSegmenterConfig(model=dec, encoder=enc))
+    with pytest.raises(PipelineError, match="not found"):
+        OnnxSegmenter(OnnxSegmenterConfig(model=str(Path(dec).with_name("missing.onnx"))))
+
+
+def test_segment_stage_writes_masks(onnx_models, tmp_path):
+    d = tmp_path / "s"
+    (d / "images").mkdir(parents=True)
+    for i in range(3):
+        write_png(d / "images" / f"img{i}.png", _test_image())
+    dec, enc = onnx_models["sam2"]
+    cfg = MasksConfig(onnx=OnnxSegmenterConfig(model=dec, encoder=enc, box=BOX))
+    s = make_masks(d, tmp_path / "out", cfg, progress=False)  # source auto: no mask folder -> onnx
+    assert s.source == "onnx" and s.model_kind == "sam2" and s.has_masks
+    m = read_mask(tmp_path / "out" / "img1.png")
+    gt = _expected()
+    assert (m & gt).sum() / (m | gt).sum() > 0.9
+    assert s.mean_coverage == pytest.approx(m.mean())

@@ -1,0 +1,237 @@
+"""rtsplat prepare: downsampling with exact intrinsics, masks, ROI, split, formats, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from fixtures_pipeline import WINDOW, make_corner_scene  # noqa: E402
+
+from rtsplat.cli import main as cli_main  # noqa: E402
+from rtsplat.config import PrepareConfig, RoiConfig  # noqa: E402
+from rtsplat.errors import PipelineError  # noqa: E402
+from rtsplat.io.images import area_downsample, read_image, read_mask, write_png  # noqa: E402
+from rtsplat.masks import make_masks  # noqa: E402
+from rtsplat.prepare import prepare_scene  # noqa: E402
+from rtsplat.scene import PreparedScene  # noqa: E402
+from rtsplat.sfm import run_sfm  # noqa: E402
+
+W, H = 160, 120
+
+
+def _stages(scene: Path, work: Path, masks: bool = True):
+    run_sfm(scene, work / "sfm", progress=False)
+    if masks:
+        make_masks(scene, work / "masks", progress=False)
+    return work / "sfm", (work / "masks" if masks else None)
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    root = tmp_path_factory.mktemp("prep")
+    views = make_corner_scene(root / "scene", n_views=10, width=W, height=H, with_model=True, with_masks=True)
+    sfm, masks = _stages(root / "scene", root)
+    return root, views, sfm, masks
+
+
+def test_prepare_downsamples_with_exact_intrinsics(base, tmp_path):
+    root, views, sfm, masks = base
+    s = prepare_scene(root / "scene", sfm, tmp_path / "prepared", PrepareConfig(downsample=2), masks,
+                      progress=False)
+    assert (s.width, s.height, s.downsample) == (W // 2, H // 2, 2)
+    scene = PreparedScene.load(tmp_path / "prepared")
+    assert scene.has_transparency and len(scene.cameras) == 10
+    gt = {Path(v.name).stem: v for v in views}
+    for cam in scene.cameras:
+        v = gt[cam.name]
+        assert np.allclose(cam.K_array[:2], v.K[:2] / 2) and np.allclose(cam.w2c_array, v.world_to_camera)
+        img = scene.load_image(cam.name)
+        ref = area_downsample(read_image(root / "scene" / "images" / v.name), 2)
+        assert img.shape == (H // 2, W // 2, 3) and np.abs(img - ref).max() <= 0.5 / 255 + 1e-6
+    # the mask's window lands where the scaled camera projects the window corners
+    cam = scene.cameras[3]
+    mask = scene.load_mask(cam.name)
+    corners = np.array([[0, WINDOW[0], WINDOW[2]], [0, WINDOW[1], WINDOW[2]],
+                        [0, WINDOW[0], WINDOW[3]], [0, WINDOW[1], WINDOW[3]]], float)
+    c = corners @ cam.w2c_array[:3, :3].T + cam.w2c_array[:3, 3]
+    uv = c @ cam.K_array.T
+    uv = uv[:, :2] / uv[:, 2:]
+    ys, xs = np.nonzero(mask)
+    assert abs((xs + 0.5).min() - uv[:, 0].min()) < 1.5 and abs((xs + 0.5).max() - uv[:, 0].max()) < 1.5
+    assert abs((ys + 0.5).min() - uv[:, 1].min()) < 1.5 and abs((ys + 0.5).max() - uv[:, 1].max()) < 1.5
+    # torch camera of the shared convention
+    torch_cam = cam.to_camera()
+    assert torch_cam.width == W // 2 and float(torch_cam.K[0, 0]) == pytest.approx(cam.K[0][0])
+
+
+def test_split_roi_and_points(base, tmp_path):
+    root, views, sfm, masks = base
+    prepare_scene(root / "scene", sfm, tmp_path / "p", PrepareConfig(downsample=1), masks, progress=False)
+    scene = PreparedScene.load(tmp_path / "p")
+    assert [c.name for c in scene.test_cameras] == ["view_000", "view_008"]  # every 8th, name order
+    assert len(scene.train_cameras) == 8
+    assert scene.roi.source == "estimated"
+    assert np.allclose(scene.roi.center, [0.6, 0.6, 0.6], atol=1e-6)  # where the fixture cameras look
+    assert 1.0 < scene.roi.radius < 2.5  # covers the corner's points
+    xyz, rgb = scene.load_points()
+    assert xyz.shape == (500, 3) and rgb.dtype == np.uint8
+    # ROI from the config
+    roi = RoiConfig(center=[1.0, 2.0, 3.0], radius=0.5)
+    prepare_scene(root / "scene", sfm, tmp_path / "p2", PrepareConfig(roi=roi, test_every=3), masks,
+                  progress=False)
+    scene2 = PreparedScene.load(tmp_path / "p2")
+    assert scene2.roi.source == "config" and scene2.roi.center == [1.0, 2.0, 3.0] and scene2.roi.radius == 0.5
+    assert [c.name for c in scene2.test_cameras] == ["view_000", "view_003", "view_006", "view_009"]
+
+
+def test_prescaled_images_are_used(tmp_path):
+    import cv2
+
+    make_corner_scene(tmp_path / "s", n_views=4, width=W, height=H, with_model=True)
+    (tmp_path / "s" / "images_4").mkdir()
+    for p in sorted((tmp_path / "s" / "images").iterdir()):
+        img = cv2.imread(str(p))
+        cv2.imwrite(str(tmp_path / "s" / "images_4" / p.name), cv2.resize(img, (W // 4, H // 4),
+                                                                          interpolation=cv2.INTER_AREA))
+    sfm, _ = _stages(tmp_path / "s", tmp_path, masks=False)
+    s = prepare_scene(tmp_path / "s", sfm, tmp_path / "p", PrepareConfig(downsample=4), progress=False)
+    assert s.used_prescaled and (s.width, s.height) == (W // 4, H // 4) and not s.has_transparency
+    scene = PreparedScene.load(tmp_path / "p")
+    assert scene.cameras[0].K[0][0] == pytest.approx(0.9 * W / 4)
+    assert not (tmp_path / "p" / "masks").exists()
+
+
+@pytest.mark.parametrize("fmt", ["png16", "exr", "rgba"])
+def test_16bit_exr_and_alpha_inputs(tmp_path, fmt):
+    import OpenImageIO as oiio
+
+    views = make_corner_scene(tmp_path / "s", n_views=3, width=W, height=H, with_model=True)
+    images = tmp_path / "s" / "images"
+    ref = {}
+    for v in views:
+        p = images / v.name
+        img = read_image(p)
+        ref[Path(v.name).stem] = img
+        if fmt == "png16":
+            write_png(p, img, bits=16)
+        elif fmt == "rgba":  # semi-transparent alpha must not darken the colours (no premultiplication)
+            rgba = np.concatenate([img, np.full(img.shape[:2] + (1,), 0.5, np.float32)], axis=2)
+            out = oiio.ImageOutput.create(str(p))
+            spec = oiio.ImageSpec(W, H, 4, "uint8")
+            spec.attribute("oiio:UnassociatedAlpha", 1)
+            out.open(str(p), spec)
+            out.write_image((rgba * 255).round().astype(np.uint8))
+            out.close()
+        else:
+            lin = np.where(img <= 0.04045, img / 12.92, ((img + 0.055) / 1.055) ** 2.4).astype(np.float32)
+            p.unlink()
+            exr = p.with_suffix(".exr")
+            out = oiio.ImageOutput.create(str(exr))
+            out.open(str(exr), oiio.ImageSpec(W, H, 3, "float"))
+            out.write_image(lin)
+            out.close()
+    if fmt == "exr":  # rename the images in the model too
+        from rtsplat.io.colmap import write_model
+
+        write_model(tmp_path / "s" / "sparse" / "0",
+                    [(Path(v.name).stem + ".exr", v.K, v.world_to_camera, W, H) for v in views])
+    sfm, _ = _stages(tmp_path / "s", tmp_path, masks=False)
+    cfg = PrepareConfig(downsample=2, bit_depth=16)
+    prepare_scene(tmp_path / "s", sfm, tmp_path / "p", cfg, progress=False)
+    scene = PreparedScene.load(tmp_path / "p")
+    for cam in scene.cameras:
+        got = scene.load_image(cam.name)
+        want = area_downsample(ref[cam.name], 2)
+        assert np.abs(got - want).max() < 1.5 / 255, (fmt, np.abs(got - want).max())
+
+
+def test_prepare_cli_and_failures_keep_earlier_output(base, tmp_path, capsys):
+    root, _, sfm, masks = base
+    scene = tmp_path / "scene"
+    shutil.copytree(root / "scene", scene)
+    out = tmp_path / "prepared"
+    args = ["prepare", "--scene-dir", str(scene), "--sfm", str(sfm), "--masks", str(masks), "--out", str(out)]
+    assert cli_main(args + ["--downsample", "2"]) == 0
+    assert "8 train + 2 test views at 80x60 (downsample 2)" in capsys.readouterr().out
+    before = (out / "scene.json").read_text()
+    # an image truncated after SfM: clear error naming it, earlier prepared scene intact
+    img = Path(json.loads((sfm / "summary.json").read_text())["image_dir"]) / "view_004.png"
+    original = img.read_bytes()
+    try:
+        img.write_bytes(original[: len(original) // 3])
+        assert cli_main(args) == 1
+        err = capsys.readouterr().err
+        assert "view_004.png: cannot read image" in err and "Fix:" in err
+    finally:
+        img.write_bytes(original)
+    assert (out / "scene.json").read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["prepared", "scene"]  # no temporary leftovers
+    # no SfM result yet
+    assert cli_main(["prepare", "--scene-dir", str(scene), "--sfm", str(tmp_path / "nope"), "--out",
+                     str(tmp_path / "x")]) == 1
+    assert "run 'rtsplat sfm'" in capsys.readouterr().err
+
+
+def test_mask_of_wrong_size_is_rejected(base, tmp_path):
+    root, _, sfm, masks = base
+    bad = tmp_path / "masks"
+    shutil.copytree(masks, bad)
+    from rtsplat.io.images import write_mask
+
+    write_mask(bad / "view_005.png", np.ones((10, 12), bool))
+    with pytest.raises(PipelineError, match=r"view_005.png: mask is 12x10, image is 160x120"):
+        prepare_scene(root / "scene", sfm, tmp_path / "p", masks_dir=bad, progress=False)
+    assert not (tmp_path / "p").exists()
+
+
+def test_model_image_mismatch_is_rejected(base, tmp_path):
+    root, views, sfm, masks = base
+    scene = tmp_path / "scene"
+    shutil.copytree(root / "scene", scene)
+    (scene / "images" / views[2].name).unlink()
+    sfm2 = tmp_path / "sfm"
+    shutil.copytree(sfm, sfm2)
+    summary = json.loads((sfm2 / "summary.json").read_text())
+    summary["image_dir"] = str(scene / "images")
+    (sfm2 / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(PipelineError, match="view_002.png"):
+        prepare_scene(scene, sfm2, tmp_path / "p", progress=False)
+    assert read_mask(masks / "view_002.png").any()  # inputs untouched
+
+
+def test_masks_are_undistorted_with_the_images(tmp_path):
+    make_corner_scene(tmp_path / "s", n_views=9, width=W, height=H, with_masks=True)  # no model: real SfM
+    sfm, masks = _stages(tmp_path / "s", tmp_path)
+    summary = json.loads((sfm / "summary.json").read_text())
+    assert summary["undistorted"]  # SIMPLE_RADIAL -> PINHOLE
+    s = prepare_scene(tmp_path / "s", sfm, tmp_path / "p", PrepareConfig(downsample=1), masks, progress=False)
+    scene = PreparedScene.load(tmp_path / "p")  # checks that every mask has its image's size
+    import cv2
+
+    for cam in scene.cameras:
+        got = scene.load_mask(cam.name)
+        orig = read_mask(tmp_path / "s" / "transparent_masks" / f"{cam.name}.png")
+        # the undistortion is tiny here: the warped mask overlaps the original one almost fully
+        ref = cv2.resize(orig.astype(np.uint8), (cam.width, cam.height), interpolation=cv2.INTER_NEAREST) > 0
+        assert (got & ref).sum() / (got | ref).sum() > 0.85
+    assert s.has_transparency and 0.03 < s.mask_coverage < 0.2
+
+
+def test_empty_masks_mean_no_transparency(tmp_path):
+    from rtsplat.io.images import write_mask
+
+    make_corner_scene(tmp_path / "s", n_views=3, width=80, height=60, with_model=True, with_masks=True)
+    for p in (tmp_path / "s" / "transparent_masks").iterdir():
+        write_mask(p, np.zeros((60, 80), bool))
+    sfm, masks = _stages(tmp_path / "s", tmp_path)
+    s = prepare_scene(tmp_path / "s", sfm, tmp_path / "p", masks_dir=masks, progress=False)
+    assert not s.has_transparency
+    scene = PreparedScene.load(tmp_path / "p")
+    assert not scene.has_transparency and not (tmp_path / "p" / "masks").exists()

@@ -1,0 +1,159 @@
+"""rtsplat sfm: dataset models are validated and used, real SfM registers a textured fixture."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from fixtures_pipeline import make_corner_scene  # noqa: E402
+
+from rtsplat.cli import main as cli_main  # noqa: E402
+from rtsplat.config import SfmConfig  # noqa: E402
+from rtsplat.errors import PipelineError  # noqa: E402
+from rtsplat.io.colmap import load_model, write_model  # noqa: E402
+from rtsplat.sfm import run_sfm  # noqa: E402
+
+
+def _align_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares s, R, t with dst ~ s R src + t (Umeyama)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ D @ Vt
+    s = np.trace(np.diag(S) @ D) / (a**2).sum(1).mean()
+    return s, R, mu_d - s * R @ mu_s
+
+
+def test_dataset_model_is_used(tmp_path):
+    views = make_corner_scene(tmp_path / "s", n_views=6, width=80, height=60, with_model=True)
+    s = run_sfm(tmp_path / "s", tmp_path / "sfm", progress=False)
+    assert s.source == "dataset" and s.registered == 6 and s.total == 6 and not s.undistorted
+    assert s.mean_reprojection_error is None  # the fixture model has no observations
+    model = load_model(s.model_dir)
+    assert Path(s.image_dir) == (tmp_path / "s" / "images").resolve()
+    for v in views:
+        assert np.allclose(model.view(v.name).world_to_camera, v.world_to_camera)
+    assert json.loads((tmp_path / "sfm" / "summary.json").read_text())["registered"] == 6
+
+
+def test_model_registering_too_few_images_fails_clearly(tmp_path):
+    views = make_corner_scene(tmp_path / "s", n_views=8, width=80, height=60)
+    v = views[:2]
+    write_model(tmp_path / "s" / "sparse" / "0", [(x.name, x.K, x.world_to_camera, 80, 60) for x in v])
+    (tmp_path / "sfm").mkdir()
+    (tmp_path / "sfm" / "keep.txt").write_text("earlier result")
+    with pytest.raises(PipelineError) as err:
+        run_sfm(tmp_path / "s", tmp_path / "sfm", progress=False)
+    msg = str(err.value)
+    assert "only 2 of 8 images" in msg and "sparse/0" in msg and "Fix:" in msg
+    assert "not registered: view_002.png, view_003.png, view_004.png, view_005.png, view_006.png and 1 more" in msg
+    assert (tmp_path / "sfm" / "keep.txt").read_text() == "earlier result"  # earlier output untouched
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "sfm"]
+
+
+@pytest.mark.parametrize("problem", ["empty", "truncated", "mixed"])
+def test_bad_images(tmp_path, problem):
+    scene = tmp_path / "s"
+    if problem == "empty":
+        (scene / "images").mkdir(parents=True)
+        expect = "no images found"
+    else:
+        make_corner_scene(scene, n_views=4, width=80, height=60)
+        if problem == "truncated":
+            p = scene / "images" / "view_002.png"
+            p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2])
+            expect = "view_002.png: cannot read image"
+        else:
+            make_corner_scene(tmp_path / "other", n_views=4, width=64, height=48)
+            shutil.copy(tmp_path / "other" / "images" / "view_003.png", scene / "images" / "view_009.png")
+            expect = "view_009.png: images of mixed sizes: this one is 64x48, most are 80x60"
+    with pytest.raises(PipelineError) as err:
+        run_sfm(scene, tmp_path / "sfm", progress=False)
+    assert expect in str(err.value) and "Fix:" in str(err.value)
+    assert not (tmp_path / "sfm").exists()
+
+
+def test_real_sfm_registers_fixture_and_recovers_poses(tmp_path, capsys):
+    views = make_corner_scene(tmp_path / "s", n_views=12, width=200, height=150)
+    code = cli_main(["sfm", "--scene-dir", str(tmp_path / "s"), "--out", str(tmp_path / "sfm"),
+                     "--matcher", "exhaustive"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    summary = json.loads((tmp_path / "sfm" / "summary.json").read_text())
+    print(summary)
+    assert summary["source"] == "sfm" and summary["total"] == 12
+    assert summary["registered"] >= 11
+    assert summary["mean_reprojection_error"] < 1.0
+    assert summary["num_points"] > 100
+    # SIMPLE_RADIAL -> undistorted PINHOLE images and model
+    assert summary["undistorted"]
+    model = load_model(summary["model_dir"])
+    assert all(v.model in ("PINHOLE", "SIMPLE_PINHOLE") for v in model.views)
+    assert (Path(summary["image_dir"]) / model.views[0].name).is_file()
+    # camera centres agree with the ground truth up to a similarity transform
+    gt = {v.name: v for v in views}
+    est = np.stack([v.center for v in model.views])
+    true = np.stack([-gt[v.name].world_to_camera[:3, :3].T @ gt[v.name].world_to_camera[:3, 3]
+                     for v in model.views])
+    s, R, t = _align_similarity(est, true)
+    resid = np.linalg.norm((s * est @ R.T + t) - true, axis=1)
+    spread = np.linalg.norm(true - true.mean(0), axis=1).mean()
+    print(f"registered {summary['registered']}/12, reprojection {summary['mean_reprojection_error']:.3f} px, "
+          f"centre residual max {resid.max():.4f} (spread {spread:.3f})")
+    assert resid.max() < 0.02 * spread
+    # focal length close to the truth (fx = 0.9 * 200 = 180 px)
+    assert abs(model.views[0].K[0, 0] - 180.0) < 0.05 * 180.0
+
+
+def test_sequential_matcher_and_masked_features(tmp_path):
+    make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150, with_masks=True)
+    from rtsplat.masks import make_masks
+
+    make_masks(tmp_path / "s", tmp_path / "masks", progress=False)
+    cfg = SfmConfig(matcher="sequential", sequential_overlap=4, use_masks=True, camera_model="PINHOLE")
+    s = run_sfm(tmp_path / "s", tmp_path / "sfm", cfg, masks_dir=tmp_path / "masks", progress=False)
+    assert s.matcher == "sequential" and s.registered >= 9 and not s.undistorted
+    assert s.mean_reprojection_error < 1.0
+
+
+def test_feature_masks_are_applied(tmp_path):
+    """With sfm.use_masks, masked (transparent) pixels get no features: an all-glass mask leaves nothing."""
+    make_corner_scene(tmp_path / "s", n_views=6, width=120, height=90, with_masks=True)
+    from rtsplat.io.images import write_mask
+    from rtsplat.masks import make_masks
+
+    for p in (tmp_path / "s" / "transparent_masks").iterdir():
+        write_mask(p, np.ones((90, 120), bool))
+    make_masks(tmp_path / "s", tmp_path / "masks", progress=False)
+    with pytest.raises(PipelineError, match="registered no images|only 0 of 6"):
+        run_sfm(tmp_path / "s", tmp_path / "sfm", SfmConfig(use_masks=True), masks_dir=tmp_path / "masks",
+                progress=False)
+    # the same scene without the masks registers
+    s = run_sfm(tmp_path / "s", tmp_path / "sfm", SfmConfig(use_masks=False), progress=False)
+    assert s.registered >= 5
+
+
+def test_computed_model_registering_too_few_images_fails(tmp_path):
+    """3 views of the scene plus 5 unrelated noise images: SfM cannot register enough of them."""
+    from rtsplat.io.images import write_png
+
+    make_corner_scene(tmp_path / "s", n_views=3, width=160, height=120)
+    rng = np.random.default_rng(1)
+    for i in range(5):
+        write_png(tmp_path / "s" / "images" / f"noise_{i}.png", rng.random((120, 160, 3)).astype(np.float32))
+    with pytest.raises(PipelineError) as err:
+        run_sfm(tmp_path / "s", tmp_path / "sfm", progress=False)
+    msg = str(err.value)
+    assert re.search(r"only [0-3] of 8 images are registered|registered no images", msg), msg
+    assert "Fix:" in msg and "images" in msg
+    assert not (tmp_path / "sfm").exists()

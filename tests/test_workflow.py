@@ -1,0 +1,161 @@
+"""The Snakemake DAG: dry runs (local and SLURM profiles), config errors, and a real run to the
+prepared scenes on a two-scene fixture dataset (one scene with masks + a COLMAP model, one with
+images only). Train/render/metrics/report belong to other stages and are only dry-run here."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from fixtures_pipeline import make_corner_scene  # noqa: E402
+
+from rtsplat.io.images import read_header, read_mask  # noqa: E402
+from rtsplat.scene import PreparedScene  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).parent
+SNAKEMAKE = BIN / "snakemake"
+
+pytestmark = pytest.mark.skipif(not SNAKEMAKE.exists(), reason="snakemake is not installed here")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("wf")
+    make_corner_scene(root / "data" / "glass", n_views=9, width=160, height=120, with_model=True,
+                      with_masks=True)
+    make_corner_scene(root / "data" / "plain", n_views=9, width=160, height=120)
+    return root
+
+
+def _config(root: Path, **extra) -> Path:
+    cfg = {"data": str(root / "data"), "results": str(root / "results"),
+           "defaults": {"prepare": {"downsample": 2}, "train": {"iterations": 10}},
+           "overrides": {"plain": {"prepare": {"downsample": 4}}}}
+    cfg.update(extra)
+    path = root / "config.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def snakemake(root: Path, *args: str, config: Path | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
+    cmd = [str(SNAKEMAKE), "-s", str(ROOT / "Snakefile"), "-d", str(root),
+           "--configfile", str(config or _config(root)), *args]
+    return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=600)
+
+
+def _job_counts(output: str) -> dict[str, int]:
+    table = output.split("Job stats:")[1]
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M)}
+
+
+def _jobs(output: str) -> list[str]:
+    """The dry-run's per-job blocks."""
+    return re.split(r"\n(?=(?:local)?rule \w+:)", output)
+
+
+EXPECTED = {"masks": 2, "sfm": 2, "prepare": 2, "train": 2, "render": 2, "metrics": 2, "report": 1, "all": 1}
+
+
+def test_dry_run_builds_the_whole_dag(dataset):
+    r = snakemake(dataset, "-n", "-p")
+    assert r.returncode == 0, r.stderr + r.stdout
+    out = r.stdout + r.stderr
+    counts = _job_counts(out)
+    assert {k: counts[k] for k in EXPECTED} == EXPECTED
+    assert "rtsplat prepare --scene-dir" in out and "rtsplat train --scene" in out
+    # per-scene overrides reach the commands
+    prep = {re.search(r"--scene-dir \S+/(\w+)", b).group(1): b
+            for b in _jobs(out) if b.startswith("rule prepare")}
+    assert '"downsample": 2' in prep["glass"] and '"downsample": 4' in prep["plain"]
+    for block in _jobs(out):
+        if block.startswith("rule ") and not block.startswith("rule all"):
+            assert "log: " in block and "benchmark: " in block, block
+
+
+def test_slurm_profile_dry_run_gives_gpu_to_training(dataset):
+    r = snakemake(dataset, "-n", "--profile", str(ROOT / "profiles" / "slurm"))
+    assert r.returncode == 0, r.stderr + r.stdout
+    out = r.stdout + r.stderr
+    assert {k: _job_counts(out)[k] for k in EXPECTED} == EXPECTED
+    train = [b for b in _jobs(out) if b.startswith("rule train")]
+    assert len(train) == 2 and all("gpu=1" in b for b in train)
+    masks = [b for b in _jobs(out) if b.startswith("rule masks")]
+    assert masks and not any("gpu=" in b for b in masks)
+    assert "cpus_per_task=8" in train[0] and "runtime=720" in train[0]
+
+
+def test_unknown_config_key_is_a_clear_error(dataset, tmp_path):
+    cfg = tmp_path / "bad.yaml"
+    bad = {"data": str(dataset / "data"), "defaults": {"prepare": {"downsmaple": 2}}}
+    cfg.write_text(yaml.safe_dump(bad))
+    r = snakemake(dataset, "-n", config=cfg)
+    assert r.returncode != 0
+    err = r.stdout + r.stderr
+    assert "'defaults.prepare.downsmaple' does not exist" in err and "did you mean 'downsample'" in err
+
+
+def test_real_run_to_prepared_scenes_and_resume(dataset):
+    r = snakemake(dataset, "--cores", "2", "prepared_all")
+    assert r.returncode == 0, r.stderr[-4000:]
+    results = dataset / "results"
+    glass = PreparedScene.load(results / "glass" / "prepared")
+    plain = PreparedScene.load(results / "plain" / "prepared")
+    assert glass.has_transparency and not plain.has_transparency
+    assert (glass.cameras[0].width, glass.cameras[0].height) == (80, 60)
+    # plain: SfM with SIMPLE_RADIAL -> undistorted images (their size may differ by a few pixels)
+    sfm = json.loads((results / "plain" / "sfm" / "summary.json").read_text())
+    und = read_header(next(Path(sfm["image_dir"]).iterdir()))
+    assert sfm["undistorted"]
+    assert (plain.cameras[0].width, plain.cameras[0].height) == (und.width // 4, und.height // 4)
+    assert [c.name for c in glass.test_cameras] == ["view_000", "view_008"]
+    assert read_mask(glass.mask_path("view_004")).any()
+    assert glass.load_points()[0].shape[0] == 500  # the dataset's model was used
+    assert len(plain.cameras) == 9 and plain.load_points()[0].shape[0] > 100  # real SfM
+    for scene in ("glass", "plain"):
+        for stage in ("masks", "sfm", "prepare"):
+            assert (results / scene / "logs" / f"{stage}.log").stat().st_size > 0
+            assert (results / scene / "benchmarks" / f"{stage}.tsv").is_file()
+    assert "Mean reprojection" not in (results / "glass" / "logs" / "sfm.log").read_text()
+    assert "images registered" in (results / "plain" / "logs" / "sfm.log").read_text()
+    # a second run has nothing to do
+    again = snakemake(dataset, "--cores", "2", "prepared_all")
+    assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
+    # changing one scene's settings reruns only that scene's affected job
+    changed = _config(dataset, overrides={"plain": {"prepare": {"downsample": 2}}})
+    dry = snakemake(dataset, "-n", "prepared_all", config=changed)
+    counts = _job_counts(dry.stdout + dry.stderr)
+    assert counts.get("prepare") == 1 and "sfm" not in counts and "masks" not in counts
+    assert "scene=plain" in dry.stdout + dry.stderr
+
+
+def test_failed_scene_leaves_no_finished_output_and_resumes(tmp_path):
+    make_corner_scene(tmp_path / "data" / "good", n_views=4, width=80, height=60, with_model=True)
+    make_corner_scene(tmp_path / "data" / "bad", n_views=4, width=80, height=60, with_model=True)
+    img = tmp_path / "data" / "bad" / "images" / "view_001.png"
+    original = img.read_bytes()
+    img.write_bytes(original[:200])
+    cfg = _config(tmp_path, overrides={})
+    r = snakemake(tmp_path, "--cores", "2", "--keep-going", "prepared_all", config=cfg)
+    assert r.returncode != 0
+    results = tmp_path / "results"
+    assert (results / "good" / "prepared" / "scene.json").is_file()
+    assert not (results / "bad" / "sfm").exists() and not (results / "bad" / "prepared").exists()
+    log = (results / "bad" / "logs" / "sfm.log").read_text()
+    assert "view_001.png: cannot read image" in log and "Fix:" in log
+    img.write_bytes(original)
+    r = snakemake(tmp_path, "--cores", "2", "prepared_all", config=cfg)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (results / "bad" / "prepared" / "scene.json").is_file()
+    sfm_jobs = [b for b in _jobs(r.stdout + r.stderr) if re.match(r"(local)?rule sfm:", b)]
+    assert len(sfm_jobs) == 1 and "scene=bad" in sfm_jobs[0]  # only the failed scene re-ran

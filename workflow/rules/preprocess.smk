@@ -1,0 +1,93 @@
+# Masks, structure from motion and the prepared scene (the trainer's only input).
+from pathlib import Path
+
+from rtsplat.config import scene_config
+
+
+def masks_inputs(wildcards):
+    inputs = {"images": f"{DATA}/{wildcards.scene}/images"}
+    cfg = scene_config(CFG, wildcards.scene).masks
+    if Path(DATA, wildcards.scene, cfg.dir).is_dir():
+        inputs["dataset_masks"] = f"{DATA}/{wildcards.scene}/{cfg.dir}"
+    onnx = cfg.onnx
+    for key in ("model", "encoder"):
+        if getattr(onnx, key):
+            inputs[key] = getattr(onnx, key)
+    return inputs
+
+
+def sfm_inputs(wildcards):
+    inputs = {"images": f"{DATA}/{wildcards.scene}/images"}
+    if Path(DATA, wildcards.scene, "sparse", "0").is_dir():
+        inputs["model"] = f"{DATA}/{wildcards.scene}/sparse/0"
+    if scene_config(CFG, wildcards.scene).sfm.use_masks:
+        inputs["masks"] = out(wildcards.scene, "masks")
+    return inputs
+
+
+def sfm_masks_arg(wildcards, input):
+    return f"--masks {input.masks}" if "masks" in input.keys() else ""
+
+
+rule masks:
+    input:
+        unpack(masks_inputs),
+    output:
+        directory(f"{RESULTS}/{{scene}}/masks"),
+    log:
+        f"{RESULTS}/{{scene}}/logs/masks.log",
+    benchmark:
+        f"{RESULTS}/{{scene}}/benchmarks/masks.tsv"
+    params:
+        scene_dir=scene_dir,
+        cfg=stage_json("masks"),
+    conda:
+        ENV
+    shell:
+        "{RTSPLAT} masks --scene-dir {params.scene_dir} --out {output} --config-json {params.cfg} > {log} 2>&1"
+
+
+rule sfm:
+    input:
+        unpack(sfm_inputs),
+    output:
+        directory(f"{RESULTS}/{{scene}}/sfm"),
+    log:
+        f"{RESULTS}/{{scene}}/logs/sfm.log",
+    benchmark:
+        f"{RESULTS}/{{scene}}/benchmarks/sfm.tsv"
+    params:
+        scene_dir=scene_dir,
+        cfg=stage_json("sfm"),
+        masks=sfm_masks_arg,
+    threads: 8
+    conda:
+        ENV
+    shell:
+        "{RTSPLAT} sfm --scene-dir {params.scene_dir} --out {output} {params.masks} "
+        "--config-json {params.cfg} > {log} 2>&1"
+
+
+rule prepare:
+    input:
+        sfm=f"{RESULTS}/{{scene}}/sfm",
+        masks=f"{RESULTS}/{{scene}}/masks",
+    output:
+        directory(f"{RESULTS}/{{scene}}/prepared"),
+    log:
+        f"{RESULTS}/{{scene}}/logs/prepare.log",
+    benchmark:
+        f"{RESULTS}/{{scene}}/benchmarks/prepare.tsv"
+    params:
+        scene_dir=scene_dir,
+        cfg=stage_json("prepare"),
+    conda:
+        ENV
+    shell:
+        "{RTSPLAT} prepare --scene-dir {params.scene_dir} --sfm {input.sfm} --masks {input.masks} "
+        "--out {output} --config-json {params.cfg} > {log} 2>&1"
+
+
+rule prepared_all:
+    input:
+        expand(f"{RESULTS}/{{scene}}/prepared", scene=SCENES),
