@@ -135,29 +135,39 @@ class PrepareConfig:
 
 @dataclass
 class TrainConfig:
-    """Training (pass-through to ``rtsplat train``)."""
+    """Training: the trainer's config tree (``rtsplat train --help``, rtsplat/train/config.py)."""
 
-    iterations: int = _f(30000, help="optimisation iterations", minimum=1)
-    effects: str = _f("auto", help="modelled effects: auto | full | an ablation (see rtsplat train --help)")
-    backend: str = _f("auto", help="rasterizer backend: auto | reference | a fast backend")
-    options: dict[str, Any] = _f(help="further trainer options, passed through unchanged", factory=dict)
+    iterations: int | None = _f(None, help="schedule.iterations (null: the trainer's default)", minimum=1)
+    backend: str = _f("auto", help="rasterizer backend: auto | cpu | reference")
+    options: dict[str, Any] = _f(
+        help="trainer config keys (schedule, lr, losses, ablations, effects, model, ...) merged under the "
+        "method's own overrides; checked by the trainer", factory=dict)
+
+
+DEFAULT_EDITS = {
+    "no-reflections": ["reflections=off"],
+    "sharper-reflections": ["roughness=0.25"],
+    "clearer-glass": ["transparency=0.3"],
+    "tinted": ["tint=1,0.75,0.45"],
+}
 
 
 @dataclass
 class RenderConfig:
-    """Rendering (pass-through to ``rtsplat render``)."""
+    """Rendering (``rtsplat render``)."""
 
-    video: Literal["gif", "mp4", "none"] = _f("gif", help="fly-through format")
-    fps_frames: int = _f(100, help="frames rendered to measure the rendering FPS", minimum=1)
-    options: dict[str, Any] = _f(help="further render options, passed through unchanged", factory=dict)
+    warmup: int = _f(2, help="untimed renders before the FPS measurement", minimum=0)
+    edits: dict[str, list[str]] = _f(
+        help="scene edits rendered for the main method: name -> list of rtsplat render --edit values",
+        factory=lambda: copy.deepcopy(DEFAULT_EDITS))
 
 
 @dataclass
 class MetricsConfig:
-    """Evaluation (pass-through to ``rtsplat metrics``)."""
+    """Evaluation (``rtsplat metrics``)."""
 
-    lpips: bool = _f(True, help="compute LPIPS-VGG")
-    options: dict[str, Any] = _f(help="further metric options, passed through unchanged", factory=dict)
+    lpips_weights: str = _f("", help="directory with the LPIPS-VGG weights (vgg16-397923af.pth, vgg.pth); "
+                                     "empty: the torch hub cache; missing weights give n/a, never a number")
 
 
 @dataclass
@@ -180,8 +190,10 @@ class PipelineConfig:
     results: str = _f("results", help="output directory")
     scenes: list[str] = _f(help="scenes to run; empty: every <data>/<scene> with an images/ folder",
                            factory=list)
-    methods: list[str] = _f(help="methods trained, rendered and evaluated per scene",
-                            factory=lambda: ["rtsplat"], minItems=1)
+    methods: dict[str, dict[str, Any]] = _f(
+        help="methods trained, rendered and evaluated per scene: name -> trainer config overrides "
+        "(e.g. 2dgs: {effects: {transmission: 'off', specular: 'off'}})",
+        factory=lambda: {"rtsplat": {}}, minProperties=1)
     defaults: SceneConfig = _f(help="settings for every scene", factory=SceneConfig)
     overrides: dict[str, SceneConfig] = _f(help="per-scene settings merged over the defaults", factory=dict)
 
@@ -405,6 +417,29 @@ def discover_scenes(cfg: PipelineConfig) -> list[str]:
             fix=f"rename them to one of: {', '.join(scenes)}",
         )
     return scenes
+
+
+def train_json(cfg: PipelineConfig, scene: str, method: str, quote: bool = True) -> str:
+    """The trainer config of ``method`` on ``scene`` as JSON for ``rtsplat train --config-json``:
+    the scene's ``train.options`` with the method's overrides merged over them, then
+    ``iterations`` and ``backend``."""
+    if method not in cfg.methods:
+        raise ConfigError(f"unknown method {method!r}", fix=f"add it under 'methods' (known: {sorted(cfg.methods)})")
+    train = scene_config(cfg, scene).train
+    tree = deep_merge(train.options, cfg.methods[method] or {})
+    if train.iterations is not None:
+        tree = deep_merge(tree, {"schedule": {"iterations": train.iterations}})
+    tree["backend"] = train.backend
+    text = json.dumps(tree, sort_keys=True)
+    return shlex.quote(text) if quote else text
+
+
+def render_edit_args(cfg: PipelineConfig, scene: str, edit: str) -> str:
+    """``--edit ...`` arguments of a named edit of the scene's render section (shell-quoted)."""
+    edits = scene_config(cfg, scene).render.edits
+    if edit not in edits:
+        raise ConfigError(f"unknown edit {edit!r}", fix=f"define it under render.edits (known: {sorted(edits)})")
+    return " ".join(f"--edit {shlex.quote(value)}" for value in edits[edit])
 
 
 def section_json(cfg: PipelineConfig, scene: str, section: str, quote: bool = True) -> str:

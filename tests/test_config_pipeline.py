@@ -19,6 +19,7 @@ from rtsplat.config import (
     scene_config,
     section_from_dict,
     section_json,
+    train_json,
     validate_config,
 )
 
@@ -34,7 +35,7 @@ def test_schema_file_is_generated_from_the_dataclasses():
 def test_repository_config_is_valid_and_matches_defaults():
     cfg = load_config(ROOT / "config.yaml")
     assert cfg.defaults.prepare.downsample == 4 and cfg.defaults.prepare.test_every == 8
-    assert cfg.methods == ["rtsplat"]
+    assert "rtsplat" in cfg.methods and "2dgs" in cfg.methods
     # every key in config.yaml exists in the schema (it validated) and the schema has every field
     props = json_schema()["properties"]["defaults"]["properties"]
     assert set(props) == {"sfm", "masks", "prepare", "train", "render", "metrics"}
@@ -73,17 +74,37 @@ def test_errors_name_the_key_and_the_fix(data, expect):
 
 def test_per_scene_overrides_merge_over_defaults():
     cfg = load_config_dict({
-        "defaults": {"prepare": {"downsample": 4}, "train": {"iterations": 100, "options": {"a": 1}}},
+        "defaults": {"prepare": {"downsample": 4},
+                     "train": {"iterations": 100, "options": {"schedule": {"log_every": 7}}}},
         "overrides": {"sedan": {"prepare": {"downsample": 8, "roi": {"center": [1, 2, 3], "radius": 2}},
-                                "train": {"effects": "full"}}},
+                                "train": {"backend": "reference"}}},
     })
     sedan, other = scene_config(cfg, "sedan"), scene_config(cfg, "truck")
     assert sedan.prepare.downsample == 8 and sedan.prepare.roi.radius == 2.0
-    assert sedan.train.iterations == 100 and sedan.train.effects == "full" and sedan.train.options == {"a": 1}
-    assert other.prepare.downsample == 4 and other.prepare.roi is None and other.train.effects == "auto"
+    assert sedan.train.iterations == 100 and sedan.train.backend == "reference"
+    assert sedan.train.options == {"schedule": {"log_every": 7}}
+    assert other.prepare.downsample == 4 and other.prepare.roi is None and other.train.backend == "auto"
     # the JSON a rule passes to the CLI round-trips into the same section
     text = section_json(cfg, "sedan", "prepare", quote=False)
     assert section_from_dict("prepare", json.loads(text)) == sedan.prepare
+
+
+def test_method_overrides_reach_the_trainer_config():
+    from rtsplat.train.config import TrainConfig
+
+    cfg = load_config_dict({
+        "methods": {"rtsplat": {}, "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
+                    "ablation_gating": {"ablations": {"gating": False}, "schedule": {"log_every": 3}}},
+        "defaults": {"train": {"iterations": 50, "options": {"schedule": {"log_every": 7}}}},
+        "overrides": {"sedan": {"train": {"backend": "reference"}}},
+    })
+    plain = TrainConfig.from_dict(json.loads(train_json(cfg, "sedan", "2dgs", quote=False)))
+    assert (plain.effects.transmission, plain.effects.specular) == ("off", "off")
+    assert plain.schedule.iterations == 50 and plain.schedule.log_every == 7 and plain.backend == "reference"
+    ablation = TrainConfig.from_dict(json.loads(train_json(cfg, "truck", "ablation_gating", quote=False)))
+    assert ablation.ablations.gating is False and ablation.schedule.log_every == 3 and ablation.backend == "auto"
+    with pytest.raises(ConfigError, match="unknown method"):
+        train_json(cfg, "sedan", "nerf")
 
 
 def test_scene_discovery(tmp_path):

@@ -1,6 +1,6 @@
 """The Snakemake DAG: dry runs (local and SLURM profiles), config errors, and a real run to the
 prepared scenes on a two-scene fixture dataset (one scene with masks + a COLMAP model, one with
-images only). Train/render/metrics/report belong to other stages and are only dry-run here."""
+images only). Train/render/metrics/report are dry-run here; tests/test_demo.py runs them for real."""
 
 from __future__ import annotations
 
@@ -64,7 +64,8 @@ def _jobs(output: str) -> list[str]:
     return re.split(r"\n(?=(?:local)?rule \w+:)", output)
 
 
-EXPECTED = {"masks": 2, "sfm": 2, "prepare": 2, "train": 2, "render": 2, "metrics": 2, "report": 1, "all": 1}
+EXPECTED = {"masks": 2, "sfm": 2, "prepare": 2, "train": 2, "render": 2, "render_edit": 8, "metrics": 2, "report": 1,
+            "all": 1}
 
 
 def test_dry_run_builds_the_whole_dag(dataset):
@@ -73,7 +74,8 @@ def test_dry_run_builds_the_whole_dag(dataset):
     out = r.stdout + r.stderr
     counts = _job_counts(out)
     assert {k: counts[k] for k in EXPECTED} == EXPECTED
-    assert "rtsplat prepare --scene-dir" in out and "rtsplat train --scene" in out
+    assert "rtsplat prepare --scene-dir" in out and "rtsplat train --data" in out
+    assert "--edit reflections=off" in out and "rtsplat report --results" in out
     # per-scene overrides reach the commands
     prep = {re.search(r"--scene-dir \S+/(\w+)", b).group(1): b
             for b in _jobs(out) if b.startswith("rule prepare")}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -17,6 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="run directory (created; resumable)")
     parser.add_argument("--config", type=Path, help="YAML file with the training config (a 'train:' "
                         "section, or the train keys at top level)")
+    parser.add_argument("--config-json", help="the training config as a JSON object (what the workflow passes; "
+                        "same keys as --config)")
     parser.add_argument("--iterations", type=int, help="override schedule.iterations")
     parser.add_argument("--backend", help="rasterizer backend (auto, reference, ...)")
     parser.add_argument("--seed", type=int, help="random seed")
@@ -41,7 +44,14 @@ def run(args: argparse.Namespace) -> int:
     from rtsplat.train.trainer import CheckpointError, Trainer
 
     try:
-        cfg = load_config(args.config)
+        if args.config_json is not None:
+            try:
+                data = json.loads(args.config_json)
+            except json.JSONDecodeError as exc:
+                raise ConfigError(f"--config-json is not valid JSON ({exc})") from exc
+            cfg = TrainConfig.from_dict(data if isinstance(data, dict) else {"": data})
+        else:
+            cfg = load_config(args.config)
         if args.iterations is not None:
             cfg.schedule.iterations = args.iterations
         if args.backend is not None:

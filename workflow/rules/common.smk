@@ -23,6 +23,7 @@ RTSPLAT = "rtsplat"
 wildcard_constraints:
     scene="|".join(map(re.escape, SCENES)) if SCENES else "a^",
     method="|".join(map(re.escape, METHODS)),
+    edit="[A-Za-z0-9_.-]+",
 
 
 def scene_dir(wildcards):

@@ -1,5 +1,14 @@
-# Training, rendering, metrics and the report. The CLIs belong to the model and report stages;
-# until those exist they print "not implemented yet" and exit with status 3.
+# Training, rendering, metrics and the report: each rule calls one `rtsplat <stage>` CLI; what
+# the arguments are is decided in rtsplat/config.py (train_json, render_edit_args).
+from pathlib import Path
+
+from rtsplat.config import render_edit_args, scene_config, train_json
+
+MAIN_METHOD = "rtsplat" if "rtsplat" in METHODS else METHODS[0]
+
+
+def edit_names(scene):
+    return sorted(scene_config(CFG, scene).render.edits)
 
 
 rule train:
@@ -12,17 +21,16 @@ rule train:
     benchmark:
         f"{RESULTS}/{{scene}}/benchmarks/train_{{method}}.tsv"
     params:
-        cfg=stage_json("train"),
-    threads: 4
+        cfg=lambda wildcards: train_json(CFG, wildcards.scene, wildcards.method),
+    threads: 2
     resources:
         gpu=1,
         runtime=720,
-        mem_mb=32000,
+        mem_mb=16000,
     conda:
         ENV
     shell:
-        "{RTSPLAT} train --scene {input.prepared} --method {wildcards.method} --out {output} "
-        "--config-json {params.cfg} > {log} 2>&1"
+        "{RTSPLAT} train --data {input.prepared} --out {output} --config-json {params.cfg} --quiet > {log} 2>&1"
 
 
 rule render:
@@ -36,22 +44,44 @@ rule render:
     benchmark:
         f"{RESULTS}/{{scene}}/benchmarks/render_{{method}}.tsv"
     params:
-        cfg=stage_json("render"),
+        warmup=lambda wildcards: scene_config(CFG, wildcards.scene).render.warmup,
+    threads: 2
     resources:
         gpu=1,
         runtime=120,
-        mem_mb=16000,
+        mem_mb=8000,
     conda:
         ENV
     shell:
-        "{RTSPLAT} render --scene {input.prepared} --run {input.run} --out {output} "
-        "--config-json {params.cfg} > {log} 2>&1"
+        "{RTSPLAT} render --data {input.prepared} --run {input.run} --out {output} "
+        "--warmup {params.warmup} --quiet > {log} 2>&1"
+
+
+rule render_edit:
+    input:
+        prepared=f"{RESULTS}/{{scene}}/prepared",
+        run=f"{RESULTS}/{{scene}}/runs/{{method}}",
+    output:
+        directory(f"{RESULTS}/{{scene}}/renders/{{method}}@{{edit}}"),
+    log:
+        f"{RESULTS}/{{scene}}/logs/render_{{method}}@{{edit}}.log",
+    benchmark:
+        f"{RESULTS}/{{scene}}/benchmarks/render_{{method}}@{{edit}}.tsv"
+    params:
+        edits=lambda wildcards: render_edit_args(CFG, wildcards.scene, wildcards.edit),
+    threads: 2
+    conda:
+        ENV
+    shell:
+        "{RTSPLAT} render --data {input.prepared} --run {input.run} --out {output} {params.edits} "
+        "--warmup 0 --quiet > {log} 2>&1"
 
 
 rule metrics:
     input:
         prepared=f"{RESULTS}/{{scene}}/prepared",
         renders=f"{RESULTS}/{{scene}}/renders/{{method}}",
+        run=f"{RESULTS}/{{scene}}/runs/{{method}}",
     output:
         f"{RESULTS}/{{scene}}/metrics/{{method}}.json",
     log:
@@ -59,24 +89,34 @@ rule metrics:
     benchmark:
         f"{RESULTS}/{{scene}}/benchmarks/metrics_{{method}}.tsv"
     params:
-        cfg=stage_json("metrics"),
+        lpips=lambda wildcards: scene_config(CFG, wildcards.scene).metrics.lpips_weights or "''",
     conda:
         ENV
     shell:
-        "{RTSPLAT} metrics --scene {input.prepared} --renders {input.renders} --out {output} "
-        "--config-json {params.cfg} > {log} 2>&1"
+        "{RTSPLAT} metrics --data {input.prepared} --renders {input.renders} --run {input.run} --out {output} "
+        "--lpips-weights {params.lpips} > {log} 2>&1"
+
+
+def report_inputs(wildcards):
+    inputs = expand(f"{RESULTS}/{{scene}}/metrics/{{method}}.json", scene=SCENES, method=METHODS)
+    for scene in SCENES:
+        inputs += [f"{RESULTS}/{scene}/renders/{MAIN_METHOD}@{edit}" for edit in edit_names(scene)]
+    return inputs
 
 
 rule report:
     input:
-        expand(f"{RESULTS}/{{scene}}/metrics/{{method}}.json", scene=SCENES, method=METHODS),
+        report_inputs,
     output:
         f"{RESULTS}/report/index.html",
     log:
         f"{RESULTS}/logs/report.log",
     benchmark:
         f"{RESULTS}/benchmarks/report.tsv"
+    params:
+        config_files=" ".join(f"--config {f}" for f in workflow.configfiles[-1:]),
     conda:
         ENV
     shell:
-        "{RTSPLAT} report --results {RESULTS} --out {output} {input} > {log} 2>&1"
+        "{RTSPLAT} report --results {RESULTS} --out {RESULTS}/report {params.config_files} "
+        "--command 'snakemake --cores all' > {log} 2>&1"
