@@ -66,6 +66,8 @@ class SfmConfig:
     )
     min_registered_images: int = _f(3, help="fail when fewer images register", minimum=2)
     use_masks: bool = _f(False, help="suppress features on transparent surfaces using the masks")
+    use_dataset_model: bool = _f(True, help="use <scene>/sparse/0 when the dataset has one; false: always run "
+                                            "SfM (e.g. synthetic scenes that ship ground-truth cameras)")
     num_threads: int = _f(-1, help="threads for pycolmap (-1: all cores)")
     seed: int = _f(0, help="random seed of the mapper", minimum=0)
 

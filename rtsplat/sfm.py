@@ -139,7 +139,7 @@ def run_sfm(
     matcher = ""
     with atomic_dir(out_dir) as tmp:
         model_dir = tmp / "sparse" / "0"
-        if is_model_dir(given):
+        if cfg.use_dataset_model and is_model_dir(given):
             model = load_model(given)  # validates
             on_disk = [v.name for v in model.views if (images_dir / v.name).is_file()]
             _check_registration(on_disk, names, cfg, given, computed=False)

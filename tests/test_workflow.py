@@ -161,3 +161,34 @@ def test_failed_scene_leaves_no_finished_output_and_resumes(tmp_path):
     assert (results / "bad" / "prepared" / "scene.json").is_file()
     sfm_jobs = [b for b in _jobs(r.stdout + r.stderr) if re.match(r"(local)?rule sfm:", b)]
     assert len(sfm_jobs) == 1 and "scene=bad" in sfm_jobs[0]  # only the failed scene re-ran
+
+
+@pytest.mark.slow
+def test_whole_dag_to_the_report(tmp_path):
+    """Train, render (plus an edit), metrics and the report for real, on a tiny two-method run."""
+    make_corner_scene(tmp_path / "data" / "glass", n_views=9, width=80, height=60, with_model=True,
+                      with_masks=True)
+    cfg = _config(tmp_path, overrides={},
+                  methods={"rtsplat": {}, "2dgs": {"effects": {"transmission": "off", "specular": "off"}}})
+    data = yaml.safe_load(cfg.read_text())
+    data["defaults"]["prepare"] = {"downsample": 2}
+    data["defaults"]["train"] = {"iterations": 12, "options": {
+        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
+        "schedule": {"volume_until": 2, "specular_from": 4, "densify_from": 1000, "reset_every": 0,
+                     "eval_every": 6, "log_every": 3, "checkpoint_every": 0}}}
+    data["defaults"]["render"] = {"edits": {"no-reflections": ["reflections=off"]}}
+    cfg.write_text(yaml.safe_dump(data))
+    r = snakemake(tmp_path, "--cores", "2", config=cfg)
+    assert r.returncode == 0, r.stderr[-4000:]
+    results = tmp_path / "results"
+    for method in ("rtsplat", "2dgs"):
+        summary = json.loads((results / "glass" / "runs" / method / "summary.json").read_text())
+        assert summary["iterations"] == 12
+        metrics = json.loads((results / "glass" / "metrics" / f"{method}.json").read_text())
+        assert metrics["mean"]["psnr"] > 5 and "psnr_transparent" in metrics["mean"]
+        assert (results / "glass" / "benchmarks" / f"train_{method}.tsv").is_file()
+    assert json.loads((results / "glass" / "runs" / "2dgs" / "effects.json").read_text())["transmission"] is False
+    assert (results / "glass" / "renders" / "rtsplat@no-reflections" / "render.json").is_file()
+    md = (results / "report" / "index.md").read_text()
+    assert "| rtsplat |" in md and "| 2dgs |" in md and "no-reflections" in md
+    assert (results / "report" / "index.html").is_file()

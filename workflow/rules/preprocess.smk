@@ -18,7 +18,7 @@ def masks_inputs(wildcards):
 
 def sfm_inputs(wildcards):
     inputs = {"images": f"{DATA}/{wildcards.scene}/images"}
-    if Path(DATA, wildcards.scene, "sparse", "0").is_dir():
+    if scene_config(CFG, wildcards.scene).sfm.use_dataset_model and Path(DATA, wildcards.scene, "sparse", "0").is_dir():
         inputs["model"] = f"{DATA}/{wildcards.scene}/sparse/0"
     if scene_config(CFG, wildcards.scene).sfm.use_masks:
         inputs["masks"] = out(wildcards.scene, "masks")
