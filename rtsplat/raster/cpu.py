@@ -89,6 +89,11 @@ def _load_kernels():
             # numba reads NUMBA_CACHE_DIR when it is first imported; it may have been imported
             # before us, so set the live config too (read when the kernels are decorated)
             numba.config.CACHE_DIR = str(path)
+            # numba's OpenMP threading layer and torch's own OpenMP runtime both spin-wait for work,
+            # and in one process on few cores they can starve each other; the workqueue layer
+            # sleeps when idle. NUMBA_THREADING_LAYER still wins when a user sets it.
+            if "NUMBA_THREADING_LAYER" not in os.environ:
+                numba.config.THREADING_LAYER = "workqueue"
             from rtsplat.raster import cpu_kernels
         except ImportError as exc:  # pragma: no cover - exercised only without numba
             _unavailable = str(exc)
