@@ -5,7 +5,7 @@
     data: data                 # dataset directory: <data>/<scene>/images/*
     results: results           # where every stage writes
     scenes: []                 # empty: every <data>/<scene> that has images/
-    methods: [rtsplat]         # trained / rendered / evaluated per scene
+    methods: {rtsplat: {}}     # name -> trainer config overrides; trained / rendered / evaluated per scene
     defaults:                  # a SceneConfig: sfm, masks, prepare, train, render, metrics
       prepare: {downsample: 4}
     overrides:                 # per-scene SceneConfig fragments merged over the defaults
@@ -50,8 +50,9 @@ class SfmConfig:
     """Structure from motion (pycolmap)."""
 
     matcher: Literal["auto", "exhaustive", "sequential"] = _f(
-        "auto", help="feature matching: exhaustive for small sets, sequential for ordered captures; "
-        "auto picks exhaustive up to exhaustive_max_images images"
+        "auto",
+        help="feature matching: exhaustive for small sets, sequential for ordered captures; "
+        "auto picks exhaustive up to exhaustive_max_images images",
     )
     exhaustive_max_images: int = _f(150, help="auto matcher: exhaustive up to this many images", minimum=2)
     sequential_overlap: int = _f(10, help="sequential matcher: neighbours matched per image", minimum=1)
@@ -66,8 +67,11 @@ class SfmConfig:
     )
     min_registered_images: int = _f(3, help="fail when fewer images register", minimum=2)
     use_masks: bool = _f(False, help="suppress features on transparent surfaces using the masks")
-    use_dataset_model: bool = _f(True, help="use <scene>/sparse/0 when the dataset has one; false: always run "
-                                            "SfM (e.g. synthetic scenes that ship ground-truth cameras)")
+    use_dataset_model: bool = _f(
+        True,
+        help="use <scene>/sparse/0 when the dataset has one; false: always run "
+        "SfM (e.g. synthetic scenes that ship ground-truth cameras)",
+    )
     num_threads: int = _f(-1, help="threads for pycolmap (-1: all cores)")
     seed: int = _f(0, help="random seed of the mapper", minimum=0)
 
@@ -91,9 +95,7 @@ class OnnxSegmenterConfig:
     normalize: Literal["unit", "imagenet"] = _f(
         "unit", help="plain models: input in [0, 1] (unit) or ImageNet mean/std normalised"
     )
-    providers: list[str] = _f(
-        help="onnxruntime execution providers", factory=lambda: ["CPUExecutionProvider"]
-    )
+    providers: list[str] = _f(help="onnxruntime execution providers", factory=lambda: ["CPUExecutionProvider"])
 
 
 @dataclass
@@ -104,11 +106,10 @@ class MasksConfig:
         "auto", help="auto: ingest <scene>/<dir> when present, else segment when onnx.model is set, else none"
     )
     dir: str = _f("transparent_masks", help="mask folder inside the scene, one <image stem>.png per image")
-    threshold: float = _f(0.5, help="binarisation threshold (of the mask value or segmenter probability)",
-                          minimum=0.0, maximum=1.0)
-    allow_missing: bool = _f(
-        False, help="ingest: an image without a mask gets an empty mask instead of an error"
+    threshold: float = _f(
+        0.5, help="binarisation threshold (of the mask value or segmenter probability)", minimum=0.0, maximum=1.0
     )
+    allow_missing: bool = _f(False, help="ingest: an image without a mask gets an empty mask instead of an error")
     onnx: OnnxSegmenterConfig = _f(help="the ONNX segmenter", factory=OnnxSegmenterConfig)
 
 
@@ -116,8 +117,9 @@ class MasksConfig:
 class RoiConfig:
     """Spherical region of interest."""
 
-    center: list[float] = _f(help="sphere centre [x, y, z] in SfM coordinates",
-                             factory=lambda: [0.0, 0.0, 0.0], minItems=3, maxItems=3)
+    center: list[float] = _f(
+        help="sphere centre [x, y, z] in SfM coordinates", factory=lambda: [0.0, 0.0, 0.0], minItems=3, maxItems=3
+    )
     radius: float = _f(1.0, help="sphere radius in SfM units", exclusiveMinimum=0.0)
 
 
@@ -127,10 +129,10 @@ class PrepareConfig:
 
     downsample: int = _f(1, help="integer image downsample factor (area filter)", minimum=1)
     roi: RoiConfig | None = _f(None, help="region of interest; estimated from the SfM points when not given")
-    roi_percentile: float = _f(95.0, help="estimated ROI: radius covers this percentile of the SfM points",
-                               exclusiveMinimum=0.0, maximum=100.0)
-    test_every: int = _f(8, help="every n-th image of the name-sorted list is a test view (llffhold)",
-                         minimum=2)
+    roi_percentile: float = _f(
+        95.0, help="estimated ROI: radius covers this percentile of the SfM points", exclusiveMinimum=0.0, maximum=100.0
+    )
+    test_every: int = _f(8, help="every n-th image of the name-sorted list is a test view (llffhold)", minimum=2)
     bit_depth: Literal[8, 16] = _f(8, help="bit depth of the prepared PNG images")
     use_prescaled: bool = _f(True, help="use <scene>/images_<factor> when present instead of resizing")
 
@@ -143,7 +145,9 @@ class TrainConfig:
     backend: str = _f("auto", help="rasterizer backend: auto | cpu | reference")
     options: dict[str, Any] = _f(
         help="trainer config keys (schedule, lr, losses, ablations, effects, model, ...) merged under the "
-        "method's own overrides; checked by the trainer", factory=dict)
+        "method's own overrides; checked by the trainer",
+        factory=dict,
+    )
 
 
 DEFAULT_EDITS = {
@@ -161,15 +165,19 @@ class RenderConfig:
     warmup: int = _f(2, help="untimed renders before the FPS measurement", minimum=0)
     edits: dict[str, list[str]] = _f(
         help="scene edits rendered for the main method: name -> list of rtsplat render --edit values",
-        factory=lambda: copy.deepcopy(DEFAULT_EDITS))
+        factory=lambda: copy.deepcopy(DEFAULT_EDITS),
+    )
 
 
 @dataclass
 class MetricsConfig:
     """Evaluation (``rtsplat metrics``)."""
 
-    lpips_weights: str = _f("", help="directory with the LPIPS-VGG weights (vgg16-397923af.pth, vgg.pth); "
-                                     "empty: the torch hub cache; missing weights give n/a, never a number")
+    lpips_weights: str = _f(
+        "",
+        help="directory with the LPIPS-VGG weights (vgg16-397923af.pth, vgg.pth); "
+        "empty: the torch hub cache; missing weights give n/a, never a number",
+    )
 
 
 @dataclass
@@ -190,12 +198,13 @@ class PipelineConfig:
 
     data: str = _f("data", help="dataset directory: <data>/<scene>/images/*")
     results: str = _f("results", help="output directory")
-    scenes: list[str] = _f(help="scenes to run; empty: every <data>/<scene> with an images/ folder",
-                           factory=list)
+    scenes: list[str] = _f(help="scenes to run; empty: every <data>/<scene> with an images/ folder", factory=list)
     methods: dict[str, dict[str, Any]] = _f(
         help="methods trained, rendered and evaluated per scene: name -> trainer config overrides "
         "(e.g. 2dgs: {effects: {transmission: 'off', specular: 'off'}})",
-        factory=lambda: {"rtsplat": {}}, minProperties=1)
+        factory=lambda: {"rtsplat": {}},
+        minProperties=1,
+    )
     defaults: SceneConfig = _f(help="settings for every scene", factory=SceneConfig)
     overrides: dict[str, SceneConfig] = _f(help="per-scene settings merged over the defaults", factory=dict)
 
@@ -303,9 +312,7 @@ def _message(error: Any, source: str) -> str:
         options = error.validator_value
         return f"{source}: config key '{where}' is {error.instance!r}. Fix: use one of {options}"
     if error.validator in ("type", "anyOf"):
-        expected = error.schema.get("type") or " or ".join(
-            str(s.get("type")) for s in error.schema.get("anyOf", [])
-        )
+        expected = error.schema.get("type") or " or ".join(str(s.get("type")) for s in error.schema.get("anyOf", []))
         return f"{source}: config key '{where}' is {error.instance!r}. Fix: it must be of type {expected}"
     return f"{source}: config key '{where}': {error.message}. Fix: see the description in config.yaml"
 

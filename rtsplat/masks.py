@@ -56,8 +56,12 @@ class MasksSummary:
 
 def _onnx_dtype(type_str: str):
     return {
-        "tensor(float)": np.float32, "tensor(float16)": np.float16, "tensor(double)": np.float64,
-        "tensor(int64)": np.int64, "tensor(int32)": np.int32, "tensor(bool)": np.bool_,
+        "tensor(float)": np.float32,
+        "tensor(float16)": np.float16,
+        "tensor(double)": np.float64,
+        "tensor(int64)": np.int64,
+        "tensor(int32)": np.int32,
+        "tensor(bool)": np.bool_,
     }.get(type_str, np.float32)
 
 
@@ -85,8 +89,11 @@ class OnnxSegmenter:
 
         self.cfg = cfg
         if not cfg.model:
-            raise PipelineError("no ONNX model configured", path="config: masks.onnx.model",
-                                fix="set masks.onnx.model to a local .onnx file, or masks.source: none")
+            raise PipelineError(
+                "no ONNX model configured",
+                path="config: masks.onnx.model",
+                fix="set masks.onnx.model to a local .onnx file, or masks.source: none",
+            )
         self.decoder = self._session(ort, cfg.model, "masks.onnx.model")
         self.inputs = {i.name: i for i in self.decoder.get_inputs()}
         self.kind = self.detect_kind() if cfg.kind == "auto" else cfg.kind
@@ -101,7 +108,8 @@ class OnnxSegmenter:
             self.encoder = self._session(ort, cfg.encoder, "masks.onnx.encoder")
             if not cfg.points and cfg.box is None:
                 raise PipelineError(
-                    f"a {self.kind.upper()} model needs a prompt", path="config: masks.onnx.points",
+                    f"a {self.kind.upper()} model needs a prompt",
+                    path="config: masks.onnx.points",
                     fix="set masks.onnx.points ([[x, y], ...] as fractions of the image) or masks.onnx.box",
                 )
             if cfg.points and len(cfg.point_labels) not in (0, len(cfg.points)):
@@ -114,13 +122,17 @@ class OnnxSegmenter:
     @staticmethod
     def _session(ort, path: str, key: str):
         if not Path(path).is_file():
-            raise PipelineError("ONNX model file not found", path=path,
-                                fix=f"set {key} to an existing local .onnx file (no download is attempted)")
+            raise PipelineError(
+                "ONNX model file not found",
+                path=path,
+                fix=f"set {key} to an existing local .onnx file (no download is attempted)",
+            )
         try:
             return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
         except Exception as exc:
-            raise PipelineError(f"onnxruntime cannot load the model ({exc})", path=path,
-                                fix="export the model again (ONNX opset >= 13)") from exc
+            raise PipelineError(
+                f"onnxruntime cannot load the model ({exc})", path=path, fix="export the model again (ONNX opset >= 13)"
+            ) from exc
 
     def detect_kind(self) -> str:
         names = set(self.inputs)
@@ -133,8 +145,7 @@ class OnnxSegmenter:
         raise PipelineError(
             f"cannot tell what kind of segmenter this is (inputs: {sorted(names)})",
             path=self.cfg.model,
-            fix="use a SAM/SAM2 decoder export or a plain model with one [1, 3, H, W] input, "
-            "or set masks.onnx.kind",
+            fix="use a SAM/SAM2 decoder export or a plain model with one [1, 3, H, W] input, or set masks.onnx.kind",
         )
 
     # -- plain models ------------------------------------------------------------------------
@@ -159,8 +170,10 @@ class OnnxSegmenter:
     def _encoder_size(self) -> tuple[int, int]:
         inp = self.encoder.get_inputs()[0]
         shape = inp.shape
-        if len(shape) == 4:
+        if len(shape) == 4:  # [1, 3, H, W]
             return _fixed(shape[2]) or 1024, _fixed(shape[3]) or 1024
+        if len(shape) == 3:  # [H, W, 3]
+            return _fixed(shape[0]) or 1024, _fixed(shape[1]) or 1024
         return 1024, 1024
 
     def _encode(self, image: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, tuple[int, int]]:
@@ -178,8 +191,11 @@ class OnnxSegmenter:
             scale = np.array([sw / w, sh / h], dtype=np.float32)
         resized = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_LINEAR)
         inp = self.encoder.get_inputs()[0]
-        if len(inp.shape) == 3:  # HWC 0..255, the model normalises and pads itself
-            x = (resized * 255.0).astype(_onnx_dtype(inp.type))
+        if len(inp.shape) == 3:  # HWC 0..255: the model normalises itself; pad when its size is fixed
+            fh, fw = _fixed(inp.shape[0]), _fixed(inp.shape[1])
+            x = np.zeros((fh, fw, 3), np.float32) if fh and fw else np.zeros((nh, nw, 3), np.float32)
+            x[:nh, :nw] = resized * 255.0
+            x = x.astype(_onnx_dtype(inp.type))
         else:
             norm = (resized - IMAGENET_MEAN) / IMAGENET_STD
             padded = np.zeros((sh, sw, 3), np.float32)
@@ -217,18 +233,22 @@ class OnnxSegmenter:
         coords, labels = self._prompt(h, w, scale)
         feeds = dict(feats)
         feeds.update(
-            point_coords=coords, point_labels=labels,
-            mask_input=np.zeros((1, 1, 256, 256), np.float32), has_mask_input=np.zeros(1, np.float32),
+            point_coords=coords,
+            point_labels=labels,
+            mask_input=np.zeros((1, 1, 256, 256), np.float32),
+            has_mask_input=np.zeros(1, np.float32),
             orig_im_size=np.array([h, w], np.float32),
         )
         missing = sorted(set(self.inputs) - set(feeds))
         if missing:
             raise PipelineError(
-                f"the decoder needs inputs this pipeline cannot provide: {missing}", path=self.cfg.model,
+                f"the decoder needs inputs this pipeline cannot provide: {missing}",
+                path=self.cfg.model,
                 fix="use the encoder of the same export (its outputs must be named like the decoder inputs)",
             )
-        feeds = {k: np.asarray(v).astype(_onnx_dtype(self.inputs[k].type)) for k, v in feeds.items()
-                 if k in self.inputs}
+        feeds = {
+            k: np.asarray(v).astype(_onnx_dtype(self.inputs[k].type)) for k, v in feeds.items() if k in self.inputs
+        }
         outs = self.decoder.run(None, feeds)
         names = [o.name for o in self.decoder.get_outputs()]
         by_name = dict(zip(names, outs, strict=True))
@@ -287,11 +307,9 @@ def ingest_masks(images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig
             mask = read_mask(mpath, cfg.threshold)
             if mask.shape != (header.height, header.width):
                 raise PipelineError(
-                    f"mask is {mask.shape[1]}x{mask.shape[0]} but image {img.name} is "
-                    f"{header.width}x{header.height}",
+                    f"mask is {mask.shape[1]}x{mask.shape[0]} but image {img.name} is {header.width}x{header.height}",
                     path=mpath,
-                    fix="export the mask at the image's resolution "
-                    "(masks of images_N folders do not fit images/)",
+                    fix="export the mask at the image's resolution (masks of images_N folders do not fit images/)",
                 )
         write_mask(out / f"{img.stem}.png", mask)
         coverage[img.stem] = float(mask.mean())
@@ -311,8 +329,9 @@ def segment_masks(images: list[Path], out: Path, cfg: MasksConfig, progress: boo
     return coverage, seg.kind
 
 
-def make_masks(scene_dir: str | Path, out_dir: str | Path, cfg: MasksConfig | None = None,
-               progress: bool = True) -> MasksSummary:
+def make_masks(
+    scene_dir: str | Path, out_dir: str | Path, cfg: MasksConfig | None = None, progress: bool = True
+) -> MasksSummary:
     """Ingest or segment the masks of ``<scene_dir>/images`` into ``out_dir`` (atomically)."""
     cfg = cfg or MasksConfig()
     scene_dir = Path(scene_dir)
@@ -322,8 +341,11 @@ def make_masks(scene_dir: str | Path, out_dir: str | Path, cfg: MasksConfig | No
     if source == "auto":
         source = "ingest" if list_images(mask_dir) else ("onnx" if cfg.onnx.model else "none")
     if source == "ingest" and not mask_dir.is_dir():
-        raise PipelineError("mask folder not found", path=mask_dir,
-                            fix="put <image stem>.png masks there, set masks.dir, or masks.source: auto")
+        raise PipelineError(
+            "mask folder not found",
+            path=mask_dir,
+            fix="put <image stem>.png masks there, set masks.dir, or masks.source: auto",
+        )
     with atomic_dir(out_dir) as tmp:
         kind = ""
         if source == "ingest":
@@ -333,9 +355,12 @@ def make_masks(scene_dir: str | Path, out_dir: str | Path, cfg: MasksConfig | No
         else:
             coverage = {}
         summary = MasksSummary(
-            has_masks=source != "none", source=source, num_images=len(images),
+            has_masks=source != "none",
+            source=source,
+            num_images=len(images),
             mean_coverage=float(np.mean(list(coverage.values()))) if coverage else 0.0,
-            coverage=coverage, model_kind=kind,
+            coverage=coverage,
+            model_kind=kind,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
     return summary

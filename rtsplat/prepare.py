@@ -50,8 +50,11 @@ class PrepareSummary:
 def load_stage_summary(directory: str | Path, stage: str) -> dict:
     path = Path(directory) / "summary.json"
     if not path.is_file():
-        raise PipelineError(f"no {stage} result here (summary.json missing)", path=directory,
-                            fix=f"run 'rtsplat {stage}' for this scene first")
+        raise PipelineError(
+            f"no {stage} result here (summary.json missing)",
+            path=directory,
+            fix=f"run 'rtsplat {stage}' for this scene first",
+        )
     return json.loads(path.read_text())
 
 
@@ -76,8 +79,10 @@ def estimate_roi(model: ColmapModel, percentile: float = 95.0) -> Roi:
     elif len(model.xyz):
         center = np.median(model.xyz, axis=0)
     else:
-        raise PipelineError("cannot estimate a region of interest: parallel cameras and no SfM points",
-                            fix="set prepare.roi {center, radius} in the config")
+        raise PipelineError(
+            "cannot estimate a region of interest: parallel cameras and no SfM points",
+            fix="set prepare.roi {center, radius} in the config",
+        )
     if len(model.xyz) >= 8:
         radius = float(np.percentile(np.linalg.norm(model.xyz - center, axis=1), percentile))
     else:
@@ -138,12 +143,18 @@ def prepare_scene(
             fix="restore the images or re-run 'rtsplat sfm' so the model matches the image folder",
         )
     if len(views) < 2:
-        raise PipelineError("fewer than 2 registered images", path=sfm["model_dir"],
-                            fix="add more overlapping images and re-run 'rtsplat sfm'")
+        raise PipelineError(
+            "fewer than 2 registered images",
+            path=sfm["model_dir"],
+            fix="add more overlapping images and re-run 'rtsplat sfm'",
+        )
     stems = [Path(v.name).stem for v in views]
     if len(set(stems)) != len(stems):
-        raise PipelineError("two images share a file stem (e.g. a.jpg and a.png)", path=image_dir,
-                            fix="rename the images so their names without extension are unique")
+        raise PipelineError(
+            "two images share a file stem (e.g. a.jpg and a.png)",
+            path=image_dir,
+            fix="rename the images so their names without extension are unique",
+        )
 
     # masks belong to the original images: when SfM undistorted those, undistort the masks too
     distorted = None
@@ -151,12 +162,18 @@ def prepare_scene(
         distorted = {v.name: v for v in load_model(Path(sfm_dir) / "sparse" / "0").views}
     prescaled_dir = scene_dir / f"images_{f}"
     use_prescaled = (
-        f > 1 and cfg.use_prescaled and not sfm.get("undistorted", False) and prescaled_dir.is_dir()
+        f > 1
+        and cfg.use_prescaled
+        and not sfm.get("undistorted", False)
+        and prescaled_dir.is_dir()
         and all((prescaled_dir / v.name).is_file() for v in views)
     )
     split = _test_split(stems, cfg.test_every)
-    roi = (Roi(center=[float(x) for x in cfg.roi.center], radius=float(cfg.roi.radius), source="config")
-           if cfg.roi is not None else estimate_roi(model, cfg.roi_percentile))
+    roi = (
+        Roi(center=[float(x) for x in cfg.roi.center], radius=float(cfg.roi.radius), source="config")
+        if cfg.roi is not None
+        else estimate_roi(model, cfg.roi_percentile)
+    )
 
     cameras: list[CameraRecord] = []
     coverage: list[float] = []
@@ -165,14 +182,12 @@ def prepare_scene(
         (tmp / IMAGES_DIR).mkdir()
         if has_masks:
             (tmp / MASKS_DIR).mkdir()
-        for view, stem in tqdm(list(zip(views, stems, strict=True)), desc="prepare", unit="img",
-                               disable=not progress):
+        for view, stem in tqdm(list(zip(views, stems, strict=True)), desc="prepare", unit="img", disable=not progress):
             src = image_dir / view.name
             header = read_header(src)
             if (header.width, header.height) != (view.width, view.height):
                 raise PipelineError(
-                    f"image is {header.width}x{header.height} but its COLMAP camera is "
-                    f"{view.width}x{view.height}",
+                    f"image is {header.width}x{header.height} but its COLMAP camera is {view.width}x{view.height}",
                     path=src,
                     fix="use the images the model was computed from (or re-run 'rtsplat sfm'); "
                     "all images of a scene must have the size of their camera",
@@ -204,13 +219,15 @@ def prepare_scene(
                     if mask.shape != (d.height, d.width):
                         raise PipelineError(
                             f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {d.width}x{d.height}",
-                            path=mpath, fix="re-run 'rtsplat masks' on the scene's images",
+                            path=mpath,
+                            fix="re-run 'rtsplat masks' on the scene's images",
                         )
                     mask = undistort_mask(mask, d, (view.width, view.height))
                 if mask.shape != (view.height, view.width):
                     raise PipelineError(
                         f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {view.width}x{view.height}",
-                        path=mpath, fix="re-run 'rtsplat masks' on the images the model uses",
+                        path=mpath,
+                        fix="re-run 'rtsplat masks' on the images the model uses",
                     )
                 small = area_downsample(mask.astype(np.float32), f) >= 0.5
                 if small.shape != (h, w):  # pre-scaled images rounded differently
@@ -219,10 +236,17 @@ def prepare_scene(
                     small = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
                 write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
                 coverage.append(float(small.mean()))
-            cameras.append(CameraRecord(
-                name=stem, split=split[stem], width=int(w), height=int(h),
-                K=K.tolist(), world_to_camera=view.world_to_camera.tolist(), image=view.name,
-            ))
+            cameras.append(
+                CameraRecord(
+                    name=stem,
+                    split=split[stem],
+                    width=int(w),
+                    height=int(h),
+                    K=K.tolist(),
+                    world_to_camera=view.world_to_camera.tolist(),
+                    image=view.name,
+                )
+            )
         if has_masks and not any(coverage):  # masks without a single transparent pixel
             import shutil
 
@@ -231,16 +255,26 @@ def prepare_scene(
         write_points_ply(tmp / POINTS_FILE, model.xyz, model.rgb)
         versions = {"rtsplat": __version__, "scene_format": "1"}
         scene = PreparedScene(
-            cameras=sorted(cameras, key=lambda c: c.name), roi=roi, downsample=f,
-            source=str(scene_dir.resolve()), has_transparency=has_masks, versions=versions,
+            cameras=sorted(cameras, key=lambda c: c.name),
+            roi=roi,
+            downsample=f,
+            source=str(scene_dir.resolve()),
+            has_transparency=has_masks,
+            versions=versions,
         )
         scene.save(tmp)
         scene.validate(check_files=True, where=tmp / "scene.json")
     return PrepareSummary(
-        num_train=len(scene.train_cameras), num_test=len(scene.test_cameras),
-        width=cameras[0].width, height=cameras[0].height, downsample=f, roi=roi,
-        has_transparency=has_masks, mask_coverage=float(np.mean(coverage)) if coverage else 0.0,
-        num_points=len(model.xyz), used_prescaled=use_prescaled,
+        num_train=len(scene.train_cameras),
+        num_test=len(scene.test_cameras),
+        width=cameras[0].width,
+        height=cameras[0].height,
+        downsample=f,
+        roi=roi,
+        has_transparency=has_masks,
+        mask_coverage=float(np.mean(coverage)) if coverage else 0.0,
+        num_points=len(model.xyz),
+        used_prescaled=use_prescaled,
     )
 
 

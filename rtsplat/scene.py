@@ -148,8 +148,7 @@ class PreparedScene:
         try:
             cams = [CameraRecord(**c) for c in data["cameras"]]
             roi = Roi(**data["roi"])
-            rest = {k: data[k] for k in ("downsample", "source", "has_transparency", "versions", "format")
-                    if k in data}
+            rest = {k: data[k] for k in ("downsample", "source", "has_transparency", "versions", "format") if k in data}
         except (KeyError, TypeError) as exc:
             raise PipelineError(
                 f"malformed prepared scene ({exc})", path=where, fix="re-run 'rtsplat prepare' for this scene"
@@ -173,13 +172,17 @@ class PreparedScene:
         directory = Path(directory)
         path = directory / SCENE_FILE
         if not path.is_file():
-            raise PipelineError("no prepared scene here (scene.json missing)", path=directory,
-                                fix="run 'rtsplat prepare' for this scene first")
+            raise PipelineError(
+                "no prepared scene here (scene.json missing)",
+                path=directory,
+                fix="run 'rtsplat prepare' for this scene first",
+            )
         try:
             data = json.loads(path.read_text())
         except json.JSONDecodeError as exc:
-            raise PipelineError(f"scene.json is not valid JSON ({exc})", path=path,
-                                fix="re-run 'rtsplat prepare'") from exc
+            raise PipelineError(
+                f"scene.json is not valid JSON ({exc})", path=path, fix="re-run 'rtsplat prepare'"
+            ) from exc
         scene = cls.from_dict(data, where=str(path))
         scene.root = directory
         if check_files:
@@ -215,8 +218,11 @@ class PreparedScene:
             if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
                 raise bad(f"camera {c.name}: K is not a pinhole intrinsic matrix")
             R = w2c[:3, :3]
-            if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or abs(np.linalg.det(R) - 1) > 1e-4 or \
-                    not np.allclose(w2c[3], [0, 0, 0, 1]):
+            if (
+                not np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+                or abs(np.linalg.det(R) - 1) > 1e-4
+                or not np.allclose(w2c[3], [0, 0, 0, 1])
+            ):
                 raise bad(f"camera {c.name}: world_to_camera is not a rigid transform")
         if len(self.roi.center) != 3 or not float(self.roi.radius) > 0:
             raise bad("roi must have a 3D center and a positive radius")

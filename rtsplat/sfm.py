@@ -46,9 +46,7 @@ class SfmSummary:
     matcher: str = ""
 
 
-def _check_registration(
-    registered: list[str], names: list[str], cfg: SfmConfig, where: Path, computed: bool
-) -> None:
+def _check_registration(registered: list[str], names: list[str], cfg: SfmConfig, where: Path, computed: bool) -> None:
     total = len(names)
     need = max(cfg.min_registered_images, int(round(cfg.min_registered_fraction * total)))
     if len(registered) < need:
@@ -94,8 +92,13 @@ def _reconstruct(images_dir: Path, names: list[str], work: Path, cfg: SfmConfig,
     extraction.sift.max_num_features = cfg.max_num_features
     mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.AUTO
     pycolmap.extract_features(
-        db, images_dir, image_names=names, camera_mode=mode, reader_options=reader,
-        extraction_options=extraction, device=pycolmap.Device.cpu,
+        db,
+        images_dir,
+        image_names=names,
+        camera_mode=mode,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
     )
     matcher = cfg.matcher
     if matcher == "auto":
@@ -109,8 +112,7 @@ def _reconstruct(images_dir: Path, names: list[str], work: Path, cfg: SfmConfig,
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = cfg.sequential_overlap
         pairing.loop_detection = False  # needs a vocabulary tree
-        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                                  device=pycolmap.Device.cpu)
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = cfg.num_threads
     options.random_seed = cfg.seed
@@ -141,17 +143,25 @@ def run_sfm(
         model_dir = tmp / "sparse" / "0"
         if cfg.use_dataset_model and is_model_dir(given):
             model = load_model(given)  # validates
-            on_disk = [v.name for v in model.views if (images_dir / v.name).is_file()]
-            _check_registration(on_disk, names, cfg, given, computed=False)
+            absent = [v.name for v in model.views if not (images_dir / v.name).is_file()]
+            if absent:
+                shown = ", ".join(absent[:5]) + (f" and {len(absent) - 5} more" if len(absent) > 5 else "")
+                raise PipelineError(
+                    f"the COLMAP model lists {len(absent)} image(s) that are not in {images_dir}: {shown}",
+                    path=given,
+                    fix="restore those images, or set sfm.use_dataset_model: false (or delete sparse/0) so "
+                    "'rtsplat sfm' computes a model from the images that are there",
+                )
+            _check_registration([v.name for v in model.views], names, cfg, given, computed=False)
             rec = pycolmap.Reconstruction(str(given))
             source = "dataset"
         else:
             if len(names) < 2:
-                raise PipelineError("SfM needs at least 2 images", path=images_dir,
-                                    fix="add more overlapping photos of the scene")
+                raise PipelineError(
+                    "SfM needs at least 2 images", path=images_dir, fix="add more overlapping photos of the scene"
+                )
             with tempfile.TemporaryDirectory(prefix="rtsplat-sfm-", dir=tmp) as work:
-                recs, matcher = _reconstruct(images_dir, names, Path(work), cfg,
-                                             Path(masks_dir) if masks_dir else None)
+                recs, matcher = _reconstruct(images_dir, names, Path(work), cfg, Path(masks_dir) if masks_dir else None)
                 if not recs:
                     raise PipelineError(
                         f"SfM registered no images ({len(names)} given): no image pair could be matched",
@@ -181,8 +191,9 @@ def run_sfm(
             registered=int(rec.num_reg_images()),
             total=len(names),
             num_points=int(rec.num_points3D()),
-            mean_reprojection_error=(float(rec.compute_mean_reprojection_error())
-                                     if rec.compute_num_observations() > 0 else None),
+            mean_reprojection_error=(
+                float(rec.compute_mean_reprojection_error()) if rec.compute_num_observations() > 0 else None
+            ),
             undistorted=distorted,
             camera_model=",".join(sorted({c.model_name for c in cams})),
             model_dir=str(final_model.resolve()),
@@ -197,8 +208,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene-dir", type=Path, required=True, help="dataset scene (<data>/<scene>)")
     parser.add_argument("--out", type=Path, required=True, help="output folder (results/<scene>/sfm)")
     parser.add_argument("--masks", type=Path, help="output of 'rtsplat masks' (used when sfm.use_masks)")
-    parser.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"],
-                        help="override sfm.matcher")
+    parser.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"], help="override sfm.matcher")
+    parser.add_argument("--num-threads", type=int, help="override sfm.num_threads (the workflow passes its threads)")
     add_config_arguments(parser)
 
 
@@ -207,6 +218,8 @@ def run(args: argparse.Namespace) -> int:
         cfg = stage_config_from_args(args, "sfm")
         if args.matcher:
             cfg.matcher = args.matcher
+        if args.num_threads is not None:
+            cfg.num_threads = args.num_threads
         s = run_sfm(args.scene_dir, args.out, cfg, args.masks)
     except PipelineError as exc:
         print(f"rtsplat sfm: error: {exc}", file=sys.stderr)

@@ -133,6 +133,7 @@ def make_corner_scene(
         from rtsplat.io.colmap import write_model
 
         xyz, rgb = surface_points(500)
-        write_model(scene_dir / "sparse" / "0",
-                    [(v.name, v.K, v.world_to_camera, v.width, v.height) for v in views], xyz, rgb)
+        write_model(
+            scene_dir / "sparse" / "0", [(v.name, v.K, v.world_to_camera, v.width, v.height) for v in views], xyz, rgb
+        )
     return views

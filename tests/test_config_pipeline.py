@@ -51,16 +51,22 @@ def test_schema_also_accepts_what_snakemake_validates():
 @pytest.mark.parametrize(
     "data, expect",
     [
-        ({"defaults": {"prepare": {"downsampel": 2}}},
-         ["'defaults.prepare.downsampel' does not exist", "did you mean 'downsample'"]),
+        (
+            {"defaults": {"prepare": {"downsampel": 2}}},
+            ["'defaults.prepare.downsampel' does not exist", "did you mean 'downsample'"],
+        ),
         ({"scenez": []}, ["'scenez' does not exist", "did you mean 'scenes'"]),
         ({"defaults": {"sfm": {"matcher": "vocab"}}}, ["'defaults.sfm.matcher'", "exhaustive"]),
         ({"defaults": {"prepare": {"downsample": "four"}}}, ["'defaults.prepare.downsample'", "integer"]),
         ({"defaults": {"prepare": {"downsample": 0}}}, ["'defaults.prepare.downsample'", "minimum"]),
-        ({"overrides": {"sedan": {"prepare": {"roi": {"center": [0, 0], "radius": 1}}}}},
-         ["'overrides.sedan.prepare.roi.center'", "too short"]),
-        ({"overrides": {"sedan": {"train": {"iteration": 5}}}},
-         ["'overrides.sedan.train.iteration' does not exist", "did you mean 'iterations'"]),
+        (
+            {"overrides": {"sedan": {"prepare": {"roi": {"center": [0, 0], "radius": 1}}}}},
+            ["'overrides.sedan.prepare.roi.center'", "too short"],
+        ),
+        (
+            {"overrides": {"sedan": {"train": {"iteration": 5}}}},
+            ["'overrides.sedan.train.iteration' does not exist", "did you mean 'iterations'"],
+        ),
     ],
 )
 def test_errors_name_the_key_and_the_fix(data, expect):
@@ -73,12 +79,20 @@ def test_errors_name_the_key_and_the_fix(data, expect):
 
 
 def test_per_scene_overrides_merge_over_defaults():
-    cfg = load_config_dict({
-        "defaults": {"prepare": {"downsample": 4},
-                     "train": {"iterations": 100, "options": {"schedule": {"log_every": 7}}}},
-        "overrides": {"sedan": {"prepare": {"downsample": 8, "roi": {"center": [1, 2, 3], "radius": 2}},
-                                "train": {"backend": "reference"}}},
-    })
+    cfg = load_config_dict(
+        {
+            "defaults": {
+                "prepare": {"downsample": 4},
+                "train": {"iterations": 100, "options": {"schedule": {"log_every": 7}}},
+            },
+            "overrides": {
+                "sedan": {
+                    "prepare": {"downsample": 8, "roi": {"center": [1, 2, 3], "radius": 2}},
+                    "train": {"backend": "reference"},
+                }
+            },
+        }
+    )
     sedan, other = scene_config(cfg, "sedan"), scene_config(cfg, "truck")
     assert sedan.prepare.downsample == 8 and sedan.prepare.roi.radius == 2.0
     assert sedan.train.iterations == 100 and sedan.train.backend == "reference"
@@ -92,12 +106,17 @@ def test_per_scene_overrides_merge_over_defaults():
 def test_method_overrides_reach_the_trainer_config():
     from rtsplat.train.config import TrainConfig
 
-    cfg = load_config_dict({
-        "methods": {"rtsplat": {}, "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
-                    "ablation_gating": {"ablations": {"gating": False}, "schedule": {"log_every": 3}}},
-        "defaults": {"train": {"iterations": 50, "options": {"schedule": {"log_every": 7}}}},
-        "overrides": {"sedan": {"train": {"backend": "reference"}}},
-    })
+    cfg = load_config_dict(
+        {
+            "methods": {
+                "rtsplat": {},
+                "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
+                "ablation_gating": {"ablations": {"gating": False}, "schedule": {"log_every": 3}},
+            },
+            "defaults": {"train": {"iterations": 50, "options": {"schedule": {"log_every": 7}}}},
+            "overrides": {"sedan": {"train": {"backend": "reference"}}},
+        }
+    )
     plain = TrainConfig.from_dict(json.loads(train_json(cfg, "sedan", "2dgs", quote=False)))
     assert (plain.effects.transmission, plain.effects.specular) == ("off", "off")
     assert plain.schedule.iterations == 50 and plain.schedule.log_every == 7 and plain.backend == "reference"
@@ -136,8 +155,11 @@ def test_stage_cli_reads_config_file_with_scene_overrides(tmp_path):
     from rtsplat.config import add_config_arguments, stage_config_from_args
 
     p = tmp_path / "c.yaml"
-    p.write_text(yaml.safe_dump({"defaults": {"prepare": {"downsample": 2}},
-                                 "overrides": {"sedan": {"prepare": {"downsample": 8}}}}))
+    p.write_text(
+        yaml.safe_dump(
+            {"defaults": {"prepare": {"downsample": 2}}, "overrides": {"sedan": {"prepare": {"downsample": 8}}}}
+        )
+    )
     parser = argparse.ArgumentParser()
     add_config_arguments(parser)
     sedan = parser.parse_args(["--config", str(p), "--scene", "sedan"])

@@ -129,6 +129,16 @@ class SamEncoder(torch.nn.Module):
         return torch.nn.functional.avg_pool2d(image, 4), torch.nn.functional.avg_pool2d(image, 8), e
 
 
+class SamEncoderHWC(torch.nn.Module):
+    """Exports that take the resized image as [1024, 1024, 3] in 0..255 and normalise it themselves."""
+
+    def forward(self, image):
+        mean = torch.tensor([123.675, 116.28, 103.53])
+        std = torch.tensor([58.395, 57.12, 57.375])
+        x = ((image - mean) / std).permute(2, 0, 1)[None]
+        return torch.nn.functional.avg_pool2d(x, 16)
+
+
 def _box_and_red(embed, point_coords, ys, xs):
     """Logits > 0 inside the box (first two prompt points, in model pixels) where red > mean."""
     x0, y0 = point_coords[0, 0, 0], point_coords[0, 0, 1]
@@ -156,49 +166,86 @@ class SamDecoder(torch.nn.Module):
 class Sam2Decoder(torch.nn.Module):
     """SAM2-style decoder without orig_im_size: 256x256 low-resolution masks over the model input."""
 
-    def forward(self, image_embed, high_res_feats_0, high_res_feats_1, point_coords, point_labels,
-                mask_input, has_mask_input):
+    def forward(
+        self, image_embed, high_res_feats_0, high_res_feats_1, point_coords, point_labels, mask_input, has_mask_input
+    ):
         c = (torch.arange(256, dtype=torch.float32) + 0.5) * 4.0
         m = _box_and_red(image_embed, point_coords, c, c)
-        extra = 0 * (high_res_feats_0.mean() + high_res_feats_1.mean() + point_labels.sum()
-                     + mask_input.sum() + has_mask_input.sum())
+        extra = 0 * (
+            high_res_feats_0.mean()
+            + high_res_feats_1.mean()
+            + point_labels.sum()
+            + mask_input.sum()
+            + has_mask_input.sum()
+        )
         return m + extra, torch.tensor([[0.9]])
 
 
 def _export(module, args, names, outputs, path, dynamic=None):
-    torch.onnx.export(module, args, str(path), input_names=names, output_names=outputs,
-                      dynamic_axes=dynamic or {}, dynamo=False, opset_version=17)
+    torch.onnx.export(
+        module,
+        args,
+        str(path),
+        input_names=names,
+        output_names=outputs,
+        dynamic_axes=dynamic or {},
+        dynamo=False,
+        opset_version=17,
+    )
     return str(path)
 
 
 @pytest.fixture(scope="module")
 def onnx_models(tmp_path_factory):
     d = tmp_path_factory.mktemp("onnx")
-    plain = _export(PlainNet(), (torch.zeros(1, 3, 32, 32),), ["input"], ["logits"], d / "plain.onnx",
-                    {"input": {2: "h", 3: "w"}, "logits": {2: "h", 3: "w"}})
+    plain = _export(
+        PlainNet(),
+        (torch.zeros(1, 3, 32, 32),),
+        ["input"],
+        ["logits"],
+        d / "plain.onnx",
+        {"input": {2: "h", 3: "w"}, "logits": {2: "h", 3: "w"}},
+    )
     img = (torch.zeros(1, 3, 1024, 1024),)
     sam_enc = _export(SamEncoder(), img, ["image"], ["image_embeddings"], d / "sam_enc.onnx")
     pts = torch.zeros(1, 3, 2)
     lab = torch.zeros(1, 3)
     mi, hm = torch.zeros(1, 1, 256, 256), torch.zeros(1)
     sam_dec = _export(
-        SamDecoder(), (torch.zeros(1, 3, 64, 64), pts, lab, mi, hm, torch.tensor([60.0, 80.0])),
+        SamDecoder(),
+        (torch.zeros(1, 3, 64, 64), pts, lab, mi, hm, torch.tensor([60.0, 80.0])),
         ["image_embeddings", "point_coords", "point_labels", "mask_input", "has_mask_input", "orig_im_size"],
-        ["masks", "iou_predictions"], d / "sam_dec.onnx",
+        ["masks", "iou_predictions"],
+        d / "sam_dec.onnx",
         {"point_coords": {1: "n"}, "point_labels": {1: "n"}, "masks": {2: "h", 3: "w"}},
+    )
+    sam_enc_hwc = _export(
+        SamEncoderHWC(), (torch.zeros(1024, 1024, 3),), ["input_image"], ["image_embeddings"], d / "sam_enc_hwc.onnx"
     )
     names2 = ("high_res_feats_0", "high_res_feats_1", "image_embed")
     sam2_enc = _export(SamEncoder(names2), img, ["image"], list(names2), d / "sam2_enc.onnx")
     sam2_dec = _export(
         Sam2Decoder(),
-        (torch.zeros(1, 3, 64, 64), torch.zeros(1, 3, 256, 256), torch.zeros(1, 3, 128, 128),
-         pts, lab, mi, hm),
-        ["image_embed", "high_res_feats_0", "high_res_feats_1", "point_coords", "point_labels", "mask_input",
-         "has_mask_input"],
-        ["masks", "iou_predictions"], d / "sam2_dec.onnx",
+        (torch.zeros(1, 3, 64, 64), torch.zeros(1, 3, 256, 256), torch.zeros(1, 3, 128, 128), pts, lab, mi, hm),
+        [
+            "image_embed",
+            "high_res_feats_0",
+            "high_res_feats_1",
+            "point_coords",
+            "point_labels",
+            "mask_input",
+            "has_mask_input",
+        ],
+        ["masks", "iou_predictions"],
+        d / "sam2_dec.onnx",
         {"point_coords": {1: "n"}, "point_labels": {1: "n"}},
     )
-    return {"plain": (plain, None), "sam": (sam_dec, sam_enc), "sam2": (sam2_dec, sam2_enc)}
+    return {
+        "plain": (plain, None),
+        "sam": (sam_dec, sam_enc),
+        "sam2": (sam2_dec, sam2_enc),
+        "sam_hwc": (sam_dec, sam_enc_hwc),
+    }
 
 
 def _test_image(h=150, w=200):
@@ -224,11 +271,11 @@ def test_plain_model_end_to_end(onnx_models):
     assert np.array_equal(mask, _test_image()[..., 0] > 0.5)
 
 
-@pytest.mark.parametrize("kind", ["sam", "sam2"])
+@pytest.mark.parametrize("kind", ["sam", "sam2", "sam_hwc"])
 def test_sam_like_models_with_box_prompt(onnx_models, kind):
     dec, enc = onnx_models[kind]
     seg = OnnxSegmenter(OnnxSegmenterConfig(model=dec, encoder=enc, box=BOX))
-    assert seg.kind == kind  # detected from the decoder's input names
+    assert seg.kind == kind.removesuffix("_hwc")  # detected from the decoder's input names
     mask = seg(_test_image()) > 0
     gt = _expected()
     iou = (mask & gt).sum() / (mask | gt).sum()

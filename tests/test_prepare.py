@@ -43,8 +43,7 @@ def base(tmp_path_factory):
 
 def test_prepare_downsamples_with_exact_intrinsics(base, tmp_path):
     root, views, sfm, masks = base
-    s = prepare_scene(root / "scene", sfm, tmp_path / "prepared", PrepareConfig(downsample=2), masks,
-                      progress=False)
+    s = prepare_scene(root / "scene", sfm, tmp_path / "prepared", PrepareConfig(downsample=2), masks, progress=False)
     assert (s.width, s.height, s.downsample) == (W // 2, H // 2, 2)
     scene = PreparedScene.load(tmp_path / "prepared")
     assert scene.has_transparency and len(scene.cameras) == 10
@@ -58,8 +57,10 @@ def test_prepare_downsamples_with_exact_intrinsics(base, tmp_path):
     # the mask's window lands where the scaled camera projects the window corners
     cam = scene.cameras[3]
     mask = scene.load_mask(cam.name)
-    corners = np.array([[0, WINDOW[0], WINDOW[2]], [0, WINDOW[1], WINDOW[2]],
-                        [0, WINDOW[0], WINDOW[3]], [0, WINDOW[1], WINDOW[3]]], float)
+    corners = np.array(
+        [[0, WINDOW[0], WINDOW[2]], [0, WINDOW[1], WINDOW[2]], [0, WINDOW[0], WINDOW[3]], [0, WINDOW[1], WINDOW[3]]],
+        float,
+    )
     c = corners @ cam.w2c_array[:3, :3].T + cam.w2c_array[:3, 3]
     uv = c @ cam.K_array.T
     uv = uv[:, :2] / uv[:, 2:]
@@ -84,8 +85,7 @@ def test_split_roi_and_points(base, tmp_path):
     assert xyz.shape == (500, 3) and rgb.dtype == np.uint8
     # ROI from the config
     roi = RoiConfig(center=[1.0, 2.0, 3.0], radius=0.5)
-    prepare_scene(root / "scene", sfm, tmp_path / "p2", PrepareConfig(roi=roi, test_every=3), masks,
-                  progress=False)
+    prepare_scene(root / "scene", sfm, tmp_path / "p2", PrepareConfig(roi=roi, test_every=3), masks, progress=False)
     scene2 = PreparedScene.load(tmp_path / "p2")
     assert scene2.roi.source == "config" and scene2.roi.center == [1.0, 2.0, 3.0] and scene2.roi.radius == 0.5
     assert [c.name for c in scene2.test_cameras] == ["view_000", "view_003", "view_006", "view_009"]
@@ -98,8 +98,9 @@ def test_prescaled_images_are_used(tmp_path):
     (tmp_path / "s" / "images_4").mkdir()
     for p in sorted((tmp_path / "s" / "images").iterdir()):
         img = cv2.imread(str(p))
-        cv2.imwrite(str(tmp_path / "s" / "images_4" / p.name), cv2.resize(img, (W // 4, H // 4),
-                                                                          interpolation=cv2.INTER_AREA))
+        cv2.imwrite(
+            str(tmp_path / "s" / "images_4" / p.name), cv2.resize(img, (W // 4, H // 4), interpolation=cv2.INTER_AREA)
+        )
     sfm, _ = _stages(tmp_path / "s", tmp_path, masks=False)
     s = prepare_scene(tmp_path / "s", sfm, tmp_path / "p", PrepareConfig(downsample=4), progress=False)
     assert s.used_prescaled and (s.width, s.height) == (W // 4, H // 4) and not s.has_transparency
@@ -140,8 +141,9 @@ def test_16bit_exr_and_alpha_inputs(tmp_path, fmt):
     if fmt == "exr":  # rename the images in the model too
         from rtsplat.io.colmap import write_model
 
-        write_model(tmp_path / "s" / "sparse" / "0",
-                    [(Path(v.name).stem + ".exr", v.K, v.world_to_camera, W, H) for v in views])
+        write_model(
+            tmp_path / "s" / "sparse" / "0", [(Path(v.name).stem + ".exr", v.K, v.world_to_camera, W, H) for v in views]
+        )
     sfm, _ = _stages(tmp_path / "s", tmp_path, masks=False)
     cfg = PrepareConfig(downsample=2, bit_depth=16)
     prepare_scene(tmp_path / "s", sfm, tmp_path / "p", cfg, progress=False)
@@ -174,8 +176,10 @@ def test_prepare_cli_and_failures_keep_earlier_output(base, tmp_path, capsys):
     assert (out / "scene.json").read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["prepared", "scene"]  # no temporary leftovers
     # no SfM result yet
-    assert cli_main(["prepare", "--scene-dir", str(scene), "--sfm", str(tmp_path / "nope"), "--out",
-                     str(tmp_path / "x")]) == 1
+    assert (
+        cli_main(["prepare", "--scene-dir", str(scene), "--sfm", str(tmp_path / "nope"), "--out", str(tmp_path / "x")])
+        == 1
+    )
     assert "run 'rtsplat sfm'" in capsys.readouterr().err
 
 

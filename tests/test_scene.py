@@ -24,8 +24,14 @@ def _scene(n=3, transparency=True) -> PreparedScene:
         K = [[50.0, 0, 16.0], [0, 52.0, 12.0], [0, 0, 1]]
         split = "test" if i == 0 else "train"
         cams.append(CameraRecord(f"img{i}", split, 32, 24, K, w2c.tolist(), f"img{i}.jpg"))
-    return PreparedScene(cams, Roi([0.0, 0.5, 1.0], 2.0, "estimated"), downsample=4, source="/data/x",
-                         has_transparency=transparency, versions={"rtsplat": "0.1.0"})
+    return PreparedScene(
+        cams,
+        Roi([0.0, 0.5, 1.0], 2.0, "estimated"),
+        downsample=4,
+        source="/data/x",
+        has_transparency=transparency,
+        versions={"rtsplat": "0.1.0"},
+    )
 
 
 def _write_files(scene: PreparedScene, d):

@@ -61,6 +61,21 @@ def test_model_registering_too_few_images_fails_clearly(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "sfm"]
 
 
+def test_dataset_model_with_missing_images_fails_clearly(tmp_path):
+    views = make_corner_scene(tmp_path / "s", n_views=5, width=160, height=120, with_model=True)
+    (tmp_path / "s" / "images" / views[3].name).unlink()
+    with pytest.raises(PipelineError) as err:
+        run_sfm(tmp_path / "s", tmp_path / "sfm", progress=False)
+    msg = str(err.value)
+    assert "lists 1 image(s) that are not in" in msg and "view_003.png" in msg and "use_dataset_model" in msg
+    assert not (tmp_path / "sfm").exists()
+    # with the switch off, SfM runs on the images that are there instead of the dataset model
+    s = run_sfm(
+        tmp_path / "s", tmp_path / "sfm", SfmConfig(use_dataset_model=False, camera_model="PINHOLE"), progress=False
+    )
+    assert s.source == "sfm" and s.total == 4
+
+
 @pytest.mark.parametrize("problem", ["empty", "truncated", "mixed"])
 def test_bad_images(tmp_path, problem):
     scene = tmp_path / "s"
@@ -85,8 +100,9 @@ def test_bad_images(tmp_path, problem):
 
 def test_real_sfm_registers_fixture_and_recovers_poses(tmp_path, capsys):
     views = make_corner_scene(tmp_path / "s", n_views=12, width=200, height=150)
-    code = cli_main(["sfm", "--scene-dir", str(tmp_path / "s"), "--out", str(tmp_path / "sfm"),
-                     "--matcher", "exhaustive"])
+    code = cli_main(
+        ["sfm", "--scene-dir", str(tmp_path / "s"), "--out", str(tmp_path / "sfm"), "--matcher", "exhaustive"]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     summary = json.loads((tmp_path / "sfm" / "summary.json").read_text())
@@ -103,13 +119,14 @@ def test_real_sfm_registers_fixture_and_recovers_poses(tmp_path, capsys):
     # camera centres agree with the ground truth up to a similarity transform
     gt = {v.name: v for v in views}
     est = np.stack([v.center for v in model.views])
-    true = np.stack([-gt[v.name].world_to_camera[:3, :3].T @ gt[v.name].world_to_camera[:3, 3]
-                     for v in model.views])
+    true = np.stack([-gt[v.name].world_to_camera[:3, :3].T @ gt[v.name].world_to_camera[:3, 3] for v in model.views])
     s, R, t = _align_similarity(est, true)
     resid = np.linalg.norm((s * est @ R.T + t) - true, axis=1)
     spread = np.linalg.norm(true - true.mean(0), axis=1).mean()
-    print(f"registered {summary['registered']}/12, reprojection {summary['mean_reprojection_error']:.3f} px, "
-          f"centre residual max {resid.max():.4f} (spread {spread:.3f})")
+    print(
+        f"registered {summary['registered']}/12, reprojection {summary['mean_reprojection_error']:.3f} px, "
+        f"centre residual max {resid.max():.4f} (spread {spread:.3f})"
+    )
     assert resid.max() < 0.02 * spread
     # focal length close to the truth (fx = 0.9 * 200 = 180 px)
     assert abs(model.views[0].K[0, 0] - 180.0) < 0.05 * 180.0
@@ -136,8 +153,9 @@ def test_feature_masks_are_applied(tmp_path):
         write_mask(p, np.ones((90, 120), bool))
     make_masks(tmp_path / "s", tmp_path / "masks", progress=False)
     with pytest.raises(PipelineError, match="registered no images|only 0 of 6"):
-        run_sfm(tmp_path / "s", tmp_path / "sfm", SfmConfig(use_masks=True), masks_dir=tmp_path / "masks",
-                progress=False)
+        run_sfm(
+            tmp_path / "s", tmp_path / "sfm", SfmConfig(use_masks=True), masks_dir=tmp_path / "masks", progress=False
+        )
     # the same scene without the masks registers
     s = run_sfm(tmp_path / "s", tmp_path / "sfm", SfmConfig(use_masks=False), progress=False)
     assert s.registered >= 5

@@ -91,8 +91,7 @@ def test_failure_leaves_no_partial_output(tmp_path, monkeypatch):
         return render_view(*args, **kwargs)
 
     monkeypatch.setattr(dataset, "render_view", failing)
-    config = SynthConfig(scene="opaque", views=3, width=32, height=24, spp=1, layer_spp=1,
-                         allow_any_views=True)
+    config = SynthConfig(scene="opaque", views=3, width=32, height=24, spp=1, layer_spp=1, allow_any_views=True)
     with pytest.raises(RuntimeError, match="boom"):
         render_dataset(config, tmp_path / "out", progress=False)
     assert list(tmp_path.iterdir()) == []
@@ -103,10 +102,11 @@ def test_marker_projects_where_camera_says():
     Mitsuba render, in the mask and in the layers (checks the sensor axis conversion)."""
     set_variant()
     point = np.array([0.31, -0.22, 0.27])
-    cam = camera_from_fov((2.5, -1.5, 1.2), (0.0, 0.0, 0.0), width=64, height=48, fov_x_deg=50,
-                          dtype=torch.float64)
+    cam = camera_from_fov((2.5, -1.5, 1.2), (0.0, 0.0, 0.0), width=64, height=48, fov_x_deg=50, dtype=torch.float64)
     bead = {
-        "type": "sphere", "center": point.tolist(), "radius": 0.02,
+        "type": "sphere",
+        "center": point.tolist(),
+        "radius": 0.02,
         "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}},
         "bsdf": {"type": "thindielectric"},
     }
@@ -169,8 +169,9 @@ def test_layers_add_up(tiny, scene):
     for npz in sorted((out / "layers" / "linear").glob("*.npz")):
         mask = _read(out / "transparent_masks" / (npz.stem + ".png")) == 255
         with np.load(npz) as z:
-            f, r, t, s = (z[k].astype(np.float64)[mask].mean(-1) for k in
-                          ("full", "reflection", "transmission", "scatter"))
+            f, r, t, s = (
+                z[k].astype(np.float64)[mask].mean(-1) for k in ("full", "reflection", "transmission", "scatter")
+            )
         diffs.append(r + t - f)
         fulls.append(f)
         refl.append(r)
@@ -216,6 +217,59 @@ def test_cameras_and_colmap_model_agree(tiny):
     assert text.num_images() == rec.num_images() and text.num_points3D() == rec.num_points3D()
 
 
+def test_pipeline_reads_a_synth_dataset(tiny, tmp_path):
+    """The pipeline's own stages take a synth dataset like a user's: sfm uses sparse/0 as given,
+    masks are ingested from transparent_masks/, prepare writes cameras equal to the ground truth."""
+    pytest.importorskip("pycolmap")
+    from rtsplat.masks import make_masks
+    from rtsplat.prepare import prepare_scene
+    from rtsplat.scene import PreparedScene
+    from rtsplat.sfm import run_sfm
+
+    out = tiny["dome"]
+    sfm = run_sfm(out, tmp_path / "sfm", progress=False)
+    assert sfm.source == "dataset" and sfm.registered == sfm.total == TINY["views"] and not sfm.undistorted
+    masks = make_masks(out, tmp_path / "masks", progress=False)
+    assert masks.has_masks and masks.source == "ingest" and masks.mean_coverage > 0.05
+    prepare_scene(out, tmp_path / "sfm", tmp_path / "prepared", masks_dir=tmp_path / "masks", progress=False)
+    scene = PreparedScene.load(tmp_path / "prepared")
+    assert scene.has_transparency and len(scene.cameras) == TINY["views"]
+    truth = {c["name"]: c for c in json.loads((out / "cameras.json").read_text())["cameras"]}
+    for cam in scene.cameras:
+        gt = truth[cam.image]
+        assert np.allclose(cam.K_array, gt["K"], atol=1e-6)
+        assert np.allclose(cam.w2c_array, gt["world_to_camera"], atol=1e-6)
+
+
+def test_cabin_interior_is_seen_only_through_windows(tmp_path):
+    """No camera ray of the cabin orbit reaches an interior object without crossing a window
+    first, and the objects are visible through the windows."""
+    from rtsplat.synth.cameras import pixel_rays
+    from rtsplat.synth.render import is_see_through, see_through_flags
+    from rtsplat.synth.scenes import build_scene
+
+    set_variant()
+    spec = build_scene("cabin", 3, tmp_path)
+    cams = spec.orbit.cameras(12, 48, 36)
+    scene = load_scene(spec.elements, cams, spp=1)
+    glass = see_through_flags()
+    through_glass = 0
+    for cam in cams:
+        jj, ii = np.mgrid[0:36, 0:48]
+        o, d = pixel_rays(cam, ii.ravel() + 0.5, jj.ravel() + 0.5)
+        for dk in d.tolist():
+            ray = mi.Ray3f(mi.Point3f(*o.tolist()), mi.Vector3f(*dk))
+            si = scene.ray_intersect(ray)
+            if not si.is_valid():
+                continue
+            first = si.shape.id()
+            assert not first.startswith("object_"), "an interior object is visible without glass"
+            if is_see_through(si, glass):  # (Mitsuba merges the four panes into one unnamed mesh)
+                behind = scene.ray_intersect(si.spawn_ray(ray.d))
+                through_glass += behind.is_valid() and behind.shape.id().startswith("object_")
+    assert through_glass > 20
+
+
 def test_render_is_deterministic(tiny, tmp_path):
     rc, again = _cli(tmp_path, "dome", any_views=True, seed=3, **TINY)
     assert rc == 0
@@ -231,12 +285,14 @@ def test_render_is_deterministic(tiny, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "known shortfall (issue 3 open): at 200x150 pycolmap registers 11-12 of 40 dome views; with 80 views "
-    "all register (0.58 px) but poses are off by 1.5 deg mean / 2.4 deg max (focal drifts 240 -> 196 px)"))
 def test_colmap_recovers_dome_poses(tmp_path):
     """pycolmap on a default-size dome render registers >= 90% of the views with sub-pixel
-    reprojection error, and its poses match the ground truth within 1 degree."""
+    reprojection error, and its poses match the ground truth within 1 degree after a similarity
+    alignment (the focal length is estimated, not given).
+
+    40 views (the minimum of the range) at 16 spp without layers keep this at 45 s (idle) to 2.5 min (loaded) on
+    two cores; measured: 40/40 registered, 0.28 px, rotation error 0.28 deg mean / 0.61 deg max.
+    """
     pytest.importorskip("pycolmap")
     from rtsplat.synth.sfm_check import compare_to_ground_truth, run_colmap
 
@@ -245,6 +301,8 @@ def test_colmap_recovers_dome_poses(tmp_path):
     rec = run_colmap(tmp_path / "dome" / "images", tmp_path / "colmap")
     assert rec is not None
     stats = compare_to_ground_truth(rec, tmp_path / "dome")
+    print(json.dumps(stats, indent=1))
     assert stats["registered_ratio"] >= 0.9, stats
     assert stats["mean_reprojection_error_px"] < 1.0, stats
     assert stats["rotation_error_deg_max"] < 1.0, stats
+    assert stats["center_error_relative"] < 0.02, stats

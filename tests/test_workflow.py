@@ -1,12 +1,13 @@
 """The Snakemake DAG: dry runs (local and SLURM profiles), config errors, and a real run to the
 prepared scenes on a two-scene fixture dataset (one scene with masks + a COLMAP model, one with
-images only). Train/render/metrics/report are dry-run here; tests/test_demo.py runs them for real."""
+images only). Train/render/metrics/report run for real in the slow test_whole_dag_to_the_report."""
 
 from __future__ import annotations
 
 import json
 import os
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -31,16 +32,18 @@ pytestmark = pytest.mark.skipif(not SNAKEMAKE.exists(), reason="snakemake is not
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("wf")
-    make_corner_scene(root / "data" / "glass", n_views=9, width=160, height=120, with_model=True,
-                      with_masks=True)
+    make_corner_scene(root / "data" / "glass", n_views=9, width=160, height=120, with_model=True, with_masks=True)
     make_corner_scene(root / "data" / "plain", n_views=9, width=160, height=120)
     return root
 
 
 def _config(root: Path, **extra) -> Path:
-    cfg = {"data": str(root / "data"), "results": str(root / "results"),
-           "defaults": {"prepare": {"downsample": 2}, "train": {"iterations": 10}},
-           "overrides": {"plain": {"prepare": {"downsample": 4}}}}
+    cfg = {
+        "data": str(root / "data"),
+        "results": str(root / "results"),
+        "defaults": {"prepare": {"downsample": 2}, "train": {"iterations": 10}},
+        "overrides": {"plain": {"prepare": {"downsample": 4}}},
+    }
     cfg.update(extra)
     path = root / "config.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -49,8 +52,16 @@ def _config(root: Path, **extra) -> Path:
 
 def snakemake(root: Path, *args: str, config: Path | None = None) -> subprocess.CompletedProcess:
     env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
-    cmd = [str(SNAKEMAKE), "-s", str(ROOT / "Snakefile"), "-d", str(root),
-           "--configfile", str(config or _config(root)), *args]
+    cmd = [
+        str(SNAKEMAKE),
+        "-s",
+        str(ROOT / "Snakefile"),
+        "-d",
+        str(root),
+        "--configfile",
+        str(config or _config(root)),
+        *args,
+    ]
     return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=600)
 
 
@@ -64,8 +75,17 @@ def _jobs(output: str) -> list[str]:
     return re.split(r"\n(?=(?:local)?rule \w+:)", output)
 
 
-EXPECTED = {"masks": 2, "sfm": 2, "prepare": 2, "train": 2, "render": 2, "render_edit": 8, "metrics": 2, "report": 1,
-            "all": 1}
+EXPECTED = {
+    "masks": 2,
+    "sfm": 2,
+    "prepare": 2,
+    "train": 2,
+    "render": 2,
+    "render_edit": 8,
+    "metrics": 2,
+    "report": 1,
+    "all": 1,
+}
 
 
 def test_dry_run_builds_the_whole_dag(dataset):
@@ -77,12 +97,25 @@ def test_dry_run_builds_the_whole_dag(dataset):
     assert "rtsplat prepare --scene-dir" in out and "rtsplat train --data" in out
     assert "--edit reflections=off" in out and "rtsplat report --results" in out
     # per-scene overrides reach the commands
-    prep = {re.search(r"--scene-dir \S+/(\w+)", b).group(1): b
-            for b in _jobs(out) if b.startswith("rule prepare")}
+    prep = {re.search(r"--scene-dir \S+/(\w+)", b).group(1): b for b in _jobs(out) if b.startswith("rule prepare")}
     assert '"downsample": 2' in prep["glass"] and '"downsample": 4' in prep["plain"]
     for block in _jobs(out):
         if block.startswith("rule ") and not block.startswith("rule all"):
             assert "log: " in block and "benchmark: " in block, block
+    sfm = [b for b in _jobs(out) if b.startswith("rule sfm")]
+    assert len(sfm) == 2 and all("--num-threads " in b for b in sfm)  # Snakemake's threads reach pycolmap
+
+
+def test_paths_with_spaces_are_quoted(tmp_path):
+    root = tmp_path / "my data"
+    make_corner_scene(root / "data" / "scene one", n_views=2, width=40, height=30, with_masks=True)
+    r = snakemake(root, "-n", "-p", "prepared_all", config=_config(root, overrides={}))
+    assert r.returncode == 0, r.stderr + r.stdout
+    cmds = [line.strip() for line in (r.stdout + r.stderr).splitlines() if " prepare --scene-dir" in line]
+    assert len(cmds) == 1
+    args = shlex.split(cmds[0])
+    assert args[args.index("--scene-dir") + 1] == str(root / "data" / "scene one")
+    assert args[args.index("--out") + 1] == str(root / "results" / "scene one" / "prepared")
 
 
 def test_slurm_profile_dry_run_gives_gpu_to_training(dataset):
@@ -166,16 +199,27 @@ def test_failed_scene_leaves_no_finished_output_and_resumes(tmp_path):
 @pytest.mark.slow
 def test_whole_dag_to_the_report(tmp_path):
     """Train, render (plus an edit), metrics and the report for real, on a tiny two-method run."""
-    make_corner_scene(tmp_path / "data" / "glass", n_views=9, width=80, height=60, with_model=True,
-                      with_masks=True)
-    cfg = _config(tmp_path, overrides={},
-                  methods={"rtsplat": {}, "2dgs": {"effects": {"transmission": "off", "specular": "off"}}})
+    make_corner_scene(tmp_path / "data" / "glass", n_views=9, width=80, height=60, with_model=True, with_masks=True)
+    cfg = _config(
+        tmp_path, overrides={}, methods={"rtsplat": {}, "2dgs": {"effects": {"transmission": "off", "specular": "off"}}}
+    )
     data = yaml.safe_load(cfg.read_text())
     data["defaults"]["prepare"] = {"downsample": 2}
-    data["defaults"]["train"] = {"iterations": 12, "options": {
-        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
-        "schedule": {"volume_until": 2, "specular_from": 4, "densify_from": 1000, "reset_every": 0,
-                     "eval_every": 6, "log_every": 3, "checkpoint_every": 0}}}
+    data["defaults"]["train"] = {
+        "iterations": 12,
+        "options": {
+            "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
+            "schedule": {
+                "volume_until": 2,
+                "specular_from": 4,
+                "densify_from": 1000,
+                "reset_every": 0,
+                "eval_every": 6,
+                "log_every": 3,
+                "checkpoint_every": 0,
+            },
+        },
+    }
     data["defaults"]["render"] = {"edits": {"no-reflections": ["reflections=off"]}}
     cfg.write_text(yaml.safe_dump(data))
     r = snakemake(tmp_path, "--cores", "2", config=cfg)

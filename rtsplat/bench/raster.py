@@ -12,12 +12,16 @@ object), sizes matched to the surfel spacing, 12 surface feature channels (the G
 RT-Splatting), seen from 3 units away with a 50 degree field of view.
 
 The reference backend keeps dense [tiles, pixels, surfels] tensors for autograd; a run whose
-estimated memory exceeds ``--max-reference-gb`` is printed as ``skipped (memory)``.
+estimated memory exceeds ``--max-reference-gb`` is printed as ``skipped (memory)``. A cell whose
+estimated time (the backend's seconds per dense pixel x surfel pair in the cells it already ran,
+times this cell's pairs) exceeds ``--max-cell-seconds`` is printed as ``skipped (time)`` instead
+of running for minutes.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import math
 import os
 import statistics
@@ -32,7 +36,14 @@ from rtsplat.raster.binning import bin_tiles
 from rtsplat.raster.projection import project_surfels
 
 IMAGE_OUTPUTS = (
-    "features", "normal", "depth", "depth_median", "alpha", "distortion", "color", "volume_alpha",
+    "features",
+    "normal",
+    "depth",
+    "depth_median",
+    "alpha",
+    "distortion",
+    "color",
+    "volume_alpha",
     "volume_depth",
 )
 # peak bytes per dense (pixel, surfel) pair of the reference's forward+backward (float32),
@@ -54,16 +65,30 @@ def sphere_scene(n: int, seed: int = 0, n_features: int = 12, dtype=torch.float3
         return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=torch.float64)
 
     fields = dict(
-        means=normal, quats=quats, scales=scales, occupancy=uniform(0.3, 0.95, n),
-        opacity=uniform(0.2, 0.9, n), features=uniform(0.0, 1.0, n, n_features), colors=uniform(0.0, 1.0, n, 3),
+        means=normal,
+        quats=quats,
+        scales=scales,
+        occupancy=uniform(0.3, 0.95, n),
+        opacity=uniform(0.2, 0.9, n),
+        features=uniform(0.0, 1.0, n, n_features),
+        colors=uniform(0.0, 1.0, n, 3),
     )
     return Surfels(**{k: v.to(dtype) for k, v in fields.items()})
+
+
+def _release_freed_memory() -> None:
+    """Give memory freed by earlier runs back to the OS (glibc keeps it), so RSS measures this run."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
 
 
 class PeakRSS:
     """Peak resident set size above the value at entry, sampled from /proc every 2 ms."""
 
     def __enter__(self):
+        _release_freed_memory()
         self.baseline = self.peak = self._rss()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -97,8 +122,9 @@ def reference_pairs(surfels: Surfels, camera, settings: RasterSettings) -> int:
     """Dense (pixel, surfel) pairs the reference backend evaluates."""
     with torch.no_grad():
         proj = project_surfels(surfels, camera, settings)
-        bins = bin_tiles(proj.bbox_min, proj.bbox_max, proj.depths, proj.valid, camera.width, camera.height,
-                         settings.tile_size)
+        bins = bin_tiles(
+            proj.bbox_min, proj.bbox_max, proj.depths, proj.valid, camera.width, camera.height, settings.tile_size
+        )
         kmax_by_tile = bins.tile_count
     return int(kmax_by_tile.sum()) * settings.tile_size**2
 
@@ -113,9 +139,20 @@ def _loss(out) -> torch.Tensor:
 
 
 def _with_grad(surfels: Surfels) -> Surfels:
-    return Surfels(*[t.detach().clone().requires_grad_(True) for t in (
-        surfels.means, surfels.quats, surfels.scales, surfels.occupancy, surfels.opacity, surfels.features,
-        surfels.colors)])
+    return Surfels(
+        *[
+            t.detach().clone().requires_grad_(True)
+            for t in (
+                surfels.means,
+                surfels.quats,
+                surfels.scales,
+                surfels.occupancy,
+                surfels.opacity,
+                surfels.features,
+                surfels.colors,
+            )
+        ]
+    )
 
 
 def time_backend(backend: str, surfels: Surfels, camera, repeats: int, budget_s: float) -> dict:
@@ -143,14 +180,28 @@ def time_backend(backend: str, surfels: Surfels, camera, repeats: int, budget_s:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--backends", default="reference,cpu",
-                        help="comma-separated backends; ratios are last / first (default: reference,cpu)")
+    parser.add_argument(
+        "--backends",
+        default="reference,cpu",
+        help="comma-separated backends; ratios are last / first (default: reference,cpu)",
+    )
     parser.add_argument("--sizes", default="5000,20000,100000", help="surfel counts (default: 5000,20000,100000)")
     parser.add_argument("--resolutions", default="160x120,640x480", help="WxH list (default: 160x120,640x480)")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per cell (median; fewer when slow)")
     parser.add_argument("--budget", type=float, default=20.0, help="stop repeating a cell after this many seconds")
-    parser.add_argument("--max-reference-gb", type=float, default=12.0,
-                        help="skip reference runs whose estimated memory exceeds this (default 12)")
+    parser.add_argument(
+        "--max-reference-gb",
+        type=float,
+        default=12.0,
+        help="skip reference runs whose estimated memory exceeds this (default 12)",
+    )
+    parser.add_argument(
+        "--max-cell-seconds",
+        type=float,
+        default=150.0,
+        help="skip a backend's cell when its estimated time for one forward plus one "
+        "forward+backward, extrapolated from its earlier cells, exceeds this (default 150)",
+    )
     args = parser.parse_args(argv)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     for b in backends:
@@ -160,8 +211,10 @@ def main(argv=None) -> None:
     resolutions = [tuple(int(v) for v in r.lower().split("x")) for r in args.resolutions.split(",")]
     settings = RasterSettings()
 
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; times in ms (median of up to "
-          f"{args.repeats}), peak = resident memory above baseline during forward+backward (MB)")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads; times in ms (median of up to "
+        f"{args.repeats}), peak = resident memory above baseline during forward+backward (MB)"
+    )
     # warm up every backend once (the cpu backend compiles or loads its kernels here)
     warm_camera = camera_from_fov((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), width=32, height=24, fov_x_deg=50.0)
     for b in backends:
@@ -175,19 +228,27 @@ def main(argv=None) -> None:
     header = f"{'image':>8} {'surfels':>7} | {cols}{ratio_head}"
     print(header)
     print("-" * len(header))
+    seconds_per_pair: dict[str, float] = {}  # per backend: slowest (fwd + fwd+bwd) / pairs seen so far
     for width, height in resolutions:
         camera = camera_from_fov((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), width=width, height=height, fov_x_deg=50.0)
         for n in sizes:
             scene = sphere_scene(n)
+            pairs = reference_pairs(scene, camera, settings)
             cells, results = [], {}
             for b in backends:
                 if b == "reference":
-                    est_gb = reference_pairs(scene, camera, settings) * REFERENCE_BYTES_PER_PAIR / 1e9
+                    est_gb = pairs * REFERENCE_BYTES_PER_PAIR / 1e9
                     if est_gb > args.max_reference_gb:
                         cells.append(f"{f'skipped (memory, ~{est_gb:.0f} GB)':>33}")
                         continue
+                est_s = seconds_per_pair.get(b, 0.0) * pairs
+                if est_s > args.max_cell_seconds:
+                    cells.append(f"{f'skipped (time, ~{est_s:.3g} s/run)':>33}")
+                    continue
                 r = time_backend(b, scene, camera, args.repeats, args.budget)
                 results[b] = r
+                rate = (r["fwd"] + r["step"]) / max(pairs, 1)
+                seconds_per_pair[b] = max(seconds_per_pair.get(b, 0.0), rate)
                 cells.append(f"{r['fwd'] * 1e3:>14.1f} {r['step'] * 1e3:>9.1f} {r['peak']:>8.0f}")
             line = f"{f'{width}x{height}':>8} {n:>7} | " + " | ".join(cells)
             if len(backends) > 1:

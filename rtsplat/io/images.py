@@ -64,8 +64,7 @@ def _bad(path: Path, why: str) -> PipelineError:
     return PipelineError(
         f"cannot read image ({why.strip() or 'unknown error'})",
         path=path,
-        fix="re-export or re-copy the file (it may be truncated or not an image), "
-        "or delete it from the scene",
+        fix="re-export or re-copy the file (it may be truncated or not an image), or delete it from the scene",
     )
 
 
@@ -205,9 +204,7 @@ def area_downsample(image: np.ndarray, factor: int) -> np.ndarray:
     return crop.reshape(shape).mean(axis=(1, 3)).astype(np.float32)
 
 
-def validate_image_set(
-    directory: str | Path, decode: bool = True, progress: bool = False
-) -> list[ImageHeader]:
+def validate_image_set(directory: str | Path, decode: bool = True, progress: bool = False) -> list[ImageHeader]:
     """Check a scene's image folder: not empty, every file readable (fully decoded when ``decode``),
     all the same size. Returns the headers in name order; raises :class:`PipelineError` otherwise."""
     from collections import Counter
@@ -223,8 +220,7 @@ def validate_image_set(
             fix=f"put the scene's photos ({', '.join(IMAGE_EXTENSIONS[:4])}, ...) in this folder",
         )
     headers = []
-    for p in tqdm(paths, desc=f"checking {directory.parent.name}/{directory.name}", unit="img",
-                  disable=not progress):
+    for p in tqdm(paths, desc=f"checking {directory.parent.name}/{directory.name}", unit="img", disable=not progress):
         if decode:
             arr = read_image(p)
             headers.append(ImageHeader(p, arr.shape[1], arr.shape[0], 3))

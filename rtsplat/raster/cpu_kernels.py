@@ -13,7 +13,8 @@ All arithmetic is float64. Per-surfel inputs (projected by :mod:`rtsplat.raster.
   :func:`rtsplat.raster.cpu.rho_cutoff`); they are skipped before the exponential;
 * ``boxes`` [N,4]: pixel boxes outside which rho > ``rho_cut`` (see
   :func:`rtsplat.raster.cpu.contribution_boxes`); each tile first keeps the entries whose box meets
-  it, and each pixel skips entries whose box it is outside of.
+  it, then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
+  positions in that block list), and each pixel skips entries whose box it is outside of.
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
@@ -95,10 +96,65 @@ def _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size):
     return keep, n
 
 
+BLOCK = 4  # pixels per side of the sub-tile blocks whose entry lists each pixel scans
+
+
+@njit(inline="always", **_JIT)
+def _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size):
+    """Per BLOCK x BLOCK pixel block of the tile: the tile entries (list positions relative to ``start``,
+    depth order kept) whose box meets the block. A pixel scans only its block's list, so the long lists of
+    small tiles full of small surfels are not walked once per pixel. Returns (lists [blocks, n_keep],
+    counts [blocks], blocks per row)."""
+    nbx = (tile_size + BLOCK - 1) // BLOCK
+    lists = np.empty((nbx * nbx, max(n_keep, 1)), dtype=np.int64)
+    counts = np.zeros(nbx * nbx, dtype=np.int64)
+    for by in range(nbx):
+        lo_y = ty0 + by * BLOCK + 0.5
+        hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
+        for bx in range(nbx):
+            lo_x = tx0 + bx * BLOCK + 0.5
+            hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
+            b = by * nbx + bx
+            n = 0
+            for j in range(n_keep):
+                k = keep[j]
+                i = ids[start + k]
+                if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
+                    lists[b, n] = k
+                    n += 1
+            counts[b] = n
+    return lists, counts, nbx
+
+
 @njit(parallel=True, **_JIT)
 def forward_kernel(
-    M, centers, occ, opa, feats, colors, ids, tile_start, tile_count, tiles_x, tile_size, width, height,
-    near, far, alpha_max, alpha_min, t_min, lowpass, edge_on_ratio, rho_cut, boxes, out, stats, n_done, median_k, used,
+    M,
+    centers,
+    occ,
+    opa,
+    feats,
+    colors,
+    ids,
+    tile_start,
+    tile_count,
+    tiles_x,
+    tile_size,
+    width,
+    height,
+    near,
+    far,
+    alpha_max,
+    alpha_min,
+    t_min,
+    lowpass,
+    edge_on_ratio,
+    rho_cut,
+    boxes,
+    out,
+    stats,
+    n_done,
+    median_k,
+    used,
 ):
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
@@ -111,6 +167,7 @@ def forward_kernel(
         tx0 = (t % tiles_x) * tile_size
         ty0 = (t // tiles_x) * tile_size
         keep, n_keep = _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size)
+        blocks, block_count, nbx = _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size)
         for ly in range(tile_size):
             yi = ty0 + ly
             if yi >= height:
@@ -138,12 +195,14 @@ def forward_kernel(
                 c2 = 0.0
                 Av = 0.0
                 dvsum = 0.0
-                done = n_keep
-                for j in range(n_keep):
+                b = (ly // BLOCK) * nbx + lx // BLOCK
+                n_scan = block_count[b]
+                done = n_scan
+                for j in range(n_scan):
                     if not live_s and not live_v:
                         done = j
                         break
-                    k = keep[j]
+                    k = blocks[b, j]
                     i = ids[start + k]
                     if px < boxes[i, 0] or px > boxes[i, 1] or py < boxes[i, 2] or py > boxes[i, 3]:
                         continue
@@ -208,9 +267,34 @@ def forward_kernel(
 
 @njit(parallel=True, **_JIT)
 def backward_kernel(
-    M, centers, occ, opa, feats, colors, ids, tile_start, tile_count, tiles_x, tile_size, width, height,
-    near, far, alpha_max, alpha_min, t_min, lowpass, edge_on_ratio, rho_cut, boxes, out, stats, n_done, median_k,
-    grad_out, pair_grad,
+    M,
+    centers,
+    occ,
+    opa,
+    feats,
+    colors,
+    ids,
+    tile_start,
+    tile_count,
+    tiles_x,
+    tile_size,
+    width,
+    height,
+    near,
+    far,
+    alpha_max,
+    alpha_min,
+    t_min,
+    lowpass,
+    edge_on_ratio,
+    rho_cut,
+    boxes,
+    out,
+    stats,
+    n_done,
+    median_k,
+    grad_out,
+    pair_grad,
 ):
     """Accumulate dL/d(per-surfel inputs) per binned pair, replaying the forward front to back.
 
@@ -229,6 +313,7 @@ def backward_kernel(
         tx0 = (t % tiles_x) * tile_size
         ty0 = (t // tiles_x) * tile_size
         keep, n_keep = _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size)
+        blocks, block_count, nbx = _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size)
         for ly in range(tile_size):
             yi = ty0 + ly
             if yi >= height:
@@ -256,8 +341,11 @@ def backward_kernel(
                 for c in range(fc):
                     Q_s += grad_out[pix, c] * out[pix, c]
                 Q_v = (
-                    g_c0 * out[pix, fc + 4] + g_c1 * out[pix, fc + 5] + g_c2 * out[pix, fc + 6]
-                    + g_Av * out[pix, fc + 7] + g_dv * out[pix, fc + 8]
+                    g_c0 * out[pix, fc + 4]
+                    + g_c1 * out[pix, fc + 5]
+                    + g_c2 * out[pix, fc + 6]
+                    + g_Av * out[pix, fc + 7]
+                    + g_dv * out[pix, fc + 8]
                 )
                 medk = median_k[pix]
                 P_s = 0.0
@@ -266,8 +354,9 @@ def backward_kernel(
                 T_v = 1.0
                 live_s = True
                 live_v = True
+                b = (ly // BLOCK) * nbx + lx // BLOCK
                 for j in range(n_done[pix]):
-                    k = keep[j]
+                    k = blocks[b, j]
                     i = ids[start + k]
                     if px < boxes[i, 0] or px > boxes[i, 1] or py < boxes[i, 2] or py > boxes[i, 3]:
                         continue

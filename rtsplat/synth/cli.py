@@ -15,26 +15,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = SynthConfig()
     parser.add_argument("--scene", required=True, help=f"one of: {', '.join(SCENES)}")
     parser.add_argument("--out", required=True, type=Path, help="output dataset directory")
-    parser.add_argument("--views", type=int, default=d.views,
-                        help=f"number of views, {VIEW_RANGE[0]}-{VIEW_RANGE[1]} (default {d.views})")
+    parser.add_argument(
+        "--views",
+        type=int,
+        default=d.views,
+        help=f"number of views, {VIEW_RANGE[0]}-{VIEW_RANGE[1]} (default {d.views})",
+    )
     parser.add_argument("--width", type=int, default=d.width, help=f"image width (default {d.width})")
     parser.add_argument("--height", type=int, default=d.height, help=f"image height (default {d.height})")
     parser.add_argument("--spp", type=int, default=d.spp, help=f"samples per pixel (default {d.spp})")
-    parser.add_argument("--layer-spp", type=int, default=d.layer_spp,
-                        help=f"samples per pixel of the layers, 0 = no layers (default {d.layer_spp})")
+    parser.add_argument(
+        "--layer-spp",
+        type=int,
+        default=d.layer_spp,
+        help=f"samples per pixel of the layers, 0 = no layers (default {d.layer_spp})",
+    )
     parser.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
-    parser.add_argument("--max-depth", type=int, default=d.max_depth,
-                        help=f"path tracer depth (default {d.max_depth})")
+    parser.add_argument("--max-depth", type=int, default=d.max_depth, help=f"path tracer depth (default {d.max_depth})")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
-    parser.add_argument("--any-views", action="store_true",
-                        help=f"allow view counts outside {VIEW_RANGE[0]}-{VIEW_RANGE[1]} (tests, debugging)")
+    parser.add_argument(
+        "--any-views",
+        action="store_true",
+        help=f"allow view counts outside {VIEW_RANGE[0]}-{VIEW_RANGE[1]} (tests, debugging)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
     config = SynthConfig(
-        scene=args.scene, views=args.views, width=args.width, height=args.height, spp=args.spp,
-        layer_spp=args.layer_spp, seed=args.seed, max_depth=args.max_depth, allow_any_views=args.any_views,
+        scene=args.scene,
+        views=args.views,
+        width=args.width,
+        height=args.height,
+        spp=args.spp,
+        layer_spp=args.layer_spp,
+        seed=args.seed,
+        max_depth=args.max_depth,
+        allow_any_views=args.any_views,
     )
     try:
         config.validate()
@@ -44,15 +61,34 @@ def run(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.overwrite:
         print(f"rtsplat synth: error: {args.out} exists (use --overwrite)", file=sys.stderr)
         return 2
+    try:
+        import mitsuba  # noqa: F401
+    except ImportError as exc:
+        print(
+            f"rtsplat synth: error: Mitsuba 3 is not installed ({exc})\n  Fix: pip install 'mitsuba>=3.5'",
+            file=sys.stderr,
+        )
+        return 1
     from rtsplat.synth.dataset import render_dataset
 
     start = time.perf_counter()
-    summary = render_dataset(config, args.out, overwrite=args.overwrite, progress=not args.no_progress)
+    try:
+        summary = render_dataset(config, args.out, overwrite=args.overwrite, progress=not args.no_progress)
+    except KeyboardInterrupt:
+        print(f"rtsplat synth: interrupted; {args.out} was left as it was", file=sys.stderr)
+        return 130
+    except (OSError, ValueError) as exc:
+        print(f"rtsplat synth: error: {exc}", file=sys.stderr)
+        return 1
     check = summary.layer_check
-    print(f"rtsplat synth: {summary.views} views of '{config.scene}' in {args.out} "
-          f"({time.perf_counter() - start:.1f} s)")
+    print(
+        f"rtsplat synth: {summary.views} views of '{config.scene}' in {args.out} ({time.perf_counter() - start:.1f} s)"
+    )
     if check.get("pixels_channels"):
-        print(f"  see-through pixels: {summary.transparent_pixels}; R + T - full (linear): "
-              f"mean {check['mean_residual']:+.5f}, mean |.| {check['mean_abs_residual']:.5f}, "
-              f"mean full {check['mean_full']:.4f}")
+        print(
+            f"  see-through pixels: {summary.transparent_pixels}; R + T - full (linear RGB): "
+            f"mean {check['mean_residual']:+.5f} ({check['relative_residual']:+.2%} of the "
+            f"mean {check['mean_full']:.4f}, {check['residual_z']:+.1f} standard errors), "
+            f"per-pixel mean |.| {check['mean_abs_residual']:.4f}"
+        )
     return 0

@@ -38,12 +38,17 @@ class ColmapPoints:
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
     """3x3 rotation -> unit quaternion (w, x, y, z) with w >= 0."""
     R = np.asarray(R, dtype=np.float64)
-    m = np.array([
-        [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
-        [R[0, 1] + R[1, 0], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
-        [R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], R[2, 2] - R[0, 0] - R[1, 1], 0],
-        [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
-    ]) / 3.0
+    m = (
+        np.array(
+            [
+                [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
+                [R[0, 1] + R[1, 0], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
+                [R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], R[2, 2] - R[0, 0] - R[1, 1], 0],
+                [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
+            ]
+        )
+        / 3.0
+    )
     # The eigenvector of the largest eigenvalue of this symmetric matrix is (x, y, z, w).
     vals, vecs = np.linalg.eigh(m)
     x, y, z, w = vecs[:, np.argmax(vals)]
@@ -54,11 +59,13 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
 def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) -> 3x3 rotation."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _camera_groups(images: list[ColmapImage]) -> tuple[list[tuple], list[int]]:
@@ -66,8 +73,14 @@ def _camera_groups(images: list[ColmapImage]) -> tuple[list[tuple], list[int]]:
     cams: list[tuple] = []
     ids: list[int] = []
     for im in images:
-        key = (int(im.width), int(im.height), float(im.K[0, 0]), float(im.K[1, 1]),
-               float(im.K[0, 2]), float(im.K[1, 2]))
+        key = (
+            int(im.width),
+            int(im.height),
+            float(im.K[0, 0]),
+            float(im.K[1, 1]),
+            float(im.K[0, 2]),
+            float(im.K[1, 2]),
+        )
         if key not in cams:
             cams.append(key)
         ids.append(cams.index(key) + 1)
@@ -104,8 +117,12 @@ def write_model(path: Path, images: list[ColmapImage], points: ColmapPoints) -> 
         f.write(f"# Number of images: {len(images)}\n")
         for iid, (im, (q, t), cid) in enumerate(zip(images, poses, cam_ids, strict=True), start=1):
             f.write(f"{iid} {' '.join(repr(float(v)) for v in (*q, *t))} {cid} {im.name}\n")
-            f.write(" ".join(f"{x!r} {y!r} {int(p)}" for (x, y), p in
-                             zip(im.points2d.tolist(), im.point3d_ids, strict=True)) + "\n")
+            f.write(
+                " ".join(
+                    f"{x!r} {y!r} {int(p)}" for (x, y), p in zip(im.points2d.tolist(), im.point3d_ids, strict=True)
+                )
+                + "\n"
+            )
     with open(path / "images.bin", "wb") as f:
         f.write(struct.pack("<Q", len(images)))
         for iid, (im, (q, t), cid) in enumerate(zip(images, poses, cam_ids, strict=True), start=1):
@@ -129,8 +146,11 @@ def write_model(path: Path, images: list[ColmapImage], points: ColmapPoints) -> 
     with open(path / "points3D.bin", "wb") as f:
         f.write(struct.pack("<Q", n))
         for pid in range(n):
-            f.write(struct.pack("<Q3d3Bd", pid + 1, *(float(v) for v in points.xyz[pid]),
-                                *(int(c) for c in points.rgb[pid]), 0.0))
+            f.write(
+                struct.pack(
+                    "<Q3d3Bd", pid + 1, *(float(v) for v in points.xyz[pid]), *(int(c) for c in points.rgb[pid]), 0.0
+                )
+            )
             f.write(struct.pack("<Q", len(points.tracks[pid])))
             for i, j in points.tracks[pid]:
                 f.write(struct.pack("<ii", i, j))

@@ -11,14 +11,14 @@ Output directory (``<stem>`` = ``0000`` ... for view 0 ...)::
     layers/linear/<stem>.npz            float16 linear RGB: full, reflection, transmission, scatter
     scene.json                          generator, parameters, seed, Mitsuba version, file list
 
-Everything is written into a temporary directory beside ``out_dir`` that is renamed at the end,
-so a failure never leaves a partial dataset.
+Everything is written into a hidden temporary directory beside ``out_dir`` that is renamed into
+place at the end (:func:`rtsplat.io.atomic.atomic_dir`), so a failure or ctrl-C never leaves a
+partial dataset, and an existing dataset being overwritten survives a failed run.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from rtsplat.camera import Camera
+from rtsplat.io.atomic import atomic_dir
+from rtsplat.synth.cameras import SAMPLER, effective_spp
 from rtsplat.synth.colmap_model import ColmapImage, ColmapPoints, write_model
 from rtsplat.synth.render import VARIANT, ViewRender, load_scene, render_view, set_variant
 from rtsplat.synth.scenes import SCENES, SceneSpec, build_scene
@@ -43,7 +45,7 @@ class SynthConfig:
     views: int = 48
     width: int = 200
     height: int = 150
-    spp: int = 32
+    spp: int = 36  # multijitter: rounded up to a grid of strata (cameras.effective_spp)
     layer_spp: int = 8  # samples per pixel of the layer split; 0 = no layers
     seed: int = 0
     max_depth: int = 32
@@ -60,14 +62,23 @@ class SynthConfig:
                 raise ValueError(f"views must be in 1-1000, got {self.views}")
         elif not lo <= self.views <= hi:
             raise ValueError(f"views must be in {lo}-{hi}, got {self.views} (tests may override this)")
-        for name, value, vlo, vhi in (("width", self.width, 16, 4096), ("height", self.height, 16, 4096),
-                                      ("spp", self.spp, 1, 65536), ("layer_spp", self.layer_spp, 0, 65536),
-                                      ("max_depth", self.max_depth, 2, 128),
-                                      ("point_stride", self.point_stride, 1, 1024)):
+        for name, value, vlo, vhi in (
+            ("width", self.width, 16, 4096),
+            ("height", self.height, 16, 4096),
+            ("spp", self.spp, 1, 65536),
+            ("layer_spp", self.layer_spp, 0, 65536),
+            ("max_depth", self.max_depth, 2, 128),
+            ("point_stride", self.point_stride, 1, 1024),
+        ):
             if not vlo <= value <= vhi:
                 raise ValueError(f"{name} must be in {vlo}-{vhi}, got {value}")
         if not 0 <= self.seed < 2**31:
             raise ValueError(f"seed must be in 0-{2**31 - 1}, got {self.seed}")
+
+
+def texture_scale(config: SynthConfig) -> float:
+    """Texture resolution relative to the defaults, which suit 200-pixel-wide renders."""
+    return config.width / 200.0
 
 
 @dataclass
@@ -143,19 +154,26 @@ def _write_layers(root: Path, stem: str, view: ViewRender) -> None:
     (root / "layers" / "linear").mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         root / "layers" / "linear" / f"{stem}.npz",
-        full=view.full.astype(np.float16), reflection=view.reflection.astype(np.float16),
-        transmission=view.transmission.astype(np.float16), scatter=view.scatter.astype(np.float16),
+        full=view.full.astype(np.float16),
+        reflection=view.reflection.astype(np.float16),
+        transmission=view.transmission.astype(np.float16),
+        scatter=view.scatter.astype(np.float16),
     )
 
 
 class _LayerCheck:
-    """Accumulates reflection + transmission - full over see-through pixels."""
+    """Accumulates reflection + transmission - full over see-through pixels.
+
+    Means are over pixels x channels; the z score uses per-pixel residuals (the mean over RGB),
+    which are independent across pixels, so |z| < ~3 means "zero within Monte-Carlo noise".
+    """
 
     def __init__(self) -> None:
-        self.n = 0
+        self.n = 0  # pixels x channels
+        self.pixels = 0
         self.sum = 0.0
         self.sum_abs = 0.0
-        self.sum_sq = 0.0
+        self.sum_pixel_sq = 0.0
         self.sum_full = 0.0
         self.sum_reflection = 0.0
         self.sum_stderr = 0.0
@@ -164,29 +182,32 @@ class _LayerCheck:
         m = view.mask
         if not m.any() or view.reflection is None:
             return
-        d = (view.reflection[m] + view.transmission[m] - view.full[m]).astype(np.float64)
+        d = (view.reflection[m] + view.transmission[m] - view.full[m]).astype(np.float64)  # [P, 3]
         self.n += d.size
+        self.pixels += len(d)
         self.sum += float(d.sum())
         self.sum_abs += float(np.abs(d).sum())
-        self.sum_sq += float((d**2).sum())
+        self.sum_pixel_sq += float((d.mean(axis=1) ** 2).sum())
         self.sum_full += float(view.full[m].sum())
         self.sum_reflection += float(view.reflection[m].sum())
-        self.sum_stderr += 3 * float(view.layer_stderr[m].sum())
+        self.sum_stderr += float(view.layer_stderr[m].sum())
 
     def result(self) -> dict:
         if self.n == 0:
             return {"pixels_channels": 0}
         mean = self.sum / self.n
-        std = max(self.sum_sq / self.n - mean**2, 0.0) ** 0.5
+        pixel_std = max(self.sum_pixel_sq / self.pixels - mean**2, 0.0) ** 0.5
+        mean_full = self.sum_full / self.n
         return {
             "pixels_channels": self.n,
-            "mean_full": self.sum_full / self.n,
+            "mean_full": mean_full,
             "mean_reflection": self.sum_reflection / self.n,
             "mean_residual": mean,
+            "relative_residual": mean / mean_full if mean_full > 0 else 0.0,
             "mean_abs_residual": self.sum_abs / self.n,
-            "residual_std": std,
-            "residual_z": mean / (std / self.n**0.5) if std > 0 else 0.0,
-            "mean_layer_stderr": self.sum_stderr / self.n,
+            "pixel_residual_std": pixel_std,
+            "residual_z": mean / (pixel_std / self.pixels**0.5) if pixel_std > 0 else 0.0,
+            "mean_layer_stderr": self.sum_stderr / self.pixels,
             "space": "linear RGB, see-through pixels only (mask), residual = R + T - full",
         }
 
@@ -203,36 +224,39 @@ def _scene_json(config: SynthConfig, spec: SceneSpec, cams: list[Camera], check:
         "seed": config.seed,
         "config": asdict(config),
         "params": spec.params,
+        "texture_scale": texture_scale(config),
         "transparent_shapes": list(spec.transparent),
         "camera_path": {"type": "orbit", **asdict(spec.orbit)},
         "mitsuba_version": mi.__version__,
         "mitsuba_variant": VARIANT,
+        "sampler": {"type": SAMPLER, "spp": effective_spp(config.spp)},
         "integrator": {"type": "volpath", "max_depth": config.max_depth, "rr_depth": 5},
         "has_layers": config.layer_spp > 0,
         "images": [view_name(i) + ".png" for i in range(len(cams))],
         "files": {
             "images/<stem>.png": "full render, sRGB 8-bit",
             "transparent_masks/<stem>.png": "8-bit, 255 = a see-through surface is the first hit "
-                                            "of the pixel-centre ray, 0 elsewhere",
+            "of the pixel-centre ray, 0 elsewhere",
             "sparse/0/": "ground-truth COLMAP model (PINHOLE, cam_from_world), .bin and .txt",
             "cameras.json": "ground-truth cameras: K (3x3) and world_to_camera (4x4, OpenCV axes, "
-                            "pixel centres at i + 0.5)",
+            "pixel centres at i + 0.5)",
             "layers/reflection/<stem>.png": "reflection layer, sRGB 8-bit (display space: PNG layers "
-                                            "do not add up exactly)",
+            "do not add up exactly)",
             "layers/transmission/<stem>.png": "transmission layer (includes scatter), sRGB 8-bit",
             "layers/linear/<stem>.npz": "float16 linear RGB [H, W, 3] arrays full, reflection, "
-                                        "transmission, scatter; reflection + transmission = full "
-                                        "up to Monte-Carlo noise",
+            "transmission, scatter; reflection + transmission = full "
+            "up to Monte-Carlo noise",
         },
         "layer_definition": "At the first see-through hit: reflection = delta-reflection lobe, "
-                            "transmission = delta-transmission lobe + scatter (other lobes, e.g. the "
-                            "film's diffuse part). Elsewhere reflection = 0, transmission = full.",
+        "transmission = delta-transmission lobe + scatter (other lobes, e.g. the "
+        "film's diffuse part). Elsewhere reflection = 0, transmission = full.",
         "layer_check": check,
     }
 
 
-def render_dataset(config: SynthConfig, out_dir: Path, *, overwrite: bool = False,
-                   progress: bool = True) -> SynthSummary:
+def render_dataset(
+    config: SynthConfig, out_dir: Path, *, overwrite: bool = False, progress: bool = True
+) -> SynthSummary:
     """Render ``config.scene`` into ``out_dir`` (see the module docstring for the layout)."""
     from tqdm import tqdm
 
@@ -240,16 +264,11 @@ def render_dataset(config: SynthConfig, out_dir: Path, *, overwrite: bool = Fals
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise FileExistsError(f"{out_dir} exists; pass overwrite=True (--overwrite) to replace it")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    try:
+    with atomic_dir(out_dir) as tmp:  # a failure or ctrl-C leaves no partial dataset (nor harms an old one)
         set_variant()
         work = tmp / "_work"
         work.mkdir()
-        spec = build_scene(config.scene, config.seed, work)
+        spec = build_scene(config.scene, config.seed, work, texture_scale=texture_scale(config))
         cams = spec.orbit.cameras(config.views, config.width, config.height)
         scene = load_scene(spec.elements, cams, config.spp, config.max_depth)
         check = _LayerCheck()
@@ -259,8 +278,9 @@ def render_dataset(config: SynthConfig, out_dir: Path, *, overwrite: bool = Fals
         bar = tqdm(range(config.views), desc=f"synth {config.scene}", unit="view", disable=not progress)
         for i in bar:
             stem = view_name(i)
-            view = render_view(scene, i, cams[i], config.spp, view_seed(config.seed, i),
-                               config.max_depth, config.layer_spp)
+            view = render_view(
+                scene, i, cams[i], config.spp, view_seed(config.seed, i), config.max_depth, config.layer_spp
+            )
             image8 = to_srgb8(view.full)
             _write_png(tmp / "images" / f"{stem}.png", image8)
             _write_png(tmp / "transparent_masks" / f"{stem}.png", view.mask.astype(np.uint8) * 255)
@@ -273,24 +293,34 @@ def render_dataset(config: SynthConfig, out_dir: Path, *, overwrite: bool = Fals
             xyz.extend(pts)
             rgb.extend(image8[rc[:, 0], rc[:, 1]])
             tracks.extend([[(i + 1, k)] for k in range(len(pts))])
-            colmap_images.append(ColmapImage(
-                name=f"{stem}.png", K=cams[i].K.numpy(), world_to_camera=cams[i].world_to_camera.numpy(),
-                width=config.width, height=config.height, points2d=uv,
-                point3d_ids=np.arange(first + 1, first + 1 + len(pts), dtype=np.int64),
-            ))
-        write_model(tmp / "sparse" / "0", colmap_images, ColmapPoints(
-            np.array(xyz).reshape(-1, 3), np.array(rgb, dtype=np.uint8).reshape(-1, 3), tracks))
-        (tmp / "cameras.json").write_text(json.dumps(
-            {"convention": "OpenCV axes (x right, y down, z forward), world_to_camera, "
-                           "pixel centres at (i + 0.5, j + 0.5)",
-             "cameras": [_camera_json(f"{view_name(i)}.png", c) for i, c in enumerate(cams)]}, indent=1))
+            colmap_images.append(
+                ColmapImage(
+                    name=f"{stem}.png",
+                    K=cams[i].K.numpy(),
+                    world_to_camera=cams[i].world_to_camera.numpy(),
+                    width=config.width,
+                    height=config.height,
+                    points2d=uv,
+                    point3d_ids=np.arange(first + 1, first + 1 + len(pts), dtype=np.int64),
+                )
+            )
+        bar.close()
+        write_model(
+            tmp / "sparse" / "0",
+            colmap_images,
+            ColmapPoints(np.array(xyz).reshape(-1, 3), np.array(rgb, dtype=np.uint8).reshape(-1, 3), tracks),
+        )
+        (tmp / "cameras.json").write_text(
+            json.dumps(
+                {
+                    "convention": "OpenCV axes (x right, y down, z forward), world_to_camera, "
+                    "pixel centres at (i + 0.5, j + 0.5)",
+                    "cameras": [_camera_json(f"{view_name(i)}.png", c) for i, c in enumerate(cams)],
+                },
+                indent=1,
+            )
+        )
         result = check.result()
         (tmp / "scene.json").write_text(json.dumps(_scene_json(config, spec, cams, result), indent=1))
         shutil.rmtree(work)
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return SynthSummary(out_dir, config.views, transparent_pixels, result)

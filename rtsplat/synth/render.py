@@ -1,7 +1,8 @@
 """Rendering of one view: full image, see-through mask and ground-truth layers.
 
 * The **full image** is Mitsuba's ``volpath`` integrator through a ``perspective`` sensor converted
-  from the ground-truth :class:`~rtsplat.camera.Camera` (box pixel filter).
+  from the ground-truth :class:`~rtsplat.camera.Camera` (box pixel filter, stratified
+  ``multijitter`` sampler).
 * The **mask** marks pixels whose centre ray first hits a see-through surface: one whose BSDF
   has a null or delta transmission lobe (``thindielectric`` and blends of it).
 * The **layers** split the radiance at the *first* see-through hit by BSDF lobe:
@@ -11,8 +12,9 @@
   ``C_sub = tau C_trans + (1 - tau) C_scatter`` models). Every lobe is sampled explicitly with
   Mitsuba's own BSDF (``BSDFContext.component``) and the radiance along the sampled direction
   comes from the same path integrator (one bounce shorter), so
-  ``reflection + transmission`` is an unbiased estimate of the full image. Pixels that see no
-  see-through surface have ``reflection = 0`` and ``transmission = full image``.
+  ``reflection + transmission`` is an unbiased estimate of the full image, independent of it
+  (its own samples, stratified inside the pixel). Pixels that see no see-through surface (the
+  mask grown by one pixel) have ``reflection = 0`` and ``transmission = full image``.
 
 The layer split is a per-sample Python loop over pixels near a see-through surface (the scalar
 Mitsuba variants have no vectorised ray API; the LLVM variants need LLVM >= 17, which this
@@ -26,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rtsplat.camera import Camera
-from rtsplat.synth.cameras import mitsuba_sensor, pixel_rays
+from rtsplat.synth.cameras import effective_spp, mitsuba_sensor, pixel_rays
 
 VARIANT = "scalar_rgb"
 
@@ -98,12 +100,17 @@ def _dilate(mask: np.ndarray) -> np.ndarray:
 
 
 def split_layers(
-    scene, camera: Camera, pixels: np.ndarray, spp: int, seed: int, max_depth: int,
+    scene,
+    camera: Camera,
+    pixels: np.ndarray,
+    spp: int,
+    seed: int,
+    max_depth: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-lobe radiance at the first see-through hit for the given pixels.
 
     ``pixels``: int [P, 2] (row, column). Returns (layers [P, 3 lobes, 3 rgb] = mean over ``spp``
-    jittered samples, standard error [P] of the summed layers' luminance).
+    stratified jittered samples, standard error [P] of the summed layers' luminance).
     """
     import mitsuba as mi
 
@@ -115,7 +122,9 @@ def split_layers(
     see_through = see_through_flags()
     contexts = []
     p = len(pixels)
-    jitter = rng.random((p, spp, 2))
+    # stratified (Latin hypercube) positions inside each pixel: one sample per row and per column stratum
+    strata = np.stack([rng.permuted(np.tile(np.arange(spp), (p, 1)), axis=1) for _ in range(2)], axis=-1)
+    jitter = (strata + rng.random((p, spp, 2))) / spp
     u = pixels[:, 1, None] + jitter[..., 0]
     v = pixels[:, 0, None] + jitter[..., 1]
     o, d = pixel_rays(camera, u.ravel(), v.ravel())
@@ -188,7 +197,13 @@ def load_scene(scene_dict: dict, cameras: list[Camera], spp: int, max_depth: int
 
 
 def render_view(
-    scene, view: int, camera: Camera, spp: int, seed: int, max_depth: int = 32, layer_spp: int | None = None,
+    scene,
+    view: int,
+    camera: Camera,
+    spp: int,
+    seed: int,
+    max_depth: int = 32,
+    layer_spp: int | None = None,
 ) -> ViewRender:
     """Render view ``view`` of a scene from :func:`load_scene` with its layers and mask.
 
@@ -197,7 +212,7 @@ def render_view(
     """
     import mitsuba as mi
 
-    full = np.array(mi.render(scene, sensor=view, spp=spp, seed=seed), dtype=np.float32)[..., :3]
+    full = np.array(mi.render(scene, sensor=view, spp=effective_spp(spp), seed=seed), dtype=np.float32)[..., :3]
     h, w = full.shape[:2]
     mask = first_hit_mask(scene, camera)
     layer_spp = spp if layer_spp is None else layer_spp

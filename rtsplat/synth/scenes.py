@@ -10,7 +10,7 @@ Scenes:
 * ``dome``   - a thin glass dome (``thindielectric``) over textured objects on a textured floor;
 * ``cabin``  - a closed car-like shell whose objects are visible only through glass windows;
 * ``film``   - a curved, tinted, partly scattering plastic film in front of a textured wall
-  (a ``blendbsdf`` of a tinted ``thindielectric`` and a ``diffuse`` lobe);
+  (a ``blendbsdf`` of a tinted ``thindielectric`` and ``diffuse`` dots far below pixel size);
 * ``opaque`` - the ``dome`` content without the dome (control scene, no see-through surface).
 """
 
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rtsplat.synth.cameras import OrbitPath
-from rtsplat.synth.textures import FLOOR_PHOTOS, OBJECT_PHOTOS, environment_map, load_photo, mosaic
+from rtsplat.synth.textures import FLOOR_PHOTOS, OBJECT_PHOTOS, environment_map, photo_crop, tile_mosaic
 
 
 @dataclass
@@ -46,7 +46,14 @@ class ContentParams:
     placement_radius: float = 0.7  # objects' centres lie within this distance of the centre
     object_size: tuple[float, float] = (0.16, 0.28)  # half size of cubes / radius of spheres
     floor_half_size: float = 6.0
+    floor_tiles: int = 8  # the floor is floor_tiles x floor_tiles random photo crops
     env_radiance: float = 1.0  # scale of the environment map
+    # Texture resolutions (pixels) at texture_scale 1 (200-pixel-wide renders). Mitsuba's bitmap
+    # texture has no MIP-mapping: textures much finer than the pixels alias into noise, so their
+    # resolution follows the render's (texture_scale = width / 200).
+    floor_tile_px: int = 64
+    object_texture_px: int = 48
+    env_height_px: int = 512
 
 
 @dataclass(frozen=True)
@@ -75,7 +82,8 @@ class FilmParams:
     arc_deg: float = 70.0
     height: float = 1.5
     tint: tuple[float, float, float] = (0.95, 0.78, 0.5)
-    scatter_weight: float = 0.25  # blend weight of the diffuse (scattering) lobe
+    scatter_weight: float = 0.25  # fraction of the film covered by diffuse dots (rounded to 1/16)
+    dot_pitch: float = 0.001  # texel size of the dot pattern (m) at texture_scale 1; a pixel sees ~2 cm
     scatter_albedo: tuple[float, float, float] = (0.85, 0.85, 0.9)
     eta: float = 1.5
     wall_distance: float = 1.6
@@ -113,10 +121,14 @@ def _textured(image: np.ndarray, tiles: float = 1.0) -> dict:
     return {"type": "diffuse", "reflectance": tex}
 
 
-def _environment(content: ContentParams) -> dict:
+def _px(base: int, texture_scale: float) -> int:
+    return int(min(max(8, round(base * texture_scale)), 4096))
+
+
+def _environment(content: ContentParams, texture_scale: float) -> dict:
     import mitsuba as mi
 
-    env = environment_map(128) * content.env_radiance
+    env = environment_map(_px(content.env_height_px, texture_scale)) * content.env_radiance
     # Mitsuba's envmap is y-up; rotating +90 degrees about x maps local +y to world +z.
     return {
         "type": "envmap",
@@ -125,34 +137,58 @@ def _environment(content: ContentParams) -> dict:
     }
 
 
-def _floor(content: ContentParams, rng: np.random.Generator) -> dict:
-    """A square floor textured with a 3 x 3 mosaic of photographs (shuffled by ``rng``)."""
-    h = content.floor_half_size
-    photos = [FLOOR_PHOTOS[i] for i in rng.permutation(len(FLOOR_PHOTOS))]
+def _floor(content: ContentParams, rng: np.random.Generator, texture_scale: float) -> dict:
+    """A square floor textured with a mosaic of random crops of photographs."""
+    h, n = content.floor_half_size, content.floor_tiles
     return {
         "type": "rectangle",
         "to_world": _xf(_trs(scale=(h, h, 1.0))),
-        "bsdf": _textured(mosaic(photos, 3, 320)),
+        "bsdf": _textured(tile_mosaic(FLOOR_PHOTOS, n, n, _px(content.floor_tile_px, texture_scale), rng)),
     }
 
 
-def _objects(content: ContentParams, rng: np.random.Generator, base_z: float = 0.0,
-             center=(0.0, 0.0)) -> dict:
-    """Random photo-textured spheres and cubes resting on the plane z = base_z."""
+def _objects(
+    content: ContentParams,
+    rng: np.random.Generator,
+    texture_scale: float,
+    base_z: float = 0.0,
+    center=(0.0, 0.0),
+    box: tuple[float, float] | None = None,
+) -> dict:
+    """Random photo-textured spheres and cubes resting on the plane z = base_z.
+
+    Centres lie within ``content.placement_radius`` of ``center``, or, when ``box`` (half extents
+    in x and y around ``center``) is given, anywhere such that the whole object stays inside the box.
+    Objects never overlap; ``ValueError`` when they cannot be placed.
+    """
     out: dict = {}
     placed: list[tuple[float, float, float]] = []
     lo, hi = content.object_size
     for k in range(content.n_objects):
-        for _attempt in range(200):
+        for _attempt in range(500):
             size = float(rng.uniform(lo, hi))
-            r = content.placement_radius * math.sqrt(float(rng.uniform(0.0, 1.0)))
-            a = float(rng.uniform(0.0, 2 * math.pi))
-            x, y = center[0] + r * math.cos(a), center[1] + r * math.sin(a)
-            if all(math.hypot(x - px, y - py) > 1.5 * (size + ps) for px, py, ps in placed):
+            reach = size * math.sqrt(2.0)  # a yawed cube's half diagonal (>= a sphere's radius)
+            if box is None:
+                r = content.placement_radius * math.sqrt(float(rng.uniform(0.0, 1.0)))
+                a = float(rng.uniform(0.0, 2 * math.pi))
+                x, y = center[0] + r * math.cos(a), center[1] + r * math.sin(a)
+            else:
+                fx, fy = box[0] - reach, box[1] - reach
+                if fx <= 0 or fy <= 0:
+                    continue
+                x = center[0] + float(rng.uniform(-fx, fx))
+                y = center[1] + float(rng.uniform(-fy, fy))
+            if all(math.hypot(x - px, y - py) > 1.1 * (reach + pr) for px, py, pr in placed):
                 break
-        placed.append((x, y, size))
+        else:
+            raise ValueError(
+                f"could not place {content.n_objects} objects without overlap; "
+                "lower n_objects or object_size, or enlarge the placement area"
+            )
+        placed.append((x, y, reach))
         photo = OBJECT_PHOTOS[int(rng.integers(len(OBJECT_PHOTOS)))]
-        bsdf = _textured(load_photo(photo, 256))
+        t = _px(content.object_texture_px, texture_scale)
+        bsdf = _textured(photo_crop(photo, (t, t), rng))
         if k % 2 == 0:
             yaw = float(rng.uniform(0.0, 90.0))
             out[f"object_{k}"] = {
@@ -177,11 +213,11 @@ def _glass(eta: float) -> dict:
     return {"type": "thindielectric", "int_ior": float(eta), "ext_ior": 1.0}
 
 
-def build_dome(params: DomeParams, seed: int, workdir: Path) -> SceneSpec:
+def build_dome(params: DomeParams, seed: int, workdir: Path, texture_scale: float = 1.0) -> SceneSpec:
     rng = np.random.default_rng(seed)
     c = params.content
-    elements = {"env": _environment(c), "floor": _floor(c, rng)}
-    elements.update(_objects(c, rng))
+    elements = {"env": _environment(c, texture_scale), "floor": _floor(c, rng, texture_scale)}
+    elements.update(_objects(c, rng, texture_scale))
     r = params.dome_radius
     elements["dome"] = {
         "type": "sphere",
@@ -194,32 +230,41 @@ def build_dome(params: DomeParams, seed: int, workdir: Path) -> SceneSpec:
     return SceneSpec("dome", elements, ("dome",), orbit, asdict(params))
 
 
-def build_opaque(params: OpaqueParams, seed: int, workdir: Path) -> SceneSpec:
-    dome = build_dome(DomeParams(content=params.content), seed, workdir)
+def build_opaque(params: OpaqueParams, seed: int, workdir: Path, texture_scale: float = 1.0) -> SceneSpec:
+    dome = build_dome(DomeParams(content=params.content), seed, workdir, texture_scale)
     elements = {k: v for k, v in dome.elements.items() if k != "dome"}
     return SceneSpec("opaque", elements, (), dome.orbit, asdict(params))
 
 
-def build_cabin(params: CabinParams, seed: int, workdir: Path) -> SceneSpec:
+def build_cabin(params: CabinParams, seed: int, workdir: Path, texture_scale: float = 1.0) -> SceneSpec:
     rng = np.random.default_rng(seed)
     c = params.content
     photos = _photo_order(rng)
-    L, W, B, H, p = (params.half_length, params.half_width, params.body_height,
-                     params.window_height, params.pillar_half)
-    elements = {"env": _environment(c), "floor": _floor(c, rng)}
+    L, W, B, H, p = (
+        params.half_length,
+        params.half_width,
+        params.body_height,
+        params.window_height,
+        params.pillar_half,
+    )
+    elements = {"env": _environment(c, texture_scale), "floor": _floor(c, rng, texture_scale)}
+    tb = _px(128, texture_scale)  # body and roof faces are up to 2.5 m wide
     elements["body"] = {
-        "type": "cube", "to_world": _xf(_trs((0, 0, B / 2), 0.0, (L, W, B / 2))),
-        "bsdf": _textured(load_photo(photos[0], 384)),
+        "type": "cube",
+        "to_world": _xf(_trs((0, 0, B / 2), 0.0, (L, W, B / 2))),
+        "bsdf": _textured(photo_crop(photos[0], (tb, tb), rng)),
     }
     roof_t = 0.04
     elements["roof"] = {
-        "type": "cube", "to_world": _xf(_trs((0, 0, B + H + roof_t), 0.0, (L + 0.05, W + 0.05, roof_t))),
-        "bsdf": _textured(load_photo(photos[1], 384)),
+        "type": "cube",
+        "to_world": _xf(_trs((0, 0, B + H + roof_t), 0.0, (L + 0.05, W + 0.05, roof_t))),
+        "bsdf": _textured(photo_crop(photos[1], (tb, tb), rng)),
     }
     dark = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.08, 0.08, 0.09]}}
     for i, (sx, sy) in enumerate([(1, 1), (1, -1), (-1, 1), (-1, -1)]):
         elements[f"pillar_{i}"] = {
-            "type": "cube", "to_world": _xf(_trs((sx * L, sy * W, B + H / 2), 0.0, (p, p, H / 2 + 0.01))),
+            "type": "cube",
+            "to_world": _xf(_trs((sx * L, sy * W, B + H / 2), 0.0, (p, p, H / 2 + 0.01))),
             "bsdf": dark,
         }
     zc, hz = B + H / 2, H / 2 + 0.01  # panes reach slightly into body and roof: no cracks
@@ -232,12 +277,10 @@ def build_cabin(params: CabinParams, seed: int, workdir: Path) -> SceneSpec:
     }
     for name, m in panes.items():
         elements[name] = {"type": "rectangle", "to_world": _xf(m), "bsdf": _glass(params.eta)}
-    inner = ContentParams(
-        n_objects=c.n_objects, placement_radius=c.placement_radius, object_size=c.object_size,
-        floor_half_size=c.floor_half_size, env_radiance=c.env_radiance,
-    )
-    elements.update(_objects(inner, rng, base_z=B))
-    orbit = OrbitPath(target=(0.0, 0.0, B + 0.3), radius=4.2, height_mid=1.4, height_amplitude=0.35)
+    # objects stand on the cabin floor (the body's top) and stay clear of the panes and pillars
+    margin = 0.03
+    elements.update(_objects(c, rng, texture_scale, base_z=B, box=(L - 2 * p - margin, W - margin)))
+    orbit = OrbitPath(target=(0.0, 0.0, B + 0.3), radius=3.6, height_mid=1.5, height_amplitude=0.35)
     return SceneSpec("cabin", elements, tuple(panes), orbit, asdict(params))
 
 
@@ -268,19 +311,42 @@ def _write_film_obj(path: Path, params: FilmParams, n_u: int = 48, n_v: int = 2)
     path.write_text("\n".join(lines) + "\n")
 
 
-def build_film(params: FilmParams, seed: int, workdir: Path) -> SceneSpec:
+def _dot_pattern(params: FilmParams, texture_scale: float) -> dict:
+    """The film's blend weight: an ordered-dither pattern of diffuse dots (weight 1) on clear film
+    (weight 0), ``nearest`` filtered so that every point is *either* film or dot.
+
+    A per-point blend (0 < weight < 1) of a delta and a smooth lobe is mis-weighted by Mitsuba
+    3.9's ``blendbsdf.sample`` (it divides the mixed eval by a mixed pdf in which the delta
+    lobe's discrete probability stands for a density: the reflection gets ~0.91 instead of 1), so
+    its renders would not add up with the lobe-by-lobe ground-truth layers. With a binary weight
+    ``blendbsdf`` is exact, and at pixel scale the dots still mix scattering into the film
+    (like a perforated window film).
+    """
+    import mitsuba as mi
+
+    bayer = np.array([[0, 8, 2, 10], [12, 4, 14, 6], [3, 11, 1, 9], [15, 7, 13, 5]], dtype=np.float64)
+    dots = (bayer < round(16 * params.scatter_weight)).astype(np.float32)  # a 4 x 4 cell
+    R, half = params.curvature_radius, math.radians(params.arc_deg) / 2
+    pitch = params.dot_pitch / texture_scale
+    cells_u = min(max(1, round(2 * half * R / (4 * pitch))), 2048)  # the film's u runs along the arc
+    cells_v = min(max(1, round(params.height / (4 * pitch))), 2048)
+    pattern = np.tile(dots, (cells_v, cells_u))[..., None]
+    return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(pattern)), "filter_type": "nearest", "raw": True}
+
+
+def build_film(params: FilmParams, seed: int, workdir: Path, texture_scale: float = 1.0) -> SceneSpec:
     rng = np.random.default_rng(seed)
     c = params.content
     photos = _photo_order(rng)
-    elements = {"env": _environment(c), "floor": _floor(c, rng)}
+    elements = {"env": _environment(c, texture_scale), "floor": _floor(c, rng, texture_scale)}
     wall_w, wall_h = 3.0, 1.6
     elements["wall"] = {
         "type": "rectangle",
         # local +z normal -> world -y (facing the film and the cameras)
         "to_world": _xf(_trs((0, params.wall_distance, wall_h), 0.0, (wall_w, wall_h, 1.0), 90.0)),
-        "bsdf": _textured(mosaic(photos[:4], 2, 384)),
+        "bsdf": _textured(tile_mosaic(photos, 2, 4, _px(64, texture_scale), rng)),
     }
-    elements.update(_objects(c, rng, center=(0.0, 0.5 * (params.wall_distance + 0.3))))
+    elements.update(_objects(c, rng, texture_scale, center=(0.0, 0.5 * (params.wall_distance + 0.3))))
     obj = workdir / "film.obj"
     _write_film_obj(obj, params)
     elements["film"] = {
@@ -289,18 +355,23 @@ def build_film(params: FilmParams, seed: int, workdir: Path) -> SceneSpec:
         "face_normals": False,
         "bsdf": {
             "type": "blendbsdf",
-            "weight": float(params.scatter_weight),
+            "weight": _dot_pattern(params, texture_scale),
             "bsdf_0": {
-                "type": "thindielectric", "int_ior": float(params.eta), "ext_ior": 1.0,
+                "type": "thindielectric",
+                "int_ior": float(params.eta),
+                "ext_ior": 1.0,
                 "specular_transmittance": {"type": "rgb", "value": list(params.tint)},
             },
-            "bsdf_1": {"type": "diffuse",
-                       "reflectance": {"type": "rgb", "value": list(params.scatter_albedo)}},
+            "bsdf_1": {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(params.scatter_albedo)}},
         },
     }
     orbit = OrbitPath(
-        target=(0.0, 0.5, 0.7), radius=3.6, height_mid=1.3, height_amplitude=0.35,
-        azimuth_start=-145.0, azimuth_span=110.0,
+        target=(0.0, 0.5, 0.7),
+        radius=3.6,
+        height_mid=1.3,
+        height_amplitude=0.35,
+        azimuth_start=-145.0,
+        azimuth_span=110.0,
     )
     return SceneSpec("film", elements, ("film",), orbit, asdict(params))
 
@@ -319,9 +390,12 @@ SCENES: dict[str, SceneKind] = {
 }
 
 
-def build_scene(name: str, seed: int, workdir: Path, params=None) -> SceneSpec:
-    """Build scene ``name`` (one of :data:`SCENES`) with default or given parameters."""
+def build_scene(name: str, seed: int, workdir: Path, params=None, texture_scale: float = 1.0) -> SceneSpec:
+    """Build scene ``name`` (one of :data:`SCENES`) with default or given parameters.
+
+    ``texture_scale``: texture resolution relative to 200-pixel-wide renders (use width / 200).
+    """
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
     kind = SCENES[name]
-    return kind.builder(params if params is not None else kind.params(), seed, workdir)
+    return kind.builder(params if params is not None else kind.params(), seed, workdir, texture_scale)

@@ -7,6 +7,7 @@ renders have the kind of texture SfM needs. Images are returned as float32 *line
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -27,14 +28,22 @@ _PHOTO_FILES: dict[str, str] = {
     "grass": "grass.png",
     "camera": "camera.png",
     "coins": "coins.png",
-    "horse": "horse.png",
 }
 PHOTOS: tuple[str, ...] = tuple(_PHOTO_FILES)
 # colourful, feature-rich photographs for objects and walls
 OBJECT_PHOTOS: tuple[str, ...] = ("astronaut", "coffee", "chelsea", "rocket", "motorcycle", "ihc")
 # the floor is a 3 x 3 mosaic of these (several are grey-level texture photographs)
-FLOOR_PHOTOS: tuple[str, ...] = ("gravel", "brick", "grass", "camera", "coins", "coffee", "chelsea",
-                                 "motorcycle", "astronaut")
+FLOOR_PHOTOS: tuple[str, ...] = (
+    "gravel",
+    "brick",
+    "grass",
+    "camera",
+    "coins",
+    "coffee",
+    "chelsea",
+    "motorcycle",
+    "astronaut",
+)
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -54,28 +63,78 @@ def to_srgb8(x: np.ndarray) -> np.ndarray:
     return np.round(linear_to_srgb(x) * 255.0).astype(np.uint8)
 
 
+@functools.lru_cache(maxsize=32)
+def _decoded(name: str) -> np.ndarray:
+    """A bundled photograph as sRGB float32 [H, W, 3] in [0, 1] (cached; do not modify)."""
+    import skimage.data
+    import skimage.io
+
+    if name not in _PHOTO_FILES:
+        raise ValueError(f"unknown photo {name!r}; choose from {', '.join(PHOTOS)}")
+    path = Path(skimage.data.data_dir) / _PHOTO_FILES[name]
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"scikit-image's bundled photograph {path} is missing; "
+            "reinstall scikit-image (pip install --force-reinstall 'scikit-image>=0.22')"
+        )
+    img = skimage.io.imread(path)
+    if img.ndim == 2:
+        img = np.stack([img] * 3, axis=-1)
+    img = img[..., :3].astype(np.float32) / float(np.iinfo(img.dtype).max if img.dtype.kind == "u" else 1.0)
+    img.setflags(write=False)
+    return img
+
+
+def _resize(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    from skimage.transform import resize
+
+    return resize(img, shape, order=1, anti_aliasing=True).astype(np.float32)
+
+
 def load_photo(name: str, size: int | None = None) -> np.ndarray:
     """A bundled scikit-image photograph as a linear float32 [H, W, 3] array.
 
     ``size``: if given, the image is centre-cropped to a square and resized to ``size`` x ``size``.
     """
-    import skimage.data
-    import skimage.io
-    from skimage.transform import resize
-
-    if name not in _PHOTO_FILES:
-        raise ValueError(f"unknown photo {name!r}; choose from {', '.join(PHOTOS)}")
-    img = skimage.io.imread(Path(skimage.data.data_dir) / _PHOTO_FILES[name])
-    if img.ndim == 2:
-        img = np.stack([img] * 3, axis=-1)
-    img = img[..., :3].astype(np.float32) / 255.0
+    img = _decoded(name)
     if size is not None:
         h, w = img.shape[:2]
-        s = min(h, w)
-        top, left = (h - s) // 2, (w - s) // 2
-        img = img[top : top + s, left : left + s]
-        img = resize(img, (size, size), order=1, anti_aliasing=True).astype(np.float32)
+        side = min(h, w)
+        top, left = (h - side) // 2, (w - side) // 2
+        img = _resize(img[top : top + side, left : left + side], (size, size))
     return srgb_to_linear(img)
+
+
+def photo_crop(name: str, shape: tuple[int, int], rng: np.random.Generator, min_fraction: float = 0.4) -> np.ndarray:
+    """A random crop of a photograph (linear RGB) resized to ``shape`` = (rows, columns).
+
+    The crop has the aspect ratio of ``shape`` and covers ``min_fraction`` to all of the largest
+    such crop, so that tiles show the photos' structure at different scales.
+    """
+    img = _decoded(name)
+    h, w = img.shape[:2]
+    aspect = shape[1] / shape[0]
+    ch_max = min(h, int(w / aspect))
+    ch = max(8, int(ch_max * float(rng.uniform(min_fraction, 1.0))))
+    cw = max(8, min(w, int(round(ch * aspect))))
+    top = int(rng.integers(0, h - ch + 1))
+    left = int(rng.integers(0, w - cw + 1))
+    return srgb_to_linear(_resize(img[top : top + ch, left : left + cw], shape))
+
+
+def tile_mosaic(
+    names: tuple[str, ...] | list[str], rows: int, cols: int, tile: int, rng: np.random.Generator
+) -> np.ndarray:
+    """A ``rows`` x ``cols`` mosaic (linear RGB, ``tile`` pixels per tile) of random photo crops.
+
+    Photos are drawn from ``names`` in shuffled rounds, so neighbouring tiles rarely repeat a photo
+    and no two tiles are the same crop (SfM must not confuse them).
+    """
+    order: list[str] = []
+    while len(order) < rows * cols:
+        order += [names[i] for i in rng.permutation(len(names))]
+    tiles = [photo_crop(order[k], (tile, tile), rng) for k in range(rows * cols)]
+    return np.concatenate([np.concatenate(tiles[r * cols : (r + 1) * cols], axis=1) for r in range(rows)], axis=0)
 
 
 def mosaic(names: list[str] | tuple[str, ...], grid: int, tile: int) -> np.ndarray:
@@ -89,13 +148,29 @@ def mosaic(names: list[str] | tuple[str, ...], grid: int, tile: int) -> np.ndarr
 
 
 def environment_map(
-    height: int = 128, *, band_photos: tuple[str, ...] = ("coffee", "astronaut", "rocket", "chelsea"),
-    sky_radiance: float = 1.6, band_gain: float = 2.0, ground_radiance: float = 0.15,
+    height: int = 256,
+    *,
+    band_photos: tuple[str, ...] = (
+        "coffee",
+        "astronaut",
+        "rocket",
+        "chelsea",
+        "motorcycle",
+        "hubble",
+        "ihc",
+        "retina",
+    ),
+    sky_radiance: float = 1.6,
+    band_gain: float = 2.0,
+    ground_radiance: float = 0.15,
+    band_elevation: tuple[float, float] = (-15.0, 30.0),
 ) -> np.ndarray:
     """Equirectangular environment (linear RGB, [height, 2*height, 3]), y-up like Mitsuba's envmap.
 
-    Top: a bright sky gradient; a horizon band (elevation -5 to 30 degrees) made of photographs,
-    so that glass shows structured, clearly visible reflections; below: a dark ground.
+    Top: a bright sky gradient; a horizon band (``band_elevation``, degrees) of photographs side by
+    side around the horizon (each used once, no repeats), so that glass shows structured, clearly
+    visible reflections and the background has features; below: a dark ground. The band reaches
+    below the horizon so that no featureless strip shows between the floor's edge and the band.
     """
     width = 2 * height
     rows = (np.arange(height) + 0.5) / height
@@ -104,13 +179,27 @@ def environment_map(
     t = np.clip((elevation - 30.0) / 60.0, 0.0, 1.0)[:, None]
     sky = (1 - t) * np.array([0.85, 0.9, 1.0]) + t * np.array([0.45, 0.6, 1.0])
     env[:] = (sky_radiance * sky)[:, None, :]
-    band = (elevation <= 30.0) & (elevation >= -5.0)
+    env[elevation < band_elevation[0]] = ground_radiance
+    band = (elevation <= band_elevation[1]) & (elevation >= band_elevation[0])
     band_rows = int(band.sum())
-    if band_rows > 0:
-        tiles = [load_photo(n, band_rows) for n in band_photos]
-        strip = np.concatenate(tiles, axis=1)
-        reps = int(np.ceil(width / strip.shape[1]))
-        strip = np.concatenate([strip] * reps, axis=1)[:, :width]
-        env[band] = band_gain * strip
-    env[elevation < -5.0] = ground_radiance
+    if band_rows > 0 and band_photos:
+        n = len(band_photos)
+        edges = np.linspace(0, width, n + 1).round().astype(int)
+        tiles = [
+            _resize(
+                _center_crop(_decoded(name), band_rows / (edges[k + 1] - edges[k])),
+                (band_rows, int(edges[k + 1] - edges[k])),
+            )
+            for k, name in enumerate(band_photos)
+        ]
+        env[band] = band_gain * srgb_to_linear(np.concatenate(tiles, axis=1))
     return env.astype(np.float32)
+
+
+def _center_crop(img: np.ndarray, aspect_hw: float) -> np.ndarray:
+    """The largest centred crop of ``img`` with height / width = ``aspect_hw``."""
+    h, w = img.shape[:2]
+    ch, cw = (h, int(round(h / aspect_hw))) if h / w < aspect_hw else (int(round(w * aspect_hw)), w)
+    ch, cw = min(ch, h), min(cw, w)
+    top, left = (h - ch) // 2, (w - cw) // 2
+    return img[top : top + ch, left : left + cw]

@@ -1,6 +1,8 @@
 # Configuration, scene discovery and path helpers shared by the rules.
 import re
+import shlex
 import sys
+from pathlib import Path
 
 from rtsplat.config import ConfigError, discover_scenes, load_config_dict, section_json
 
@@ -17,7 +19,20 @@ DATA = CFG.data.rstrip("/")
 RESULTS = CFG.results.rstrip("/")
 METHODS = list(CFG.methods)
 ENV = "../../envs/rtsplat.yaml"
-RTSPLAT = "rtsplat"
+
+
+def _rtsplat_command():
+    """How rules call the CLI. With `--sdm conda` the env (envs/rtsplat.yaml) has the dependencies and
+    the package comes from this repository via PYTHONPATH; otherwise the `rtsplat` next to the Python
+    that runs Snakemake (the venv), so no PATH setup is needed, else `rtsplat` from PATH."""
+    methods = getattr(getattr(workflow, "deployment_settings", None), "deployment_method", None) or ()
+    if any(str(getattr(m, "name", m)).lower() == "conda" for m in methods):
+        return f"PYTHONPATH={shlex.quote(str(Path(workflow.basedir).resolve()))} python -m rtsplat.cli"
+    exe = Path(sys.executable).parent / "rtsplat"
+    return shlex.quote(str(exe)) if exe.is_file() else "rtsplat"
+
+
+RTSPLAT = _rtsplat_command()
 
 
 wildcard_constraints:

@@ -1,5 +1,6 @@
 # Training, rendering, metrics and the report: each rule calls one `rtsplat <stage>` CLI; what
 # the arguments are is decided in rtsplat/config.py (train_json, render_edit_args).
+import shlex
 from pathlib import Path
 
 from rtsplat.config import render_edit_args, scene_config, train_json
@@ -30,7 +31,7 @@ rule train:
     conda:
         ENV
     shell:
-        "{RTSPLAT} train --data {input.prepared} --out {output} --config-json {params.cfg} --quiet > {log} 2>&1"
+        "{RTSPLAT} train --data {input.prepared:q} --out {output:q} --config-json {params.cfg} --quiet > {log:q} 2>&1"
 
 
 rule render:
@@ -53,8 +54,8 @@ rule render:
     conda:
         ENV
     shell:
-        "{RTSPLAT} render --data {input.prepared} --run {input.run} --out {output} "
-        "--warmup {params.warmup} --quiet > {log} 2>&1"
+        "{RTSPLAT} render --data {input.prepared:q} --run {input.run:q} --out {output:q} "
+        "--warmup {params.warmup} --quiet > {log:q} 2>&1"
 
 
 rule render_edit:
@@ -73,8 +74,8 @@ rule render_edit:
     conda:
         ENV
     shell:
-        "{RTSPLAT} render --data {input.prepared} --run {input.run} --out {output} {params.edits} "
-        "--warmup 0 --quiet > {log} 2>&1"
+        "{RTSPLAT} render --data {input.prepared:q} --run {input.run:q} --out {output:q} {params.edits} "
+        "--warmup 0 --quiet > {log:q} 2>&1"
 
 
 rule metrics:
@@ -89,12 +90,12 @@ rule metrics:
     benchmark:
         f"{RESULTS}/{{scene}}/benchmarks/metrics_{{method}}.tsv"
     params:
-        lpips=lambda wildcards: scene_config(CFG, wildcards.scene).metrics.lpips_weights or "''",
+        lpips=lambda wildcards: shlex.quote(scene_config(CFG, wildcards.scene).metrics.lpips_weights),
     conda:
         ENV
     shell:
-        "{RTSPLAT} metrics --data {input.prepared} --renders {input.renders} --run {input.run} --out {output} "
-        "--lpips-weights {params.lpips} > {log} 2>&1"
+        "{RTSPLAT} metrics --data {input.prepared:q} --renders {input.renders:q} --run {input.run:q} --out {output:q} "
+        "--lpips-weights {params.lpips} > {log:q} 2>&1"
 
 
 def report_inputs(wildcards):
@@ -114,9 +115,11 @@ rule report:
     benchmark:
         f"{RESULTS}/benchmarks/report.tsv"
     params:
-        config_files=" ".join(f"--config {f}" for f in workflow.configfiles[-1:]),
+        results=RESULTS,
+        report=f"{RESULTS}/report",
+        config_files=" ".join(f"--config {shlex.quote(str(f))}" for f in workflow.configfiles[-1:]),
     conda:
         ENV
     shell:
-        "{RTSPLAT} report --results {RESULTS} --out {RESULTS}/report {params.config_files} "
-        "--command 'snakemake --cores all' > {log} 2>&1"
+        "{RTSPLAT} report --results {params.results:q} --out {params.report:q} {params.config_files} "
+        "--command 'snakemake --cores all' > {log:q} 2>&1"

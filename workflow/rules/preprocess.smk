@@ -1,4 +1,5 @@
 # Masks, structure from motion and the prepared scene (the trainer's only input).
+import shlex
 from pathlib import Path
 
 from rtsplat.config import scene_config
@@ -26,7 +27,7 @@ def sfm_inputs(wildcards):
 
 
 def sfm_masks_arg(wildcards, input):
-    return f"--masks {input.masks}" if "masks" in input.keys() else ""
+    return f"--masks {shlex.quote(str(input.masks))}" if "masks" in input.keys() else ""
 
 
 rule masks:
@@ -44,7 +45,7 @@ rule masks:
     conda:
         ENV
     shell:
-        "{RTSPLAT} masks --scene-dir {params.scene_dir} --out {output} --config-json {params.cfg} > {log} 2>&1"
+        "{RTSPLAT} masks --scene-dir {params.scene_dir:q} --out {output:q} --config-json {params.cfg} > {log:q} 2>&1"
 
 
 rule sfm:
@@ -64,8 +65,8 @@ rule sfm:
     conda:
         ENV
     shell:
-        "{RTSPLAT} sfm --scene-dir {params.scene_dir} --out {output} {params.masks} "
-        "--config-json {params.cfg} > {log} 2>&1"
+        "{RTSPLAT} sfm --scene-dir {params.scene_dir:q} --out {output:q} {params.masks} "
+        "--num-threads {threads} --config-json {params.cfg} > {log:q} 2>&1"
 
 
 rule prepare:
@@ -84,8 +85,8 @@ rule prepare:
     conda:
         ENV
     shell:
-        "{RTSPLAT} prepare --scene-dir {params.scene_dir} --sfm {input.sfm} --masks {input.masks} "
-        "--out {output} --config-json {params.cfg} > {log} 2>&1"
+        "{RTSPLAT} prepare --scene-dir {params.scene_dir:q} --sfm {input.sfm:q} --masks {input.masks:q} "
+        "--out {output:q} --config-json {params.cfg} > {log:q} 2>&1"
 
 
 rule prepared_all:
