@@ -13,7 +13,7 @@ PYTEST_ARGS ?=
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.rtsplat-installed
 
-.PHONY: demo raster-demo test test-fast lint bench clean-venv
+.PHONY: demo targets raster-demo test test-fast lint bench clean-venv
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; run 'make PYTHON=python3' with Python >= 3.10"; exit 1; }
@@ -28,8 +28,15 @@ $(STAMP): pyproject.toml
 # Result: demo/results/report/index.html. Reruns only redo what changed.
 DEMO_VIEWS ?= 80
 demo: $(STAMP)
-	@test -f demo/data/dome/scene.json || $(BIN)/rtsplat synth --scene dome --out demo/data/dome --views $(DEMO_VIEWS) --layer-spp 0
+	@test -f demo/data/dome/scene.json || $(BIN)/rtsplat synth --scene dome --out demo/data/dome --views $(DEMO_VIEWS) --layers-every 8
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake -s Snakefile -d demo --cores 2
+	@echo "report: demo/results/report/index.html"
+
+# issue 7's target numbers: dome + cabin, demo budget and 4x, ablations, half resolution (reuses the demo's jobs)
+targets: $(STAMP)
+	@test -f demo/data/dome/scene.json || $(BIN)/rtsplat synth --scene dome --out demo/data/dome --views $(DEMO_VIEWS) --layers-every 8
+	@test -f demo/data/cabin/scene.json || $(BIN)/rtsplat synth --scene cabin --out demo/data/cabin --views $(DEMO_VIEWS) --layers-every 8
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake -s Snakefile -d demo --configfile demo/config.yaml benchmarks/targets.yaml --cores 2
 	@echo "report: demo/results/report/index.html"
 
 # the rasterizer alone: a small procedural surfel scene rendered to PNGs in demo_out/

@@ -367,7 +367,9 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
 def load_config_dict(data: dict[str, Any] | None, source: str = "config") -> PipelineConfig:
     data = data or {}
     validate_config(data, source)
-    return _build(PipelineConfig, data)
+    cfg = _build(PipelineConfig, data)
+    check_methods(cfg, cfg.scenes)
+    return cfg
 
 
 def load_config(path: str | Path) -> PipelineConfig:
@@ -428,19 +430,50 @@ def discover_scenes(cfg: PipelineConfig) -> list[str]:
     return scenes
 
 
-def train_json(cfg: PipelineConfig, scene: str, method: str, quote: bool = True) -> str:
-    """The trainer config of ``method`` on ``scene`` as JSON for ``rtsplat train --config-json``:
-    the scene's ``train.options`` with the method's overrides merged over them, then
-    ``iterations`` and ``backend``."""
+def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, Any]:
+    """The trainer config tree of ``method`` on ``scene``: the scene's ``train.options`` and
+    ``iterations``, the method's overrides merged over them (a method's own ``schedule.iterations``
+    wins), ``backend``; then a method's ``budget: F`` scales every iteration count by F
+    (:func:`rtsplat.train.config.scale_budget`). Validated: an unknown or bad key is a ConfigError."""
+    from rtsplat.train.config import TrainConfig as TrainerConfig
+    from rtsplat.train.config import scale_budget
+
     if method not in cfg.methods:
         raise ConfigError(f"unknown method {method!r}", fix=f"add it under 'methods' (known: {sorted(cfg.methods)})")
     train = scene_config(cfg, scene).train
-    tree = deep_merge(train.options, cfg.methods[method] or {})
+    overrides = dict(cfg.methods[method] or {})
+    budget = overrides.pop("budget", None)
+    tree = copy.deepcopy(train.options)
     if train.iterations is not None:
         tree = deep_merge(tree, {"schedule": {"iterations": train.iterations}})
+    tree = deep_merge(tree, overrides)
     tree["backend"] = train.backend
-    text = json.dumps(tree, sort_keys=True)
+    label = "defaults" if scene == "__defaults__" else f"scene {scene}"
+    where = f"methods.{method} ({label}, merged with train.options)"
+    try:
+        trainer = TrainerConfig.from_dict(tree).validate()
+        if budget is not None:
+            if isinstance(budget, bool) or not isinstance(budget, (int, float)):
+                raise ValueError(f"budget must be a number (a factor on every iteration count), got {budget!r}")
+            tree = scale_budget(trainer, float(budget)).validate().to_dict()
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}", fix="use the trainer's keys (rtsplat/train/config.py) and a budget > 0") \
+            from exc
+    return tree
+
+
+def train_json(cfg: PipelineConfig, scene: str, method: str, quote: bool = True) -> str:
+    """:func:`trainer_options` as JSON for ``rtsplat train --config-json`` (shell-quoted unless ``quote=False``)."""
+    text = json.dumps(trainer_options(cfg, scene, method), sort_keys=True)
     return shlex.quote(text) if quote else text
+
+
+def check_methods(cfg: PipelineConfig, scenes: typing.Iterable[str] = ()) -> None:
+    """Build every method's trainer config for the defaults and each given or overridden scene, so a bad
+    key fails when the config is loaded, not hours later when its training job starts."""
+    for scene in dict.fromkeys([*scenes, *cfg.overrides, "__defaults__"]):
+        for method in cfg.methods:
+            trainer_options(cfg, scene, method)
 
 
 def render_edit_args(cfg: PipelineConfig, scene: str, edit: str) -> str:

@@ -14,8 +14,10 @@ Definitions (METHOD.md section 7), images in [0,1]:
 
 Views are the renders of ``rtsplat render`` (``<renders>/color/<name>.png``) against the prepared
 scene's images and masks. The JSON records per-view values, means, the run's config hash, package
-versions and the machine. With ``--gt-layers DIR`` (synthetic scenes: ``DIR/reflection/<name>.png``,
-``DIR/transmission/<name>.png`` at the prepared resolution) it also scores the decomposition.
+versions and the machine. Synthetic scenes also get the decomposition scored (:func:`layer_metrics`)
+against the ground-truth layers that ``rtsplat prepare`` carries into ``<data>/gt_layers`` (or
+``--gt-layers DIR`` with ``DIR/{reflection,transmission}/<name>.png`` at the prepared resolution, or,
+failing both, the synthetic dataset's own ``layers/linear`` files).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import torch
 from torch import Tensor
 
 from rtsplat.errors import PipelineError
+from rtsplat.scene import GT_LAYERS_DIR
 from rtsplat.train.losses import psnr, ssim_map
 
 NOT_AVAILABLE = "n/a (weights not found)"
@@ -55,6 +58,45 @@ def image_metrics(render: Tensor, target: Tensor, mask: Tensor | None, lpips_mod
         out["psnr_transparent"] = float(psnr(render, target, weight))
         out["ssim_transparent"] = float((smap * weight).sum() / (weight.sum() * smap.shape[-1]))
         out["lpips_transparent"] = float(lp[mask].mean()) if lp is not None else NOT_AVAILABLE
+    return out
+
+
+def ground_truth_layers_for(scene, record, gt_dir: Path | None) -> dict[str, np.ndarray] | None:
+    """Ground-truth reflection/transmission of a test view, or None: from ``gt_dir`` (``rtsplat prepare``
+    writes ``<prepared>/gt_layers``) or else computed from the synthetic dataset the scene was prepared
+    from (``<source>/layers/linear/<image stem>.npz``), e.g. for a scene prepared before it had layers."""
+    from rtsplat.io.images import read_image
+    from rtsplat.prepare import ground_truth_layers
+
+    if gt_dir is not None:
+        paths = {layer: gt_dir / layer / f"{record.name}.png" for layer in ("reflection", "transmission")}
+        if all(p.is_file() for p in paths.values()):
+            return {layer: read_image(p) for layer, p in paths.items()}
+        return None
+    npz = Path(scene.source) / "layers" / "linear" / f"{Path(record.image or record.name).stem}.npz"
+    if not scene.source or not npz.is_file():
+        return None
+    return ground_truth_layers(npz, scene.load_image(record.name), int(scene.downsample))
+
+
+def layer_metrics(renders: Path, name: str, truth: dict[str, np.ndarray], mask: Tensor | None) -> dict:
+    """PSNR of our reflection and transmission layers against the ground truth, on the transparent
+    region when the view has one (elsewhere both layers are trivial), else the entire image. Our
+    transmission is compared with scatter included (colour - reflection), as the ground truth defines it
+    (:func:`rtsplat.prepare.ground_truth_layers`)."""
+    from rtsplat.io.images import read_image
+
+    ours = {layer: torch.from_numpy(read_image(renders / layer / f"{name}.png")) for layer in ("color", "reflection")}
+    ours["transmission"] = (ours["color"] - ours["reflection"]).clamp(0, 1)
+    weight = mask[..., None].to(ours["color"].dtype) if mask is not None and bool(mask.any()) else None
+    out = {}
+    for layer in ("reflection", "transmission"):
+        reference = torch.from_numpy(np.ascontiguousarray(truth[layer], dtype=np.float32))
+        if reference.shape != ours[layer].shape:
+            raise PipelineError(f"ground-truth {layer} layer is {tuple(reference.shape)}, the render "
+                                f"{tuple(ours[layer].shape)}", path=renders / layer / f"{name}.png",
+                                fix="render from the prepared scene the ground-truth layers belong to")
+        out[f"psnr_{layer}_layer"] = float(psnr(ours[layer], reference, weight))
     return out
 
 
@@ -112,6 +154,9 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
     info = json.loads(info_path.read_text())
     scene = PreparedScene.load(data_dir)
     lpips_model, lpips_note = load_lpips(lpips_weights)
+    gt_dir = Path(gt_layers) if gt_layers is not None else Path(data_dir) / GT_LAYERS_DIR
+    gt_dir = gt_dir if gt_dir.is_dir() else None
+    records = {c.name: c for c in scene.cameras}
     per_view = {}
     for name in info["views"]:
         path = renders / "color" / f"{name}.png"
@@ -126,16 +171,16 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
         mask = scene.load_mask(name)
         mask_t = None if mask is None else torch.from_numpy(mask)
         values = image_metrics(render, target, mask_t, lpips_model)
-        if gt_layers is not None:
-            for layer in ("reflection", "transmission"):
-                truth = torch.from_numpy(read_image(Path(gt_layers) / layer / f"{name}.png"))
-                ours = torch.from_numpy(read_image(renders / layer / f"{name}.png"))
-                values[f"psnr_{layer}_layer"] = float(psnr(ours, truth))
+        truth = ground_truth_layers_for(scene, records[name], gt_dir)
+        if truth is not None:
+            values.update(layer_metrics(renders, name, truth, mask_t))
         per_view[name] = values
     keys = sorted({k for v in per_view.values() for k in v})
     means = {k: _mean([v[k] for v in per_view.values() if k in v]) for k in keys}
     return {
-        "mean": means, "views": per_view, "lpips": lpips_note, "fps": info.get("fps"),
+        "mean": means, "views": per_view, "lpips": lpips_note,
+        "gt_layers": str(gt_dir) if gt_dir else (f"{scene.source}/layers/linear" if scene.source else None),
+        "layer_views": sum("psnr_reflection_layer" in v for v in per_view.values()), "fps": info.get("fps"),
         "render_device": info.get("device"), "renders": str(renders), "data": str(data_dir),
         "run": str(run_dir) if run_dir else info.get("run"),
         "config_hash": config_hash(Path(run_dir or info.get("run", ""))),
@@ -160,7 +205,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="metrics JSON file (written atomically)")
     parser.add_argument("--run", type=Path, help="run directory (for the config hash; default: from render.json)")
     parser.add_argument("--lpips-weights", default="", help="directory with vgg16-397923af.pth and vgg.pth")
-    parser.add_argument("--gt-layers", type=Path, help="ground-truth reflection/transmission layers (synthetic)")
+    parser.add_argument("--gt-layers", type=Path, help="ground-truth reflection/transmission layers "
+                        "(default: <data>/gt_layers when it exists)")
 
 
 def run(args: argparse.Namespace) -> int:

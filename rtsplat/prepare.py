@@ -28,9 +28,17 @@ from rtsplat.config import PrepareConfig, add_config_arguments, stage_config_fro
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import atomic_dir
 from rtsplat.io.colmap import ColmapModel, ColmapView, load_model
-from rtsplat.io.images import area_downsample, read_header, read_image, read_mask, write_mask, write_png
+from rtsplat.io.images import (
+    area_downsample,
+    linear_to_srgb,
+    read_header,
+    read_image,
+    read_mask,
+    write_mask,
+    write_png,
+)
 from rtsplat.io.ply import write_points_ply
-from rtsplat.scene import IMAGES_DIR, MASKS_DIR, POINTS_FILE, CameraRecord, PreparedScene, Roi
+from rtsplat.scene import GT_LAYERS_DIR, IMAGES_DIR, MASKS_DIR, POINTS_FILE, CameraRecord, PreparedScene, Roi
 
 
 @dataclass
@@ -45,6 +53,7 @@ class PrepareSummary:
     mask_coverage: float
     num_points: int
     used_prescaled: bool
+    gt_layer_views: int = 0  # test views with ground-truth layers (synthetic scenes)
 
 
 def load_stage_summary(directory: str | Path, stage: str) -> dict:
@@ -108,6 +117,23 @@ def undistort_mask(mask: np.ndarray, distorted: ColmapView, size: tuple[int, int
             fix="re-run 'rtsplat sfm' (the undistorted model and the distorted one do not match)",
         )
     return arr >= 128
+
+
+def ground_truth_layers(linear_npz: Path, image: np.ndarray, factor: int) -> dict[str, np.ndarray] | None:
+    """Ground-truth reflection/transmission of a synthetic view in the prepared image's space.
+
+    The synth writes linear-RGB layers at full resolution (``layers/linear/<stem>.npz``). The model adds
+    its layers in the display space of the training images, so the truth is brought there too:
+    transmission = sRGB of the area-downsampled linear transmission (the scene behind the glass,
+    scatter included), reflection = prepared image - transmission (clipped at 0), so that the two add
+    up to the training target. None when the layers do not match the image size.
+    """
+    with np.load(linear_npz) as z:
+        transmission = area_downsample(z["transmission"].astype(np.float32), factor)
+    if transmission.shape != image.shape:
+        return None
+    transmission = linear_to_srgb(transmission)
+    return {"reflection": np.clip(image - transmission, 0.0, 1.0), "transmission": transmission}
 
 
 def _test_split(names: list[str], test_every: int) -> dict[str, str]:
@@ -177,6 +203,8 @@ def prepare_scene(
 
     cameras: list[CameraRecord] = []
     coverage: list[float] = []
+    layer_source = scene_dir / "layers" / "linear"
+    gt_layer_views = 0
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         (tmp / IMAGES_DIR).mkdir()
@@ -209,6 +237,13 @@ def prepare_scene(
                 h, w = image.shape[:2]
                 K[:2] /= f
             write_png(tmp / IMAGES_DIR / f"{stem}.png", image, bits=cfg.bit_depth)
+            npz = layer_source / f"{Path(view.name).stem}.npz"
+            if split[stem] == "test" and npz.is_file() and not sfm.get("undistorted", False):
+                layers = ground_truth_layers(npz, image, f)
+                for name, layer in (layers or {}).items():
+                    (tmp / GT_LAYERS_DIR / name).mkdir(parents=True, exist_ok=True)
+                    write_png(tmp / GT_LAYERS_DIR / name / f"{stem}.png", layer, bits=16)
+                gt_layer_views += layers is not None
             if has_masks:
                 mpath = Path(masks_dir) / f"{stem}.png"
                 if not mpath.is_file():
@@ -275,6 +310,7 @@ def prepare_scene(
         mask_coverage=float(np.mean(coverage)) if coverage else 0.0,
         num_points=len(model.xyz),
         used_prescaled=use_prescaled,
+        gt_layer_views=gt_layer_views,
     )
 
 
@@ -302,5 +338,6 @@ def run(args: argparse.Namespace) -> int:
         f"{s.num_points} points, ROI {s.roi.source} center={np.round(s.roi.center, 3).tolist()} "
         f"radius={s.roi.radius:.3f}, transparency={'yes' if s.has_transparency else 'no'}"
         + (f" (mask coverage {100 * s.mask_coverage:.1f}%)" if s.has_transparency else "")
+        + (f", ground-truth layers for {s.gt_layer_views} test views" if s.gt_layer_views else "")
     )
     return 0

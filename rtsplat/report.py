@@ -224,8 +224,10 @@ def _noise_rows(runs: dict[str, Run]) -> list[list[str]]:
     return rows
 
 
-def build_report(results: str | Path, out: str | Path, *, config_file: str | Path | None = None,
+def build_report(results: str | Path, out: str | Path, *, config_file: str | Path | list | None = None,
                  commands: list[str] | None = None) -> Path:
+    """Write the report of ``results`` into ``out`` (atomically). ``config_file``: one path or a list of
+    the config files of the run (printed in the Reproduce section, later ones layered over earlier)."""
     results, out = Path(results), Path(out)
     scenes = collect(results)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -270,7 +272,7 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_f
         layer_rows = [[m, _fmt(r.mean.get("psnr_reflection_layer")), _fmt(r.mean.get("psnr_transmission_layer"))]
                       for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]
         if layer_rows:
-            doc.heading("Decomposition against the ground-truth layers (PSNR)", 3)
+            doc.heading("Decomposition against the ground-truth layers (PSNR in the transparent region, test views)", 3)
             doc.table(["method", "reflection", "transmission"], layer_rows)
 
         doc.heading("Accuracy against training time", 3)
@@ -328,8 +330,11 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_f
         doc.paragraph("No repeated runs in these results, so run-to-run noise was not measured here.")
     doc.heading("Reproduce")
     doc.code("\n".join(commands or ["make demo"]))
-    if config_file and Path(config_file).is_file():
-        doc.code(Path(config_file).read_text())
+    files = config_file if isinstance(config_file, (list, tuple)) else [config_file] if config_file else []
+    for path in files:
+        if Path(path).is_file():
+            doc.paragraph(f"{Path(path).name}:")
+            doc.code(Path(path).read_text())
     page, markdown = doc.finish()
     (out / "index.html").write_text(page)
     (out / "index.md").write_text(markdown)
@@ -340,7 +345,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--results", type=Path, required=True, help="results directory of the workflow")
     parser.add_argument("--out", type=Path, required=True, help="report directory (replaced atomically)")
-    parser.add_argument("--config", type=Path, help="the config file to print in the Reproduce section")
+    parser.add_argument("--config", type=Path, action="append", default=[],
+                        help="a config file to print in the Reproduce section (repeat for layered configs)")
     parser.add_argument("--command", action="append", default=[], help="a command to print in Reproduce")
 
 

@@ -42,6 +42,7 @@ SCENE_FILE = "scene.json"
 IMAGES_DIR = "images"
 MASKS_DIR = "masks"
 POINTS_FILE = "points.ply"
+GT_LAYERS_DIR = "gt_layers"  # synthetic scenes only: <name>/<stem>.png for name in reflection, transmission
 
 
 @dataclass

@@ -126,6 +126,31 @@ def test_method_overrides_reach_the_trainer_config():
         train_json(cfg, "sedan", "nerf")
 
 
+def test_budget_method_scales_every_iteration_count_and_bad_methods_fail_at_load():
+    from rtsplat.train.config import ITERATION_COUNTS, TrainConfig
+
+    options = {"schedule": {"volume_until": 100, "specular_from": 200, "densify_every": 100, "eval_every": 0}}
+    cfg = load_config_dict({
+        "methods": {"rtsplat": {}, "rtsplat_x4": {"budget": 4}, "rtsplat_short": {"budget": 0.25},
+                    "fixed": {"budget": 2, "schedule": {"iterations": 100}}},
+        "defaults": {"train": {"iterations": 600, "options": options}},
+    })
+    base, x4, short, fixed = (TrainConfig.from_dict(json.loads(train_json(cfg, "s", m, quote=False)))
+                              for m in ("rtsplat", "rtsplat_x4", "rtsplat_short", "fixed"))
+    for section, names in ITERATION_COUNTS.items():
+        for name in names:
+            value = getattr(getattr(base, section), name)
+            assert getattr(getattr(x4, section), name) == 4 * value, (section, name)
+            assert getattr(getattr(short, section), name) == (max(round(value / 4), 1) if value else 0), name
+    assert (x4.schedule.iterations, x4.schedule.volume_until, x4.schedule.specular_from) == (2400, 400, 800)
+    assert x4.schedule.log_every == base.schedule.log_every and x4.lr.position_init == base.lr.position_init
+    assert fixed.schedule.iterations == 200  # the method's own iterations win over train.iterations, then scale
+    for bad, match in (({"budget": 0}, "budget factor must be > 0"), ({"budget": "x"}, "budget must be a number"),
+                       ({"schedule": {"iteration": 3}}, "train.schedule.iteration")):
+        with pytest.raises(ConfigError, match=match):
+            load_config_dict({"methods": {"bad": bad}})
+
+
 def test_scene_discovery(tmp_path):
     for s in ("b", "a"):
         (tmp_path / s / "images").mkdir(parents=True)

@@ -146,6 +146,42 @@ def test_metrics_cli_writes_json_with_both_regions(trained, tmp_path):
     assert data["fps"] > 0 and data["machine"]["cpus"] >= 1
 
 
+def test_decomposition_is_scored_against_ground_truth_layers_in_the_region(trained, tmp_path):
+    """With ground-truth layers in <data>/gt_layers the metrics score our reflection and our transmission
+    (scatter included: colour - reflection) on the transparent region, as an independent numpy PSNR says."""
+    import shutil
+
+    from rtsplat.io.images import write_png
+    from rtsplat.metrics import compute_metrics
+
+    root, scene, _ = trained
+    renders = tmp_path / "renders"
+    render_run(root / "run", scene.root, renders, progress=False)
+    data = tmp_path / "data"
+    shutil.copytree(scene.root, data)
+    g = np.random.default_rng(0)
+    names = [c.name for c in scene.test_cameras]
+    for name in names[:1]:  # one view has ground truth, the others do not
+        for layer in ("reflection", "transmission"):
+            (data / "gt_layers" / layer).mkdir(parents=True, exist_ok=True)
+            write_png(data / "gt_layers" / layer / f"{name}.png", g.random((36, 48, 3)), bits=16)
+    result = compute_metrics(renders, data)
+    assert result["layer_views"] == 1 and result["gt_layers"] == str(data / "gt_layers")
+    name = names[0]
+    mask = scene.load_mask(name)
+    ours = read_layers(renders, name)
+    expected = {"reflection": ours["reflection"],
+                "transmission": np.clip(ours["color"] - ours["reflection"], 0, 1)}
+    for layer, mine in expected.items():
+        truth = read_image(data / "gt_layers" / layer / f"{name}.png")
+        mse = ((mine.astype(np.float64) - truth)[mask] ** 2).mean()
+        assert result["views"][name][f"psnr_{layer}_layer"] == pytest.approx(-10 * np.log10(mse), abs=1e-3)
+        assert result["mean"][f"psnr_{layer}_layer"] == result["views"][name][f"psnr_{layer}_layer"]
+    assert all("psnr_reflection_layer" not in result["views"][n] for n in names[1:])
+    # without ground truth there is no decomposition score
+    assert "psnr_reflection_layer" not in compute_metrics(renders, scene.root)["mean"]
+
+
 def test_bad_edit_and_missing_model_fail_cleanly(trained, tmp_path):
     root, scene, _ = trained
     base = [sys.executable, "-m", "rtsplat.cli", "render", "--data", str(scene.root), "--quiet"]

@@ -14,6 +14,7 @@ mi = pytest.importorskip("mitsuba")
 cv2 = pytest.importorskip("cv2")
 
 from rtsplat.camera import camera_from_fov  # noqa: E402
+from rtsplat.io.images import read_image  # noqa: E402
 from rtsplat.synth import cli as synth_cli  # noqa: E402
 from rtsplat.synth.colmap_model import quaternion_to_rotation, rotation_to_quaternion  # noqa: E402
 from rtsplat.synth.dataset import SynthConfig, render_dataset  # noqa: E402
@@ -95,6 +96,16 @@ def test_failure_leaves_no_partial_output(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="boom"):
         render_dataset(config, tmp_path / "out", progress=False)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_layers_every_renders_layers_for_every_kth_view_only(tmp_path):
+    config = SynthConfig(scene="dome", views=5, width=32, height=24, spp=1, layer_spp=1, layers_every=2,
+                         allow_any_views=True)
+    render_dataset(config, tmp_path / "out", progress=False)
+    expected = ["0000", "0002", "0004"]
+    assert sorted(p.stem for p in (tmp_path / "out" / "layers" / "linear").iterdir()) == expected
+    meta = json.loads((tmp_path / "out" / "scene.json").read_text())
+    assert meta["layer_views"] == [s + ".png" for s in expected]
 
 
 def test_marker_projects_where_camera_says():
@@ -222,6 +233,7 @@ def test_pipeline_reads_a_synth_dataset(tiny, tmp_path):
     masks are ingested from transparent_masks/, prepare writes cameras equal to the ground truth."""
     pytest.importorskip("pycolmap")
     from rtsplat.masks import make_masks
+    from rtsplat.metrics import ground_truth_layers_for
     from rtsplat.prepare import prepare_scene
     from rtsplat.scene import PreparedScene
     from rtsplat.sfm import run_sfm
@@ -231,9 +243,25 @@ def test_pipeline_reads_a_synth_dataset(tiny, tmp_path):
     assert sfm.source == "dataset" and sfm.registered == sfm.total == TINY["views"] and not sfm.undistorted
     masks = make_masks(out, tmp_path / "masks", progress=False)
     assert masks.has_masks and masks.source == "ingest" and masks.mean_coverage > 0.05
-    prepare_scene(out, tmp_path / "sfm", tmp_path / "prepared", masks_dir=tmp_path / "masks", progress=False)
+    summary = prepare_scene(out, tmp_path / "sfm", tmp_path / "prepared", masks_dir=tmp_path / "masks",
+                            progress=False)
     scene = PreparedScene.load(tmp_path / "prepared")
     assert scene.has_transparency and len(scene.cameras) == TINY["views"]
+    # the ground-truth layers come along for the test views, in the training images' display space
+    assert summary.gt_layer_views == len(scene.test_cameras) >= 1
+    for cam in scene.test_cameras:
+        image = scene.load_image(cam.name)
+        mask = scene.load_mask(cam.name)
+        refl, trans = (read_image(tmp_path / "prepared" / "gt_layers" / layer / f"{cam.name}.png")
+                       for layer in ("reflection", "transmission"))
+        gap = np.abs(refl + trans - image)  # 0 except where Monte-Carlo noise (4 spp here) makes R < 0: clipped
+        print("R + T - image: mean", gap.mean(), "99th percentile", np.percentile(gap, 99))
+        assert gap.mean() < 0.01 and np.median(gap) < 1e-4
+        assert np.abs(trans - image)[~mask].mean() < 0.01  # no reflection off the glass
+        assert refl[mask].mean() > 0.01 and refl[~mask].mean() < 0.005  # the glass reflects
+        # metrics can also take them straight from the dataset (a scene prepared before it had layers)
+        direct = ground_truth_layers_for(scene, cam, None)
+        assert np.abs(direct["reflection"] - refl).max() < 1e-4 and np.abs(direct["transmission"] - trans).max() < 1e-4
     truth = {c["name"]: c for c in json.loads((out / "cameras.json").read_text())["cameras"]}
     for cam in scene.cameras:
         gt = truth[cam.image]

@@ -208,3 +208,26 @@ def test_unknown_config_key_is_named(glass_scene, tmp_path):
     assert result.returncode == 2
     assert "train.ablations.gatting" in result.stderr and "valid keys" in result.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_train_downsample_trains_small_and_evaluates_at_the_prepared_size(glass_scene, tmp_path):
+    from rtsplat.io.images import area_downsample
+
+    trainer = Trainer(glass_scene, config(6, train_downsample=2), tmp_path / "run", progress=False, log=lambda m: None)
+    full = glass_scene.train_cameras[0].to_camera()
+    small = trainer.train_views.cameras[0]
+    assert (small.width, small.height) == (full.width // 2, full.height // 2)
+    image = glass_scene.load_image(trainer.train_views.names[0])
+    np.testing.assert_allclose(trainer.train_views.images[0].numpy(), area_downsample(image, 2))
+    # the same world point lands at half the pixel coordinates (pixel corners at integers)
+    point = torch.tensor([0.1, -0.05, 0.2], dtype=full.K.dtype)
+    def pixel(cam):
+        p = cam.world_to_camera[:3, :3] @ point + cam.world_to_camera[:3, 3]
+        q = cam.K @ p
+        return q[:2] / q[2]
+    torch.testing.assert_close(pixel(small), pixel(full) / 2)
+    assert trainer.test_views.images[0].shape[:2] == (full.height, full.width)
+    summary = trainer.train()
+    assert np.isfinite(summary["test_psnr"])
+    with pytest.raises(ConfigError, match="train_downsample"):
+        config(6, train_downsample=0).validate()

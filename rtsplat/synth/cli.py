@@ -30,6 +30,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.layer_spp,
         help=f"samples per pixel of the layers, 0 = no layers (default {d.layer_spp})",
     )
+    parser.add_argument(
+        "--layers-every",
+        type=int,
+        default=d.layers_every,
+        help="render the layers only for views 0, K, 2K, ... (default 1 = all); K = 8 gives exactly the test "
+        "views of 'rtsplat prepare' (test_every 8) when every view registers",
+    )
     parser.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
     parser.add_argument("--max-depth", type=int, default=d.max_depth, help=f"path tracer depth (default {d.max_depth})")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
@@ -49,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         height=args.height,
         spp=args.spp,
         layer_spp=args.layer_spp,
+        layers_every=args.layers_every,
         seed=args.seed,
         max_depth=args.max_depth,
         allow_any_views=args.any_views,

@@ -47,6 +47,7 @@ class SynthConfig:
     height: int = 150
     spp: int = 36  # multijitter: rounded up to a grid of strata (cameras.effective_spp)
     layer_spp: int = 8  # samples per pixel of the layer split; 0 = no layers
+    layers_every: int = 1  # layers for views 0, k, 2k, ... only (k = 8 matches prepare's default test split)
     seed: int = 0
     max_depth: int = 32
     point_stride: int = 10  # one ground-truth 3D point per stride x stride pixels per view
@@ -67,6 +68,7 @@ class SynthConfig:
             ("height", self.height, 16, 4096),
             ("spp", self.spp, 1, 65536),
             ("layer_spp", self.layer_spp, 0, 65536),
+            ("layers_every", self.layers_every, 1, 1000),
             ("max_depth", self.max_depth, 2, 128),
             ("point_stride", self.point_stride, 1, 1024),
         ):
@@ -232,6 +234,9 @@ def _scene_json(config: SynthConfig, spec: SceneSpec, cams: list[Camera], check:
         "sampler": {"type": SAMPLER, "spp": effective_spp(config.spp)},
         "integrator": {"type": "volpath", "max_depth": config.max_depth, "rr_depth": 5},
         "has_layers": config.layer_spp > 0,
+        "layer_views": [
+            view_name(i) + ".png" for i in range(len(cams)) if config.layer_spp and i % config.layers_every == 0
+        ],
         "images": [view_name(i) + ".png" for i in range(len(cams))],
         "files": {
             "images/<stem>.png": "full render, sRGB 8-bit",
@@ -278,9 +283,8 @@ def render_dataset(
         bar = tqdm(range(config.views), desc=f"synth {config.scene}", unit="view", disable=not progress)
         for i in bar:
             stem = view_name(i)
-            view = render_view(
-                scene, i, cams[i], config.spp, view_seed(config.seed, i), config.max_depth, config.layer_spp
-            )
+            layer_spp = config.layer_spp if i % config.layers_every == 0 else 0
+            view = render_view(scene, i, cams[i], config.spp, view_seed(config.seed, i), config.max_depth, layer_spp)
             image8 = to_srgb8(view.full)
             _write_png(tmp / "images" / f"{stem}.png", image8)
             _write_png(tmp / "transparent_masks" / f"{stem}.png", view.mask.astype(np.uint8) * 255)

@@ -134,6 +134,9 @@ class TrainConfig:
     seed: int = 0
     backend: str = "auto"
     device: str = "cpu"
+    # resolution knob: train on the training views box-filtered by this factor (cameras scaled to match);
+    # test views, evaluation and `rtsplat render` stay at the prepared resolution
+    train_downsample: int = 1
     ablations: Ablations = field(default_factory=Ablations)
     effects: Effects = field(default_factory=Effects)
     gating: Gating = field(default_factory=Gating)
@@ -160,6 +163,8 @@ class TrainConfig:
                 "train.schedule: need 0 <= volume_until <= specular_from "
                 f"(got {s.volume_until}, {s.specular_from})"
             )
+        if self.train_downsample < 1:
+            raise ConfigError(f"train.train_downsample must be >= 1, got {self.train_downsample}")
         if self.gating.k < 0:
             raise ConfigError("train.gating.k must be >= 0")
         for name in ("transmission", "specular"):
@@ -200,3 +205,29 @@ def _build(cls, data: dict[str, Any], where: str):
         else:
             values[name] = value
     return cls(**values)
+
+
+# Every setting counted in iterations, by section (log_every stays: it is a logging rate).
+ITERATION_COUNTS = {
+    "schedule": ("iterations", "volume_until", "specular_from", "separate_background_until", "densify_from",
+                 "densify_until", "densify_every", "reset_every", "checkpoint_every", "eval_every"),
+    "lr": ("position_max_steps",),
+    "losses": ("perceptual_from", "normal_from"),
+}
+
+
+def scale_budget(cfg: TrainConfig, factor: float) -> TrainConfig:
+    """The same training stretched or shrunk to ``factor`` x the iterations: every iteration count of
+    :data:`ITERATION_COUNTS` is multiplied (rounded; counts that were > 0 stay >= 1), so stages,
+    densification and resets keep their place in the run. The iteration-budget knob of the benchmark."""
+    if not factor > 0:
+        raise ConfigError(f"budget factor must be > 0, got {factor}")
+    sections = {}
+    for section, names in ITERATION_COUNTS.items():
+        current = getattr(cfg, section)
+        changes = {}
+        for name in names:
+            value = getattr(current, name)
+            changes[name] = max(int(round(value * factor)), 1) if value > 0 else value
+        sections[section] = dataclasses.replace(current, **changes)
+    return dataclasses.replace(cfg, **sections)

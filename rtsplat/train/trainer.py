@@ -79,7 +79,7 @@ class Trainer:
         self.device = torch.device(cfg.device)
         torch.manual_seed(cfg.seed)
         self.rng = torch.Generator().manual_seed(cfg.seed)
-        self.train_views = load_views(scene, "train", self.device)
+        self.train_views = load_views(scene, "train", self.device, cfg.train_downsample)
         self.test_views = load_views(scene, "test", self.device)
         self.extent = scene_extent(self.train_views.cameras)
         roi = getattr(scene, "roi", None)

@@ -98,6 +98,21 @@ rule metrics:
         "--lpips-weights {params.lpips} > {log:q} 2>&1"
 
 
+def reproduce_command():
+    """The snakemake command line that reproduces this run, relative to the repository root."""
+    import os
+
+    root = Path(workflow.basedir).resolve()
+    words = ["snakemake", "-s", "Snakefile"]
+    work_dir = os.path.relpath(Path.cwd().resolve(), root)
+    if work_dir != ".":
+        words += ["-d", work_dir]
+    files = [os.path.relpath(Path(f).resolve(), root) for f in workflow.configfiles]
+    if files:
+        words += ["--configfile", *files]
+    return shlex.join(words + ["--cores", "all"])
+
+
 def report_inputs(wildcards):
     inputs = expand(f"{RESULTS}/{{scene}}/metrics/{{method}}.json", scene=SCENES, method=METHODS)
     for scene in SCENES:
@@ -117,9 +132,10 @@ rule report:
     params:
         results=RESULTS,
         report=f"{RESULTS}/report",
-        config_files=" ".join(f"--config {shlex.quote(str(f))}" for f in workflow.configfiles[-1:]),
+        config_files=" ".join(f"--config {shlex.quote(str(f))}" for f in workflow.configfiles),
+        command=shlex.quote(reproduce_command()),
     conda:
         ENV
     shell:
         "{RTSPLAT} report --results {params.results:q} --out {params.report:q} {params.config_files} "
-        "--command 'snakemake --cores all' > {log:q} 2>&1"
+        "--command {params.command} > {log:q} 2>&1"
