@@ -16,8 +16,7 @@ Views are the renders of ``rtsplat render`` (``<renders>/color/<name>.png``) aga
 scene's images and masks. The JSON records per-view values, means, the run's config hash, package
 versions and the machine. Synthetic scenes also get the decomposition scored (:func:`layer_metrics`)
 against the ground-truth layers that ``rtsplat prepare`` carries into ``<data>/gt_layers`` (or
-``--gt-layers DIR`` with ``DIR/{reflection,transmission}/<name>.png`` at the prepared resolution, or,
-failing both, the synthetic dataset's own ``layers/linear`` files).
+``--gt-layers DIR`` with ``DIR/{reflection,transmission}/<name>.png`` at the prepared resolution).
 """
 
 from __future__ import annotations
@@ -61,22 +60,16 @@ def image_metrics(render: Tensor, target: Tensor, mask: Tensor | None, lpips_mod
     return out
 
 
-def ground_truth_layers_for(scene, record, gt_dir: Path | None) -> dict[str, np.ndarray] | None:
-    """Ground-truth reflection/transmission of a test view, or None: from ``gt_dir`` (``rtsplat prepare``
-    writes ``<prepared>/gt_layers``) or else computed from the synthetic dataset the scene was prepared
-    from (``<source>/layers/linear/<image stem>.npz``), e.g. for a scene prepared before it had layers."""
+def ground_truth_layers_for(name: str, gt_dir: Path) -> dict[str, np.ndarray] | None:
+    """Ground-truth reflection/transmission of a view from ``gt_dir`` (``rtsplat prepare`` writes
+    ``<prepared>/gt_layers`` for synthetic scenes; only prepare knows whether SfM undistorted the
+    images, so the layers are never rebuilt here), or None when the view has none."""
     from rtsplat.io.images import read_image
-    from rtsplat.prepare import ground_truth_layers
 
-    if gt_dir is not None:
-        paths = {layer: gt_dir / layer / f"{record.name}.png" for layer in ("reflection", "transmission")}
-        if all(p.is_file() for p in paths.values()):
-            return {layer: read_image(p) for layer, p in paths.items()}
+    paths = {layer: gt_dir / layer / f"{name}.png" for layer in ("reflection", "transmission")}
+    if not all(p.is_file() for p in paths.values()):
         return None
-    npz = Path(scene.source) / "layers" / "linear" / f"{Path(record.image or record.name).stem}.npz"
-    if not scene.source or not npz.is_file():
-        return None
-    return ground_truth_layers(npz, scene.load_image(record.name), int(scene.downsample))
+    return {layer: read_image(p) for layer, p in paths.items()}
 
 
 def layer_metrics(renders: Path, name: str, truth: dict[str, np.ndarray], mask: Tensor | None) -> dict:
@@ -156,7 +149,6 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
     lpips_model, lpips_note = load_lpips(lpips_weights)
     gt_dir = Path(gt_layers) if gt_layers is not None else Path(data_dir) / GT_LAYERS_DIR
     gt_dir = gt_dir if gt_dir.is_dir() else None
-    records = {c.name: c for c in scene.cameras}
     per_view = {}
     for name in info["views"]:
         path = renders / "color" / f"{name}.png"
@@ -171,7 +163,7 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
         mask = scene.load_mask(name)
         mask_t = None if mask is None else torch.from_numpy(mask)
         values = image_metrics(render, target, mask_t, lpips_model)
-        truth = ground_truth_layers_for(scene, records[name], gt_dir)
+        truth = ground_truth_layers_for(name, gt_dir) if gt_dir else None
         if truth is not None:
             values.update(layer_metrics(renders, name, truth, mask_t))
         per_view[name] = values
@@ -179,7 +171,7 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
     means = {k: _mean([v[k] for v in per_view.values() if k in v]) for k in keys}
     return {
         "mean": means, "views": per_view, "lpips": lpips_note,
-        "gt_layers": str(gt_dir) if gt_dir else (f"{scene.source}/layers/linear" if scene.source else None),
+        "gt_layers": str(gt_dir) if gt_dir else None,
         "layer_views": sum("psnr_reflection_layer" in v for v in per_view.values()), "fps": info.get("fps"),
         "render_device": info.get("device"), "renders": str(renders), "data": str(data_dir),
         "run": str(run_dir) if run_dir else info.get("run"),
