@@ -13,8 +13,9 @@ scene has ground-truth layers, the accuracy-against-time plots and table with th
 (every run's final test PSNR against its training time, and the test-PSNR curves logged during
 training), test-view comparisons (ground truth / ours / baseline), decomposition and editing
 images; then the machine, the package versions, the exact commands and the config. Noise: when
-the results contain ``<method>_repeat`` runs (the same config and seed run twice), the report
-prints the measured run-to-run differences; otherwise it says that none were measured.
+the results contain ``<method>_repeat`` runs (the same config and seed run twice) or
+``<method>_seed<N>`` runs (the same config, another seed), the report prints the measured
+differences to ``<method>``; otherwise it says that none were measured.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import argparse
 import html
 import json
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -33,7 +35,7 @@ from rtsplat.errors import PipelineError
 
 MAIN = "rtsplat"
 ABLATION_PREFIX = "ablation_"
-REPEAT_SUFFIX = "_repeat"
+NOISE_RUN = re.compile(r"^(?P<base>.+)_(?P<kind>repeat|seed\d+)$")  # rtsplat_repeat, rtsplat_seed1
 
 
 @dataclass
@@ -209,12 +211,15 @@ def _copy_image(src: Path, out: Path, name: str) -> str | None:
 
 
 def _noise_rows(runs: dict[str, Run]) -> list[list[str]]:
+    """|difference| of each ``<method>_repeat`` / ``<method>_seed<N>`` run to its ``<method>`` run."""
     rows = []
     for method, r in runs.items():
-        if not method.endswith(REPEAT_SUFFIX) or method[: -len(REPEAT_SUFFIX)] not in runs:
+        match = NOISE_RUN.match(method)
+        if not match or match["base"] not in runs:
             continue
-        base = runs[method[: -len(REPEAT_SUFFIX)]]
-        row = [method[: -len(REPEAT_SUFFIX)]]
+        base = runs[match["base"]]
+        kind = "same seed" if match["kind"] == "repeat" else f"seed {match['kind'][4:]}"
+        row = [match["base"], kind]
         for key in ("psnr", "psnr_transparent"):
             a, b = base.mean.get(key), r.mean.get(key)
             row.append(_fmt(abs(a - b), 3) if isinstance(a, float) and isinstance(b, float) else "-")
@@ -322,10 +327,12 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_f
     doc.heading("Noise")
     noise = [row for runs in scenes.values() for row in _noise_rows(runs)]
     if noise:
-        doc.paragraph("Run-to-run differences of identical runs (same config and seed) on this machine: quality "
-                      "differences come from non-deterministic floating-point reductions, time differences from "
-                      "machine load. Expect numbers to reproduce within these.")
-        doc.table(["method", "|dPSNR|", "|dPSNR transp.|", "time diff %"], noise)
+        doc.paragraph("Differences between runs of the same config on this machine. Same seed: quality differences "
+                      "come from non-deterministic floating-point reductions, time differences from machine load; "
+                      "expect a rerun to reproduce the numbers within these. Another seed: the spread to expect "
+                      "between methods that are in truth equally good, so smaller gaps between methods are not "
+                      "significant.")
+        doc.table(["method", "rerun", "|dPSNR|", "|dPSNR transp.|", "time diff %"], noise)
     else:
         doc.paragraph("No repeated runs in these results, so run-to-run noise was not measured here.")
     doc.heading("Reproduce")

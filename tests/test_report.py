@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -72,8 +73,14 @@ def test_report_measures_noise_from_repeated_runs(results, tmp_path):
     shutil.copytree(results, copy)
     shutil.copytree(copy / "toy" / "runs" / "2dgs", copy / "toy" / "runs" / "2dgs_repeat")
     shutil.copy(copy / "toy" / "metrics" / "2dgs.json", copy / "toy" / "metrics" / "2dgs_repeat.json")
+    shutil.copytree(copy / "toy" / "runs" / "2dgs", copy / "toy" / "runs" / "2dgs_seed3")
+    metrics = json.loads((copy / "toy" / "metrics" / "2dgs.json").read_text())
+    metrics["mean"]["psnr"] += 0.25  # another seed scored a quarter dB higher on the entire image
+    (copy / "toy" / "metrics" / "2dgs_seed3.json").write_text(json.dumps(metrics))
     md = build_report(copy, tmp_path / "report").with_suffix(".md").read_text()
-    assert "| 2dgs | 0.000 | " in md  # identical copies: zero difference
+    assert "| 2dgs | same seed | 0.000 | 0.000 | " in md  # identical copies: zero difference
+    assert "| 2dgs | seed 3 | 0.250 | 0.000 | " in md
+    assert "run-to-run noise was not measured" not in md
 
 
 def test_no_results_is_a_clear_error_and_leaves_nothing(tmp_path):
