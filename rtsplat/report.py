@@ -210,7 +210,7 @@ def _copy_image(src: Path, out: Path, name: str) -> str | None:
     return f"images/{name}"
 
 
-def _noise_rows(runs: dict[str, Run]) -> list[list[str]]:
+def _noise_rows(scene: str, runs: dict[str, Run]) -> list[list[str]]:
     """|difference| of each ``<method>_repeat`` / ``<method>_seed<N>`` run to its ``<method>`` run."""
     rows = []
     for method, r in runs.items():
@@ -219,7 +219,7 @@ def _noise_rows(runs: dict[str, Run]) -> list[list[str]]:
             continue
         base = runs[match["base"]]
         kind = "same seed" if match["kind"] == "repeat" else f"seed {match['kind'][4:]}"
-        row = [match["base"], kind]
+        row = [scene, match["base"], kind]
         for key in ("psnr", "psnr_transparent"):
             a, b = base.mean.get(key), r.mean.get(key)
             row.append(_fmt(abs(a - b), 3) if isinstance(a, float) and isinstance(b, float) else "-")
@@ -325,14 +325,14 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_f
                 doc.images(edits)
 
     doc.heading("Noise")
-    noise = [row for runs in scenes.values() for row in _noise_rows(runs)]
+    noise = [row for scene, runs in scenes.items() for row in _noise_rows(scene, runs)]
     if noise:
         doc.paragraph("Differences between runs of the same config on this machine. Same seed: quality differences "
                       "come from non-deterministic floating-point reductions, time differences from machine load; "
                       "expect a rerun to reproduce the numbers within these. Another seed: the spread to expect "
                       "between methods that are in truth equally good, so smaller gaps between methods are not "
                       "significant.")
-        doc.table(["method", "rerun", "|dPSNR|", "|dPSNR transp.|", "time diff %"], noise)
+        doc.table(["scene", "method", "rerun", "|dPSNR|", "|dPSNR transp.|", "time diff %"], noise)
     else:
         doc.paragraph("No repeated runs in these results, so run-to-run noise was not measured here.")
     doc.heading("Reproduce")

@@ -78,8 +78,8 @@ def test_report_measures_noise_from_repeated_runs(results, tmp_path):
     metrics["mean"]["psnr"] += 0.25  # another seed scored a quarter dB higher on the entire image
     (copy / "toy" / "metrics" / "2dgs_seed3.json").write_text(json.dumps(metrics))
     md = build_report(copy, tmp_path / "report").with_suffix(".md").read_text()
-    assert "| 2dgs | same seed | 0.000 | 0.000 | " in md  # identical copies: zero difference
-    assert "| 2dgs | seed 3 | 0.250 | 0.000 | " in md
+    assert "| toy | 2dgs | same seed | 0.000 | 0.000 | " in md  # identical copies: zero difference
+    assert "| toy | 2dgs | seed 3 | 0.250 | 0.000 | " in md
     assert "run-to-run noise was not measured" not in md
 
 

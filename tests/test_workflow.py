@@ -104,6 +104,11 @@ def test_dry_run_builds_the_whole_dag(dataset):
             assert "log: " in block and "benchmark: " in block, block
     sfm = [b for b in _jobs(out) if b.startswith("rule sfm")]
     assert len(sfm) == 2 and all("--num-threads " in b for b in sfm)  # Snakemake's threads reach pycolmap
+    # the report prints each config file once (here the Snakefile's config.yaml is the --configfile)
+    # and a reproduce command with the core count of this run
+    report = next(b for b in _jobs(out) if b.startswith("localrule report") or b.startswith("rule report"))
+    assert report.count("config.yaml") == 2, report  # one --config for the report, one in the command
+    assert re.search(r"--cores \d+'", report), report  # a number, not "all"
 
 
 def test_paths_with_spaces_are_quoted(tmp_path):

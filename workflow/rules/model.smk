@@ -98,8 +98,22 @@ rule metrics:
         "--lpips-weights {params.lpips} > {log:q} 2>&1"
 
 
+def config_files_in_order():
+    """The config files of this run, lowest precedence first: the Snakefile's own `configfile:`, then
+    the `--configfile` files of the command line in their order (each layered over the previous)."""
+    cli = [str(f) for f in (workflow.overwrite_configfiles or [])]
+    seen, files = set(), []
+    for f in [str(f) for f in workflow.configfiles if str(f) not in cli] + cli:
+        key = Path(f).resolve()
+        if key not in seen:
+            seen.add(key)
+            files.append(f)
+    return files
+
+
 def reproduce_command():
-    """The snakemake command line that reproduces this run, relative to the repository root."""
+    """The snakemake command line that reproduces this run, relative to the repository root (the
+    Snakefile's own config file is implied; the core count is the one this run used)."""
     import os
 
     root = Path(workflow.basedir).resolve()
@@ -107,10 +121,14 @@ def reproduce_command():
     work_dir = os.path.relpath(Path.cwd().resolve(), root)
     if work_dir != ".":
         words += ["-d", work_dir]
-    files = [os.path.relpath(Path(f).resolve(), root) for f in workflow.configfiles]
+    files = [os.path.relpath(Path(f).resolve(), root) for f in (workflow.overwrite_configfiles or [])]
     if files:
         words += ["--configfile", *files]
-    return shlex.join(words + ["--cores", "all"])
+    try:
+        cores = str(workflow.cores)
+    except Exception:  # no core count defined (e.g. a cluster run)
+        cores = "all"
+    return shlex.join(words + ["--cores", cores])
 
 
 def report_inputs(wildcards):
@@ -132,7 +150,7 @@ rule report:
     params:
         results=RESULTS,
         report=f"{RESULTS}/report",
-        config_files=" ".join(f"--config {shlex.quote(str(f))}" for f in workflow.configfiles),
+        config_files=" ".join(f"--config {shlex.quote(f)}" for f in config_files_in_order()),
         command=shlex.quote(reproduce_command()),
     conda:
         ENV
