@@ -124,9 +124,11 @@ def reproduce_command():
     files = [os.path.relpath(Path(f).resolve(), root) for f in (workflow.overwrite_configfiles or [])]
     if files:
         words += ["--configfile", *files]
+    from snakemake.exceptions import WorkflowError
+
     try:
         cores = str(workflow.cores)
-    except Exception:  # no core count defined (e.g. a cluster run)
+    except WorkflowError:  # no core count defined (e.g. a cluster run)
         cores = "all"
     return shlex.join(words + ["--cores", cores])
 
