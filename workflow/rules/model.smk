@@ -99,16 +99,11 @@ rule metrics:
 
 
 def config_files_in_order():
-    """The config files of this run, lowest precedence first: the Snakefile's own `configfile:`, then
-    the `--configfile` files of the command line in their order (each layered over the previous)."""
+    """The config files of this run, lowest precedence first: the Snakefile's own `configfile:`
+    (unless the command line names it too), then the `--configfile` files in their order."""
     cli = [str(f) for f in (workflow.overwrite_configfiles or [])]
-    seen, files = set(), []
-    for f in [str(f) for f in workflow.configfiles if str(f) not in cli] + cli:
-        key = Path(f).resolve()
-        if key not in seen:
-            seen.add(key)
-            files.append(f)
-    return files
+    on_cli = {Path(f).resolve() for f in cli}
+    return [str(f) for f in workflow.configfiles if Path(f).resolve() not in on_cli] + cli
 
 
 def reproduce_command():
