@@ -22,27 +22,19 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
-import difflib
 import json
 import shlex
 import sys
-import types
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 from rtsplat.errors import ConfigError
+from rtsplat.schema import build, check, dataclass_schema
+from rtsplat.schema import setting as _f
 
 SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "config.schema.json"
-
-
-def _f(default: Any = dataclasses.MISSING, *, help: str, factory: Any = None, **schema: Any):
-    """A dataclass field with a description and extra JSON-schema keywords (minimum, ...)."""
-    meta = {"description": help, "schema": schema}
-    if factory is not None:
-        return field(default_factory=factory, metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 @dataclass
@@ -137,6 +129,12 @@ class PrepareConfig:
     use_prescaled: bool = _f(True, help="use <scene>/images_<factor> when present instead of resizing")
 
 
+def _trainer_config_class() -> type:
+    from rtsplat.train.config import TrainConfig as TrainerConfig  # imports torch: only when needed
+
+    return TrainerConfig
+
+
 @dataclass
 class TrainConfig:
     """Training: the trainer's config tree (``rtsplat train --help``, rtsplat/train/config.py)."""
@@ -145,8 +143,9 @@ class TrainConfig:
     backend: str = _f("auto", help="rasterizer backend: auto | cpu | reference")
     options: dict[str, Any] = _f(
         help="trainer config keys (schedule, lr, losses, ablations, effects, model, ...) merged under the "
-        "method's own overrides; checked by the trainer",
+        "method's own overrides; checked against the trainer's config tree",
         factory=dict,
+        schema_of=_trainer_config_class,
     )
 
 
@@ -216,63 +215,9 @@ STAGE_SECTIONS: dict[str, type] = typing.get_type_hints(SceneConfig)
 # JSON schema generated from the dataclasses
 
 
-def _type_schema(tp: Any) -> dict[str, Any]:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if dataclasses.is_dataclass(tp):
-        return _dataclass_schema(tp)
-    if origin in (typing.Union, types.UnionType):
-        non_null = [a for a in args if a is not type(None)]
-        options = [_type_schema(a) for a in non_null]
-        if len(non_null) < len(args):
-            options.append({"type": "null"})
-        return options[0] if len(options) == 1 else {"anyOf": options}
-    if origin is Literal:
-        kinds = {bool: "boolean", int: "integer", str: "string", float: "number"}
-        return {"type": kinds[type(args[0])], "enum": list(args)}
-    if origin is list:
-        return {"type": "array", "items": _type_schema(args[0])}
-    if origin is dict:
-        value = args[1]
-        return {"type": "object", "additionalProperties": True if value is Any else _type_schema(value)}
-    if tp is bool:
-        return {"type": "boolean"}
-    if tp is int:
-        return {"type": "integer"}
-    if tp is float:
-        return {"type": "number"}
-    if tp is str:
-        return {"type": "string"}
-    if tp is Any:
-        return {}
-    raise TypeError(f"no JSON schema for type {tp!r}")
-
-
-def _dataclass_schema(cls: type) -> dict[str, Any]:
-    hints = typing.get_type_hints(cls)
-    props = {}
-    for f in dataclasses.fields(cls):
-        schema = _type_schema(hints[f.name])
-        extra = dict(f.metadata.get("schema", {}))
-        if extra and "anyOf" in schema:  # constraints apply to the non-null alternative
-            schema["anyOf"][0].update(extra)
-        else:
-            schema.update(extra)
-        schema["description"] = f.metadata.get("description", "")
-        if f.default is not dataclasses.MISSING and not dataclasses.is_dataclass(f.default):
-            schema["default"] = f.default
-        props[f.name] = schema
-    return {
-        "type": "object",
-        "description": (cls.__doc__ or "").strip().splitlines()[0],
-        "properties": props,
-        "additionalProperties": False,
-    }
-
-
 def json_schema() -> dict[str, Any]:
     schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "rtsplat config"}
-    schema.update(_dataclass_schema(PipelineConfig))
+    schema.update(dataclass_schema(PipelineConfig))
     return schema
 
 
@@ -284,74 +229,9 @@ def json_schema_text() -> str:
 # validation with readable messages
 
 
-def _key(path: typing.Iterable[Any]) -> str:
-    return ".".join(str(p) for p in path) or "<top level>"
-
-
-def _message(error: Any, source: str) -> str:
-    where = _key(error.absolute_path)
-    if error.validator == "anyOf" and error.instance is not None and error.context:
-        # "X or null": report what is wrong inside X rather than "not X or null"
-        inner = [e for e in error.context if e.relative_schema_path[0] == 0]
-        if inner:
-            return "\n".join(_message(e, source) for e in inner)
-    if error.validator == "additionalProperties":
-        allowed = sorted(error.schema.get("properties", {}))
-        unknown = sorted(set(error.instance) - set(allowed))
-        lines = []
-        for key in unknown:
-            full = f"{where}.{key}" if error.absolute_path else key
-            close = difflib.get_close_matches(key, allowed, n=1)
-            hint = f"did you mean '{close[0]}'? " if close else ""
-            lines.append(
-                f"{source}: config key '{full}' does not exist. Fix: {hint}remove or rename it; "
-                f"valid keys under '{where}': {', '.join(allowed)}"
-            )
-        return "\n".join(lines)
-    if error.validator == "enum":
-        options = error.validator_value
-        return f"{source}: config key '{where}' is {error.instance!r}. Fix: use one of {options}"
-    if error.validator in ("type", "anyOf"):
-        expected = error.schema.get("type") or " or ".join(str(s.get("type")) for s in error.schema.get("anyOf", []))
-        return f"{source}: config key '{where}' is {error.instance!r}. Fix: it must be of type {expected}"
-    return f"{source}: config key '{where}': {error.message}. Fix: see the description in config.yaml"
-
-
 def validate_config(data: Any, source: str = "config") -> None:
     """Raise :class:`ConfigError` listing every problem in ``data`` (a parsed config.yaml)."""
-    import jsonschema
-
-    if data is None:
-        data = {}
-    validator = jsonschema.Draft202012Validator(json_schema())
-    errors = sorted(validator.iter_errors(data), key=lambda e: list(map(str, e.absolute_path)))
-    if errors:
-        raise ConfigError("\n".join(_message(e, source) for e in errors))
-
-
-def _build(cls: type, data: dict[str, Any]) -> Any:
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        kwargs[f.name] = _convert(hints[f.name], data[f.name])
-    return cls(**kwargs)
-
-
-def _convert(tp: Any, value: Any) -> Any:
-    if dataclasses.is_dataclass(tp):
-        return _build(tp, value or {})
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        if value is None:
-            return None
-        return _convert(next(a for a in args if a is not type(None)), value)
-    if origin is dict and dataclasses.is_dataclass(args[1]):
-        return dict(value)  # per-scene fragments stay dicts: they are merged, not built
-    if tp is float and isinstance(value, int):
-        return float(value)
-    return copy.deepcopy(value)
+    check(PipelineConfig, {} if data is None else data, source=source)
 
 
 def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -367,7 +247,7 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
 def load_config_dict(data: dict[str, Any] | None, source: str = "config") -> PipelineConfig:
     data = data or {}
     validate_config(data, source)
-    cfg = _build(PipelineConfig, data)
+    cfg = build(PipelineConfig, data)
     check_methods(cfg, cfg.scenes)
     return cfg
 
@@ -389,15 +269,15 @@ def load_config(path: str | Path) -> PipelineConfig:
 def scene_config(cfg: PipelineConfig, scene: str) -> SceneConfig:
     """The defaults with ``overrides[scene]`` merged over them."""
     merged = deep_merge(dataclasses.asdict(cfg.defaults), cfg.overrides.get(scene, {}))
-    return _build(SceneConfig, merged)
+    return build(SceneConfig, merged)
 
 
 def section_from_dict(section: str, data: dict[str, Any] | None, source: str = "--config-json") -> Any:
     """Build one stage section (``sfm``, ``masks``, ...) from a dict, validating it against the schema."""
     if section not in STAGE_SECTIONS:
         raise ConfigError(f"unknown config section '{section}'", fix=f"use one of {sorted(STAGE_SECTIONS)}")
-    validate_config({"defaults": {section: data or {}}}, source)
-    return _build(SceneConfig, {section: data or {}}).__getattribute__(section)
+    check(STAGE_SECTIONS[section], data or {}, source=source, root=f"defaults.{section}")
+    return build(SceneConfig, {section: data or {}}).__getattribute__(section)
 
 
 def discover_scenes(cfg: PipelineConfig) -> list[str]:
@@ -454,9 +334,9 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
         trainer = TrainerConfig.from_dict(tree).validate()
         if budget is not None:
             if isinstance(budget, bool) or not isinstance(budget, (int, float)):
-                raise ValueError(f"budget must be a number (a factor on every iteration count), got {budget!r}")
+                raise ConfigError(f"budget must be a number (a factor on every iteration count), got {budget!r}")
             tree = scale_budget(trainer, float(budget)).validate().to_dict()
-    except ValueError as exc:
+    except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}", fix="use the trainer's keys (rtsplat/train/config.py) and a budget > 0") \
             from exc
     return tree

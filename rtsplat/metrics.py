@@ -9,7 +9,7 @@ Definitions (METHOD.md section 7), images in [0,1]:
   ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
   data_range=1)``, which a test checks; at the border 3DGS pads with zeros.
 * LPIPS-VGG: real weights only (``--lpips-weights`` or the torch hub cache, see
-  :mod:`rtsplat.train.lpips`); the region's value is the mean of the spatial LPIPS map over mask
+  :mod:`rtsplat.quality.lpips`); the region's value is the mean of the spatial LPIPS map over mask
   pixels. Without weights the value is the string ``"n/a (weights not found)"``.
 
 Views are the renders of ``rtsplat render`` (``<renders>/color/<name>.png``) against the prepared
@@ -35,8 +35,9 @@ import torch
 from torch import Tensor
 
 from rtsplat.errors import PipelineError
+from rtsplat.model.composite import transmission_with_scatter
+from rtsplat.quality import psnr, ssim_map
 from rtsplat.scene import GT_LAYERS_DIR
-from rtsplat.train.losses import psnr, ssim_map
 
 NOT_AVAILABLE = "n/a (weights not found)"
 
@@ -80,7 +81,7 @@ def layer_metrics(renders: Path, name: str, truth: dict[str, np.ndarray], mask: 
     from rtsplat.io.images import read_image
 
     ours = {layer: torch.from_numpy(read_image(renders / layer / f"{name}.png")) for layer in ("color", "reflection")}
-    ours["transmission"] = (ours["color"] - ours["reflection"]).clamp(0, 1)
+    ours["transmission"] = transmission_with_scatter(ours["color"], ours["reflection"]).clamp(0, 1)
     weight = mask[..., None].to(ours["color"].dtype) if mask is not None and bool(mask.any()) else None
     out = {}
     for layer in ("reflection", "transmission"):
@@ -136,8 +137,8 @@ def environment() -> dict:
 def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str | Path | None = None,
                     lpips_weights: str = "", gt_layers: str | Path | None = None) -> dict:
     from rtsplat.io.images import read_image
+    from rtsplat.quality.lpips import load_lpips
     from rtsplat.scene import PreparedScene
-    from rtsplat.train.lpips import load_lpips
 
     renders = Path(renders)
     info_path = renders / "render.json"

@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from rtsplat.errors import PipelineError
+from rtsplat.model.composite import compose_layers, scatter_layer
 
 LAYER_DIRS = ("color", "reflection", "transmission", "scatter", "normal", "depth")
 
@@ -99,12 +100,12 @@ def decompose(result, edits: Edits) -> dict[str, Tensor]:
     zero = torch.zeros_like(color)
     reflection = result.layers.get("reflection", zero)
     transmission = result.layers.get("transmission", color)
-    scatter = color - reflection - transmission
+    scatter = scatter_layer(color, reflection, transmission)
     if not edits.reflections:
         reflection = zero
     transmission = transmission * torch.as_tensor(edits.tint, dtype=color.dtype, device=color.device)
-    return {"color": reflection + transmission + scatter, "reflection": reflection, "transmission": transmission,
-            "scatter": scatter}
+    return {"color": compose_layers(reflection, transmission, scatter), "reflection": reflection,
+            "transmission": transmission, "scatter": scatter}
 
 
 def _normal_image(normal: Tensor) -> Tensor:
@@ -124,9 +125,8 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
     from tqdm.auto import tqdm
 
     from rtsplat.io.images import write_png
+    from rtsplat.model.checkpoint import read_checkpoint
     from rtsplat.scene import PreparedScene
-    from rtsplat.train.config import TrainConfig
-    from rtsplat.train.trainer import load_model
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     model_path = run_dir / "model.pt"
@@ -138,10 +138,11 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
     if not records:
         raise PipelineError(f"the prepared scene has no {split!r} views", path=data_dir)
     edits = edits or Edits()
-    model, state = load_model(model_path, device=device)
+    checkpoint = read_checkpoint(model_path, device=device)
+    model = checkpoint.build_model(device)
     model.eval()
     apply_parameter_edits(model, edits)
-    raster = TrainConfig.from_dict(state["config"]).raster
+    raster = checkpoint.raster
     cameras = [rec.to_camera(device=device) for rec in records]
 
     def render(camera):
@@ -172,7 +173,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
             "views": [rec.name for rec in records], "split": split, "device": _device_name(device),
             "backend": backend, "edits": asdict(edits), "fps": len(cameras) / max(seconds, 1e-12),
             "seconds": seconds, "warmup": warmup, "surfels": len(model.surfels),
-            "width": records[0].width, "height": records[0].height, "effects": state["effects"],
+            "width": records[0].width, "height": records[0].height, "effects": checkpoint.effects.to_dict(),
             "run": str(run_dir),
         }
         (tmp / "render.json").write_text(json.dumps(info, indent=2) + "\n")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from rtsplat.train.lpips import LIN_FILE, TAP_CHANNELS, VGG_CONVS, VGG_FILE, load_lpips
+from rtsplat.quality.lpips import LIN_FILE, TAP_CHANNELS, VGG_CONVS, VGG_FILE, load_lpips
 
 
 def write_weights(folder, seed=0):

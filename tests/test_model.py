@@ -12,10 +12,11 @@ from rtsplat.model import rtmodel
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
 from rtsplat.model.rtmodel import ActiveEffects, RTModel
+from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh, rgb_to_sh_dc
 from rtsplat.model.specular import SpecularNetwork
 from rtsplat.model.surfels import init_from_points
-from rtsplat.train.config import Ablations, Effects, Gating, ModelSettings
+from rtsplat.train.config import Effects
 from rtsplat.train.effects import decide_effects
 
 SMALL = ModelSettings(env_height=16, env_width=32, env_levels=3, mlp_width=32)

@@ -14,10 +14,11 @@ from skimage.metrics import structural_similarity
 from rtsplat.bench.toy_scene import write_scene
 from rtsplat.io.images import read_image
 from rtsplat.metrics import NOT_AVAILABLE, image_metrics
+from rtsplat.model.checkpoint import read_checkpoint
+from rtsplat.quality import ssim_map
 from rtsplat.render import Edits, apply_parameter_edits, render_run
 from rtsplat.train.config import TrainConfig
-from rtsplat.train.losses import ssim_map
-from rtsplat.train.trainer import Trainer, load_model
+from rtsplat.train.trainer import Trainer
 
 QUANT = 1.5 / 255  # 8-bit PNGs: each layer is rounded separately
 
@@ -107,7 +108,7 @@ def test_roughness_and_transparency_edits_change_the_model(trained):
     camera = scene.test_cameras[0].to_camera()
 
     def render(edits):
-        model, _ = load_model(root / "run" / "model.pt")
+        model = read_checkpoint(root / "run" / "model.pt").build_model()
         with torch.no_grad():  # a textured environment, so that blur is visible (30 iterations learn little)
             model.env.features.copy_(torch.randn(model.env.features.shape, generator=torch.Generator().manual_seed(0)))
         apply_parameter_edits(model, edits)

@@ -1,6 +1,6 @@
 """The RT-Splatting model and its hybrid deferred/forward render (paper section 3.2).
 
-    C = C_spec + beta * (tau * C_trans + (1 - tau) * C_scatter)
+    C = C_spec + beta * (tau * C_trans + (1 - tau) * C_scatter)   (:mod:`rtsplat.model.composite`)
 
 * ``C_trans``: volume colour of the forward pass (SH colours, weights occupancy x opacity);
 * G-buffers from the surface pass (weights occupancy): normal, roughness, material feature,
@@ -23,13 +23,20 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rtsplat.camera import PIXEL_CENTER_OFFSET, Camera
+from rtsplat.model.composite import (
+    reflection_layer,
+    region_blend,
+    shaded_color,
+    subsurface_color,
+    transmission_layer,
+)
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient
+from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh
 from rtsplat.model.specular import SpecularNetwork
 from rtsplat.model.surfels import SurfelParameters
 from rtsplat.raster import RasterOutput, RasterSettings, Surfels, rasterize
-from rtsplat.train.config import Ablations, Gating, ModelSettings
 
 STAGES = ("volume", "subsurface", "full")
 
@@ -134,16 +141,16 @@ class RTModel(nn.Module):
         if self.uses_scatter:
             tau = (g["tau"] / alpha_safe).clamp(0, 1)
             scatter = (g["scatter"] / alpha_safe).clamp(0, 1)
-            sub = tau * c_trans_in + (1.0 - tau) * scatter
+            sub = subsurface_color(c_trans_in, tau, scatter)
+            direct = tau * c_trans
             layers.update(tau=tau, scatter=scatter)
         else:
             sub = c_trans_in
-        shaded = spec + beta * sub
-        color = torch.where(shade, roi * shaded + (1.0 - roi) * c_trans, c_trans)
+            direct = sub
+        color = region_blend(shaded_color(spec, beta, sub), c_trans, roi, shade)
         layers.update(roi=roi, sub=sub, shade=shade.to(color.dtype))
-        layers["transmission"] = torch.where(shade, roi * beta * (sub if not self.uses_scatter else tau * c_trans)
-                                             + (1 - roi) * c_trans, c_trans)
-        layers["reflection"] = torch.where(shade, roi * spec, torch.zeros_like(spec))
+        layers["transmission"] = transmission_layer(beta, direct, c_trans, roi, shade)
+        layers["reflection"] = reflection_layer(spec, roi, shade)
         return RenderResult(color, out, layers)
 
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor):

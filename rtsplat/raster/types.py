@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from rtsplat.schema import setting
+
 
 @dataclass
 class Surfels:
@@ -57,15 +59,26 @@ class Surfels:
 class RasterSettings:
     """Constants of the 2DGS rasterizer (METHOD.md section 2). Defaults follow 2DGS."""
 
-    tile_size: int = 16
-    near: float = 0.2  # per-pixel depth test, and centre culling
-    far: float = 100.0  # only used to map depth to [0,1] for the distortion term
-    alpha_max: float = 0.99  # per-surfel alpha clamp
-    alpha_min: float = 1.0 / 255.0  # contributions below are skipped
-    transmittance_min: float = 1e-4  # a weight set stops when its transmittance would drop below
-    extent_sigma: float = 3.0  # screen-space extent used for tile binning, in kernel sigmas
-    lowpass_inv_var: float = 2.0  # rho_2d = lowpass_inv_var * |centre - pixel|^2 (filter sqrt(2)/2 px)
-    max_pairs_per_chunk: int = 4_000_000  # reference backend: pixel x surfel pairs evaluated at once
+    tile_size: int = setting(16, help="tile edge in pixels (binning)", minimum=1)
+    near: float = setting(0.2, help="near plane: per-pixel depth test and centre culling", exclusiveMinimum=0.0)
+    far: float = setting(100.0, help="far plane: only maps depth to [0,1] for the distortion term",
+                         exclusiveMinimum=0.0)
+    alpha_max: float = setting(0.99, help="per-surfel alpha clamp", exclusiveMinimum=0.0, maximum=1.0)
+    alpha_min: float = setting(1.0 / 255.0, help="contributions below this alpha are skipped", minimum=0.0,
+                               exclusiveMaximum=1.0)
+    transmittance_min: float = setting(
+        1e-4, help="a weight set stops when its transmittance would drop below this", minimum=0.0, exclusiveMaximum=1.0
+    )
+    extent_sigma: float = setting(
+        3.0, help="screen-space extent used for tile binning, in kernel sigmas", exclusiveMinimum=0.0
+    )
+    lowpass_inv_var: float = setting(
+        2.0, help="low-pass filter: rho_2d = lowpass_inv_var * |centre - pixel|^2 (filter sqrt(2)/2 px)",
+        exclusiveMinimum=0.0,
+    )
+    max_pairs_per_chunk: int = setting(
+        4_000_000, help="reference backend: pixel x surfel pairs evaluated at once", minimum=1
+    )
 
     @property
     def lowpass_radius(self) -> float:

@@ -1,25 +1,33 @@
-"""``rtsplat train``: train an RT-Splatting model on a prepared scene."""
+"""``rtsplat train``: train an RT-Splatting model on a prepared scene.
+
+The trainer's config comes, like every stage's, from ``--config-json`` (the trainer tree as JSON:
+what the workflow passes, built by :func:`rtsplat.config.train_json`) or ``--config``: a pipeline
+``config.yaml`` (with ``--scene`` and ``--method``: that method's trainer tree on that scene, as the
+workflow builds it) or a YAML file with a ``train:`` tree (or the trainer keys at top level).
+Bad input raises :class:`rtsplat.errors.PipelineError`.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
 
-import yaml
+from rtsplat.config import PipelineConfig, add_config_arguments, load_config, trainer_options
+from rtsplat.errors import ConfigError
+from rtsplat.train.config import TrainConfig
 
-from rtsplat.errors import PipelineError
-from rtsplat.train.config import ConfigError, TrainConfig
+PIPELINE_KEYS = frozenset(f.name for f in dataclasses.fields(PipelineConfig))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="prepared scene directory (rtsplat prepare)")
     parser.add_argument("--out", type=Path, required=True, help="run directory (created; resumable)")
-    parser.add_argument("--config", type=Path, help="YAML file with the training config (a 'train:' "
-                        "section, or the train keys at top level)")
-    parser.add_argument("--config-json", help="the training config as a JSON object (what the workflow passes; "
-                        "same keys as --config)")
+    add_config_arguments(parser)
+    parser.add_argument("--method", help="with a pipeline config.yaml: the method whose trainer config is used "
+                        "(default: rtsplat, else the first method)")
     parser.add_argument("--iterations", type=int, help="override schedule.iterations")
     parser.add_argument("--backend", help="rasterizer backend (auto, reference, ...)")
     parser.add_argument("--seed", type=int, help="random seed")
@@ -27,43 +35,54 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def load_config(path: Path | None) -> TrainConfig:
-    data = {}
-    if path is not None:
+def trainer_config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """The trainer config of ``--config-json`` / ``--config`` (defaults when neither is given)."""
+    pipeline_only = [flag for flag, value in (("--scene", args.scene), ("--method", args.method)) if value]
+    if args.config_json is not None:
+        if pipeline_only:
+            raise ConfigError(f"{', '.join(pipeline_only)} apply to a pipeline config.yaml, not to --config-json",
+                              fix="drop them, or pass --config config.yaml")
         try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except (OSError, yaml.YAMLError) as exc:
-            raise ConfigError(f"{path}: cannot read config ({exc})") from exc
-        if isinstance(data, dict) and "train" in data:
-            data = data["train"] or {}
-    return TrainConfig.from_dict(data)
+            data = json.loads(args.config_json)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--config-json is not valid JSON ({exc})", fix="pass a JSON object") from exc
+        return TrainConfig.from_dict(data, source="--config-json")
+    if args.config is None:
+        if pipeline_only:
+            raise ConfigError(f"{', '.join(pipeline_only)} need --config config.yaml", fix="pass --config")
+        return TrainConfig()
+    import yaml
+
+    path = Path(args.config)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"cannot read config ({exc})", path=path, fix="pass a readable YAML file") from exc
+    if isinstance(data, dict) and PIPELINE_KEYS & set(data):
+        cfg = load_config(path)
+        method = args.method or ("rtsplat" if "rtsplat" in cfg.methods else next(iter(cfg.methods)))
+        return TrainConfig.from_dict(trainer_options(cfg, args.scene or "__defaults__", method), source=str(path))
+    if pipeline_only:
+        raise ConfigError(f"{', '.join(pipeline_only)} apply to a pipeline config.yaml, not to a train: tree",
+                          path=path, fix="drop them")
+    if isinstance(data, dict) and "train" in data:
+        data = data["train"] or {}
+    return TrainConfig.from_dict(data, source=str(path))
 
 
 def run(args: argparse.Namespace) -> int:
     from rtsplat.scene import PreparedScene
-    from rtsplat.train.trainer import CheckpointError, Trainer
+    from rtsplat.train.trainer import Trainer
 
-    try:
-        if args.config_json is not None:
-            try:
-                data = json.loads(args.config_json)
-            except json.JSONDecodeError as exc:
-                raise ConfigError(f"--config-json is not valid JSON ({exc})") from exc
-            cfg = TrainConfig.from_dict(data if isinstance(data, dict) else {"": data})
-        else:
-            cfg = load_config(args.config)
-        if args.iterations is not None:
-            cfg.schedule.iterations = args.iterations
-        if args.backend is not None:
-            cfg.backend = args.backend
-        if args.seed is not None:
-            cfg.seed = args.seed
-        cfg.validate()
-        scene = PreparedScene.load(args.data)
-        trainer = Trainer(scene, cfg, args.out, progress=not args.quiet,
-                          log=lambda msg: print(msg, file=sys.stderr))
-        trainer.train(resume=not args.no_resume)
-    except (ConfigError, PipelineError, CheckpointError) as exc:
-        print(f"rtsplat train: error: {exc}", file=sys.stderr)
-        return 2
+    cfg = trainer_config_from_args(args)
+    if args.iterations is not None:
+        cfg.schedule.iterations = args.iterations
+    if args.backend is not None:
+        cfg.backend = args.backend
+    if args.seed is not None:
+        cfg.seed = args.seed
+    cfg.validate(source="rtsplat train")
+    scene = PreparedScene.load(args.data)
+    trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=lambda msg: print(msg, file=sys.stderr))
+    trainer.train(resume=not args.no_resume)
     return 0

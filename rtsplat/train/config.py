@@ -1,31 +1,28 @@
-"""Configuration of the RT-Splatting model and trainer (one dataclass tree).
+"""Configuration of the RT-Splatting trainer: one dataclass tree, the ``train:`` tree of a config.
 
-Every ablation of the paper is a switch in :class:`Ablations`; each changes only the computation
-it names. :class:`Effects` decides which branches run (``auto`` decides from the prepared scene).
+The model's own settings (:class:`ModelSettings`, :class:`Ablations`, :class:`Gating`) live in
+:mod:`rtsplat.model.settings` and the rasterizer's in :class:`rtsplat.raster.RasterSettings`; this
+tree holds them as sections next to the training-only ones. Fields are made with
+:func:`rtsplat.schema.setting` (help text and schema keywords), so the tree is checked by the same
+machinery as the pipeline config and is part of its generated JSON schema (``train.options``).
+:class:`Effects` decides which branches run (``auto`` decides from the prepared scene).
 Defaults follow METHOD.md sections 1-6 except the iteration counts, which are sized for a CPU.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
+from rtsplat import schema
+from rtsplat.errors import ConfigError
+from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.raster import RasterSettings
+from rtsplat.schema import setting
 
-
-class ConfigError(ValueError):
-    """A configuration value or key is wrong; the message names it and the fix."""
-
-
-@dataclass
-class Ablations:
-    occupancy: bool = True  # off: one opacity does both jobs (surface weights = volume weights)
-    joint_optimization: bool = True  # off: background first (transparent pixels masked), then frozen
-    scattering: bool = True  # off: no C_scatter / tau (C_sub = C_trans)
-    attenuation: bool = True  # off: beta = 1
-    gating: bool = True  # off: g = 1 (no specular-aware gradient gating)
-    mask_loss: bool = True  # off: no transparent-mask BCE
+__all__ = ["Ablations", "Densification", "Effects", "Gating", "ITERATION_COUNTS", "LearningRates", "Losses",
+           "ModelSettings", "Schedule", "TrainConfig", "scale_budget"]
 
 
 @dataclass
@@ -33,53 +30,66 @@ class Effects:
     """Which branches run. ``auto``: transmission iff the training masks have transparent pixels;
     specular iff the scene has a region of interest (reflections requested)."""
 
-    transmission: Literal["auto", "on", "off"] = "auto"
-    specular: Literal["auto", "on", "off"] = "auto"
-
-
-@dataclass
-class Gating:
-    k: float = 4.0
-    # "weighted_std": the reference code's weighted standard deviation (weights 1 - surface alpha,
-    # reflect-padded 3x3 window), the default because it is what produced the paper's numbers;
-    # "variance": the paper's equation, plain 3x3 variance of C_spec.
-    mode: Literal["weighted_std", "variance"] = "weighted_std"
+    transmission: Literal["auto", "on", "off"] = setting(
+        "auto", help="occupancy/opacity factorization, tau and C_scatter; auto: on iff the training masks "
+        "mark transparent pixels"
+    )
+    specular: Literal["auto", "on", "off"] = setting(
+        "auto", help="environment map and specular network; auto: on iff the scene has transparent pixels or "
+        "a region of interest given in the config"
+    )
 
 
 @dataclass
 class Schedule:
-    iterations: int = 3000
-    volume_until: int = 300  # stage 1: volume colour only
-    specular_from: int = 600  # stage 3 (full model) from here; stage 2 in between (no specular)
-    separate_background_until: int = 1000  # joint_optimization off: background-only phase length
-    densify_from: int = 500
-    densify_until: int = 15000
-    densify_every: int = 100
-    reset_every: int = 1500  # alternating occupancy / opacity resets
-    log_every: int = 10
-    checkpoint_every: int = 500
-    # test-view PSNR (entire / transparent) every N iterations into the log, for accuracy-against-
-    # time curves; 0: only at the end. Evaluation time is not counted in the log's "seconds".
-    eval_every: int = 0
+    """Iteration counts of the training schedule."""
+
+    iterations: int = setting(3000, help="training iterations", minimum=1)
+    volume_until: int = setting(300, help="stage 1 (volume colour only) up to this iteration", minimum=0)
+    specular_from: int = setting(
+        600, help="stage 3 (full model) after this iteration; stage 2 (no specular) in between", minimum=0
+    )
+    separate_background_until: int = setting(
+        1000, help="ablations.joint_optimization off: length of the background-only phase", minimum=0
+    )
+    densify_from: int = setting(500, help="densification starts after this iteration", minimum=0)
+    densify_until: int = setting(15000, help="densification stops at this iteration", minimum=0)
+    densify_every: int = setting(100, help="densify every N iterations", minimum=1)
+    reset_every: int = setting(1500, help="alternating occupancy / opacity resets every N iterations (0: never)",
+                               minimum=0)
+    sh_degree_every: int = setting(
+        1000, help="the volume colour's SH degree grows by one every N iterations (up to model.sh_degree)", minimum=1
+    )
+    log_every: int = setting(10, help="a train_log.jsonl line every N iterations (a logging rate, not scaled by "
+                             "budget)", minimum=1)
+    checkpoint_every: int = setting(500, help="write checkpoints/last.pt every N iterations (0: never)", minimum=0)
+    eval_every: int = setting(
+        0, help="test-view PSNR (entire / transparent) every N iterations into the log, for accuracy-against-time "
+        "curves; 0: only at the end. Evaluation time is not counted in the log's seconds", minimum=0
+    )
 
 
 @dataclass
 class LearningRates:
-    position_init: float = 1.6e-4
-    position_final: float = 1.6e-6
-    position_max_steps: int = 30000
-    sh_dc: float = 2e-3  # rest / 20
-    occupancy: float = 0.05
-    opacity: float = 0.05
-    scaling: float = 5e-3
-    rotation: float = 1e-3
-    reflectance: float = 5e-3
-    roughness: float = 2e-3
-    transmissivity: float = 1e-2
-    scatter: float = 2e-3
-    material: float = 2e-3
-    env_map: float = 2e-3
-    mlp: float = 5e-4
+    """Adam learning rates per parameter group."""
+
+    position_init: float = setting(1.6e-4, help="surfel centres at the start (times the scene extent)",
+                                   exclusiveMinimum=0.0)
+    position_final: float = setting(1.6e-6, help="surfel centres at position_max_steps (log-linear decay)",
+                                    exclusiveMinimum=0.0)
+    position_max_steps: int = setting(30000, help="iterations of the position decay", minimum=1)
+    sh_dc: float = setting(2e-3, help="SH DC coefficients (the rest: sh_dc / 20)", minimum=0.0)
+    occupancy: float = setting(0.05, help="occupancy logits", minimum=0.0)
+    opacity: float = setting(0.05, help="optical opacity logits", minimum=0.0)
+    scaling: float = setting(5e-3, help="log scales", minimum=0.0)
+    rotation: float = setting(1e-3, help="rotation quaternions", minimum=0.0)
+    reflectance: float = setting(5e-3, help="reflectance logits", minimum=0.0)
+    roughness: float = setting(2e-3, help="roughness logits", minimum=0.0)
+    transmissivity: float = setting(1e-2, help="transmissivity logits", minimum=0.0)
+    scatter: float = setting(2e-3, help="scatter colours", minimum=0.0)
+    material: float = setting(2e-3, help="material features", minimum=0.0)
+    env_map: float = setting(2e-3, help="environment feature map", minimum=0.0)
+    mlp: float = setting(5e-4, help="specular network", minimum=0.0)
 
     def scaled(self, factor: float) -> LearningRates:
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -88,129 +98,88 @@ class LearningRates:
 
 @dataclass
 class Losses:
-    ssim_weight: float = 0.2
-    perceptual_weight: float = 0.01
-    perceptual_from: int = 15000
-    lpips_weights: str = ""  # path to LPIPS-VGG weights; empty: look in the torch hub cache
-    normal_weight: float = 0.05
-    normal_from: int = 0
-    mask_weight: float = 0.01
-    distortion_weight: float = 0.0
-    transmissivity_bce_weight: float = 0.0  # reference extra, off in the paper
-    occupancy_decay_weight: float = 0.0  # reference extra, off in the paper
+    """Loss weights and the iterations they start at."""
+
+    ssim_weight: float = setting(0.2, help="weight w of (1 - w) L1 + w (1 - SSIM)", minimum=0.0, maximum=1.0)
+    perceptual_weight: float = setting(0.01, help="LPIPS-VGG term (needs real weights)", minimum=0.0)
+    perceptual_from: int = setting(15000, help="the LPIPS term starts at this iteration", minimum=0)
+    lpips_weights: str = setting("", help="path to the LPIPS-VGG weights; empty: look in the torch hub cache")
+    normal_weight: float = setting(0.05, help="normal consistency (2DGS)", minimum=0.0)
+    normal_from: int = setting(0, help="the normal term starts after this iteration", minimum=0)
+    mask_weight: float = setting(0.01, help="transparent-mask BCE on the blended opacity", minimum=0.0)
+    distortion_weight: float = setting(0.0, help="2DGS depth distortion", minimum=0.0)
+    transmissivity_bce_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)
+    occupancy_decay_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)
 
 
 @dataclass
 class Densification:
-    grad_threshold: float = 2e-4
-    percent_dense: float = 0.01  # clone if max scale <= percent_dense * extent, else split
-    split_factor: float = 1.6
-    prune_occupancy: float = 0.05
-    max_screen_size: float = 0.0  # prune surfels larger than this many pixels (0: off)
-    max_world_scale: float = 0.1  # prune surfels larger than this fraction of the scene extent
-    reset_value: float = 0.01
-    max_surfels: int = 200_000
+    """Clone / split / prune / reset (adaptive density control)."""
 
-
-@dataclass
-class ModelSettings:
-    sh_degree: int = 3
-    env_channels: int = 16
-    env_height: int = 512
-    env_width: int = 1024
-    env_levels: int = 9
-    mlp_width: int = 256
-    occupancy_init: float = 0.1
-    opacity_init: float = 0.5
-    transmissivity_init: float = 0.5
-    roughness_init: float = 0.1
-    reflectance_init: float = 0.5
-    shade_alpha_threshold: float = 0.05
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    grad_threshold: float = setting(2e-4, help="densify surfels whose mean gradient reaches this",
+                                    minimum=0.0)
+    percent_dense: float = setting(
+        0.01, help="clone if max scale <= percent_dense * extent, else split", minimum=0.0
+    )
+    split_factor: float = setting(1.6, help="a split surfel's children get its scale divided by this",
+                                  exclusiveMinimum=0.0)
+    prune_occupancy: float = setting(0.05, help="prune surfels with occupancy below this", minimum=0.0, maximum=1.0)
+    max_screen_size: float = setting(0.0, help="prune surfels larger than this many pixels (0: off)", minimum=0.0)
+    max_world_scale: float = setting(
+        0.1, help="prune surfels larger than this fraction of the scene extent", minimum=0.0
+    )
+    reset_value: float = setting(
+        0.01, help="a reset clamps occupancy (then, next time, opacity) to at most this", minimum=0.0, maximum=1.0
+    )
+    max_surfels: int = setting(200_000, help="no densification beyond this many surfels", minimum=1)
 
 
 @dataclass
 class TrainConfig:
-    seed: int = 0
-    backend: str = "auto"
-    device: str = "cpu"
-    # resolution knob: train on the training views box-filtered by this factor (cameras scaled to match);
-    # test views, evaluation and `rtsplat render` stay at the prepared resolution
-    train_downsample: int = 1
-    ablations: Ablations = field(default_factory=Ablations)
-    effects: Effects = field(default_factory=Effects)
-    gating: Gating = field(default_factory=Gating)
-    schedule: Schedule = field(default_factory=Schedule)
-    lr: LearningRates = field(default_factory=LearningRates)
-    losses: Losses = field(default_factory=Losses)
-    densify: Densification = field(default_factory=Densification)
-    model: ModelSettings = field(default_factory=ModelSettings)
-    raster: RasterSettings = field(default_factory=RasterSettings)
+    """The trainer's config tree (rtsplat train)."""
+
+    seed: int = setting(0, help="random seed", minimum=0)
+    backend: str = setting("auto", help="rasterizer backend: auto | cpu | reference")
+    device: str = setting("cpu", help="torch device (cpu, cuda)")
+    train_downsample: int = setting(
+        1, help="train on the training views box-filtered by this factor (cameras scaled to match); test views, "
+        "evaluation and rtsplat render stay at the prepared resolution", minimum=1
+    )
+    ablations: Ablations = setting(help="the paper's ablation switches", factory=Ablations)
+    effects: Effects = setting(help="which branches run", factory=Effects)
+    gating: Gating = setting(help="specular-aware gradient gating", factory=Gating)
+    schedule: Schedule = setting(help="iteration counts", factory=Schedule)
+    lr: LearningRates = setting(help="learning rates", factory=LearningRates)
+    losses: Losses = setting(help="loss weights", factory=Losses)
+    densify: Densification = setting(help="adaptive density control", factory=Densification)
+    model: ModelSettings = setting(help="model sizes and initial values", factory=ModelSettings)
+    raster: RasterSettings = setting(help="rasterizer constants", factory=RasterSettings)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any] | None) -> TrainConfig:
-        return _build(cls, data or {}, "train")
+    def from_dict(cls, data: dict[str, Any] | None, source: str = "config") -> TrainConfig:
+        """Checked against the schema (keys named ``train.<section>.<key>``), then built."""
+        return schema.from_dict(cls, data, source=source, root="train")
 
-    def validate(self) -> TrainConfig:
+    def validate(self, source: str = "config") -> TrainConfig:
+        """The schema's checks on the current values, and the ones between keys."""
+        schema.check(TrainConfig, self.to_dict(), source=source, root="train")
         s = self.schedule
-        if s.iterations <= 0:
-            raise ConfigError("train.schedule.iterations must be > 0")
-        if not 0 <= s.volume_until <= s.specular_from:
+        if not s.volume_until <= s.specular_from:
             raise ConfigError(
-                "train.schedule: need 0 <= volume_until <= specular_from "
+                "train.schedule: need volume_until <= specular_from "
                 f"(got {s.volume_until}, {s.specular_from})"
             )
-        if self.train_downsample < 1:
-            raise ConfigError(f"train.train_downsample must be >= 1, got {self.train_downsample}")
-        if self.gating.k < 0:
-            raise ConfigError("train.gating.k must be >= 0")
-        for name in ("transmission", "specular"):
-            if getattr(self.effects, name) not in ("auto", "on", "off"):
-                raise ConfigError(f"train.effects.{name} must be auto, on or off")
-        if self.gating.mode not in ("weighted_std", "variance"):
-            raise ConfigError("train.gating.mode must be 'weighted_std' or 'variance'")
-        if self.model.env_levels < 1 or self.model.env_height < 2 or self.model.env_width < 2:
-            raise ConfigError("train.model: env_levels >= 1 and env_height/env_width >= 2 required")
         return self
-
-
-def _build(cls, data: dict[str, Any], where: str):
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where} must be a mapping, got {type(data).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ConfigError(
-            f"unknown key(s) {', '.join(where + '.' + k for k in unknown)}; valid keys: {', '.join(sorted(fields))}"
-        )
-    values = {}
-    defaults = cls()
-    for name, value in data.items():
-        default = getattr(defaults, name)
-        if dataclasses.is_dataclass(default):
-            values[name] = _build(type(default), value, f"{where}.{name}")
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise ConfigError(f"{where}.{name} must be true or false, got {value!r}")
-            values[name] = value
-        elif isinstance(default, (int, float)) and not isinstance(default, bool):
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigError(f"{where}.{name} must be a number, got {value!r}")
-            values[name] = type(default)(value) if isinstance(default, float) or float(value).is_integer() else value
-        elif isinstance(default, tuple):
-            values[name] = tuple(value)
-        else:
-            values[name] = value
-    return cls(**values)
 
 
 # Every setting counted in iterations, by section (log_every stays: it is a logging rate).
 ITERATION_COUNTS = {
     "schedule": ("iterations", "volume_until", "specular_from", "separate_background_until", "densify_from",
-                 "densify_until", "densify_every", "reset_every", "checkpoint_every", "eval_every"),
+                 "densify_until", "densify_every", "reset_every", "sh_degree_every", "checkpoint_every",
+                 "eval_every"),
     "lr": ("position_max_steps",),
     "losses": ("perceptual_from", "normal_from"),
 }
@@ -219,7 +188,8 @@ ITERATION_COUNTS = {
 def scale_budget(cfg: TrainConfig, factor: float) -> TrainConfig:
     """The same training stretched or shrunk to ``factor`` x the iterations: every iteration count of
     :data:`ITERATION_COUNTS` is multiplied (rounded; counts that were > 0 stay >= 1), so stages,
-    densification and resets keep their place in the run. The iteration-budget knob of the benchmark."""
+    densification, resets and the SH-degree steps keep their place in the run. The iteration-budget
+    knob of the benchmark."""
     if not factor > 0:
         raise ConfigError(f"budget factor must be > 0, got {factor}")
     sections = {}

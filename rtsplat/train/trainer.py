@@ -6,15 +6,14 @@ Run directory layout::
     <out>/config.json        resolved TrainConfig
     <out>/effects.json       which branches run and why (effects: auto)
     <out>/train_log.jsonl    one JSON line per logging step: losses, PSNR, surfels, seconds
-    <out>/checkpoints/last.pt  resumable state (written atomically)
-    <out>/model.pt           final state;  <out>/point_cloud.ply  3DGS-viewer PLY
+    <out>/checkpoints/last.pt  resumable state (rtsplat.model.checkpoint, written atomically)
+    <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
     <out>/summary.json       written last: a run without it is not finished
 """
 
 from __future__ import annotations
 
 import json
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,23 +22,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import write_text_atomic
+from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
 from rtsplat.model.rtmodel import RTModel
 from rtsplat.model.surfels import PARAMETERS, SurfelParameters, init_from_points
+from rtsplat.quality import masked_mean, psnr
+from rtsplat.quality.lpips import load_lpips
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.config import TrainConfig
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.effects import decide_effects
-from rtsplat.train.lpips import load_lpips
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
-
-CHECKPOINT_VERSION = 1
-
-
-class CheckpointError(RuntimeError):
-    pass
 
 
 @dataclass
@@ -61,9 +58,7 @@ def stage_at(iteration: int, cfg: TrainConfig) -> str:
 
 
 def _write_json(path: Path, data) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=str) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(data, indent=1, default=str) + "\n")
 
 
 class Trainer:
@@ -91,7 +86,8 @@ class Trainer:
         self.points = (torch.as_tensor(np.asarray(xyz), dtype=torch.float32),
                        torch.as_tensor(np.asarray(rgb), dtype=torch.float32) / 255.0)
         if self.points[0].shape[0] == 0:
-            raise CheckpointError(f"{scene.points_path}: the point cloud is empty; cannot initialise surfels")
+            raise PipelineError("the point cloud is empty; cannot initialise surfels", path=scene.points_path,
+                                fix="rerun `rtsplat prepare` on a scene whose SfM produced points")
         self.model = self._new_model(self._init_surfels())
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
         self.density = DensityControl(cfg.densify, cfg.schedule, self.extent)
@@ -142,7 +138,7 @@ class Trainer:
         mask = self.train_views.masks[idx]
         background_phase = self._background_phase()
         stage = "volume" if background_phase else stage_at(it, cfg)
-        sh_degree = min(it // 1000, cfg.model.sh_degree)
+        sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
         result = self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
                                    backend=cfg.backend, sh_degree=sh_degree)
         weight = (1.0 - mask) if (background_phase and mask is not None) else None
@@ -158,7 +154,7 @@ class Trainer:
         if self.perceptual is not None and L.perceptual_weight > 0 and it >= L.perceptual_from:
             terms["perceptual"] = L.perceptual_weight * self.perceptual(result.color, target)
         if L.transmissivity_bce_weight > 0 and "tau" in result.layers and mask is not None:
-            terms["tau"] = L.transmissivity_bce_weight * losses.masked_mean(
+            terms["tau"] = L.transmissivity_bce_weight * masked_mean(
                 -torch.log((1 - result.layers["tau"]).clamp_min(1e-6)), 1 - mask)
         if L.occupancy_decay_weight > 0:
             visible = result.raster.visible
@@ -171,7 +167,7 @@ class Trainer:
         self._optimizer_step()
         _, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
         with torch.no_grad():
-            value = losses.psnr(result.color.detach().clamp(0, 1), target).item()
+            value = psnr(result.color.detach().clamp(0, 1), target).item()
         return StepResult(it, float(loss.detach()), value, {k: float(v.detach()) for k, v in terms.items()}, stage)
 
     def _optimizer_step(self) -> None:
@@ -210,9 +206,9 @@ class Trainer:
         for camera, image, mask in zip(views.cameras, views.images, views.masks, strict=True):
             color = self.model.render(camera, stage=stage, raster_settings=self.cfg.raster,
                                       backend=self.cfg.backend).color.clamp(0, 1)
-            full.append(losses.psnr(color, image).item())
+            full.append(psnr(color, image).item())
             if mask is not None and mask.sum() > 0:
-                region.append(losses.psnr(color, image, mask).item())
+                region.append(psnr(color, image, mask).item())
         out = {"test_psnr": float(np.mean(full))}
         if region:
             out["test_psnr_transparent"] = float(np.mean(region))
@@ -223,15 +219,12 @@ class Trainer:
     def checkpoint_path(self) -> Path:
         return self.out / "checkpoints" / "last.pt"
 
-    def state(self) -> dict:
+    def training_state(self) -> dict:
+        """What resumes the run besides the model: iteration, config, optimizer, density, RNGs."""
         return {
-            "version": CHECKPOINT_VERSION,
             "iteration": self.iteration,
             "elapsed": self.elapsed,
             "config": self.cfg.to_dict(),
-            "effects": self.effects.to_dict(),
-            "surfels": {k: v.detach().cpu() for k, v in self.model.surfels.tensors().items()},
-            "model": {k: v for k, v in self.model.state_dict().items() if not k.startswith("surfels.")},
             "optimizer": self.optimizer.state_dict(),
             "density": self.density.state_dict(),
             "frozen": self.frozen,
@@ -241,29 +234,19 @@ class Trainer:
         }
 
     def save_checkpoint(self, path: Path | None = None) -> Path:
-        path = path or self.checkpoint_path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(self.state(), tmp)
-        os.replace(tmp, path)
-        return path
+        return write_checkpoint(path or self.checkpoint_path, self.model, self.cfg.raster, self.training_state())
 
     def load_checkpoint(self, path: Path) -> None:
-        try:
-            state = torch.load(path, map_location=self.device, weights_only=False)
-        except Exception as exc:  # truncated or foreign files
+        checkpoint = read_checkpoint(path, self.device)
+        if not checkpoint.training:
+            raise CheckpointError("has no training state to resume from; delete it to start over", path=path)
+        if checkpoint.effects != self.effects:
             raise CheckpointError(
-                f"{path}: cannot read checkpoint ({exc.__class__.__name__}: {exc}); delete it to start over"
-            ) from exc
-        if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
-            raise CheckpointError(f"{path}: not an rtsplat checkpoint (version {CHECKPOINT_VERSION}); delete it")
-        if state["effects"] != self.effects.to_dict():
-            raise CheckpointError(
-                f"{path}: written with effects {state['effects']}, this run uses {self.effects.to_dict()}; "
-                "use a new --out directory or delete the checkpoint"
+                f"written with effects {checkpoint.effects.to_dict()}, this run uses {self.effects.to_dict()}; "
+                "use a new --out directory or delete the checkpoint", path=path,
             )
-        self.model = self._new_model(SurfelParameters({k: v.to(self.device) for k, v in state["surfels"].items()}))
-        self.model.load_state_dict(state["model"], strict=False)
+        state = checkpoint.training
+        self.model = checkpoint.build_model(self.device, ablations=self.cfg.ablations, settings=self.cfg.model)
         self.optimizer = build_optimizer(self.model, self.model.surfels, self.cfg.lr, self.extent)
         self.optimizer.load_state_dict(state["optimizer"])
         self.density.load_state_dict(state["density"])
@@ -317,8 +300,7 @@ class Trainer:
 
     def finish(self) -> dict:
         metrics = self.evaluate()
-        torch.save(self.state(), self.out / "model.pt.tmp")
-        os.replace(self.out / "model.pt.tmp", self.out / "model.pt")
+        self.save_checkpoint(self.out / "model.pt")
         write_surfel_ply(self.out / "point_cloud.ply", self.model.surfels, self.model.uses_opacity)
         summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
@@ -334,7 +316,7 @@ def _truncate_log(path: Path, iteration: int) -> None:
         return
     lines = [line for line in path.read_text().splitlines() if line.strip()]
     kept = [line for line in lines if json.loads(line)["iteration"] <= iteration]
-    path.write_text("".join(line + "\n" for line in kept))
+    write_text_atomic(path, "".join(line + "\n" for line in kept))
 
 
 def _progress(total: int, initial: int, enabled: bool):
@@ -342,17 +324,3 @@ def _progress(total: int, initial: int, enabled: bool):
 
     return tqdm(total=total, initial=initial, disable=not enabled, desc="train", unit="it", dynamic_ncols=True)
 
-
-def load_model(path: str | Path, device: str = "cpu") -> tuple[RTModel, dict]:
-    """Rebuild a trained model from ``model.pt`` (or a checkpoint) for rendering."""
-    from rtsplat.model.rtmodel import ActiveEffects
-
-    state = torch.load(path, map_location=device, weights_only=False)
-    cfg = TrainConfig.from_dict(state["config"])
-    surfels = SurfelParameters({k: v.to(device) for k, v in state["surfels"].items()})
-    roi_center = state["model"].get("roi_center", torch.zeros(3))
-    roi_radius = state["model"].get("roi_radius", torch.tensor(1e9))
-    model = RTModel(surfels, effects=ActiveEffects(**state["effects"]), ablations=cfg.ablations,
-                    settings=cfg.model, roi_center=roi_center, roi_radius=float(roi_radius)).to(device)
-    model.load_state_dict(state["model"], strict=False)
-    return model, state

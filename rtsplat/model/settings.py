@@ -1,0 +1,63 @@
+"""Settings of the RT-Splatting model: its sizes and initial values, the paper's ablation switches
+and the gradient gating. With the active effects and the rasterizer settings they are everything
+needed to rebuild a trained model (:mod:`rtsplat.model.checkpoint`); the trainer's config
+(:mod:`rtsplat.train.config`) holds them as sections. Every ablation changes only the computation it
+names. Defaults follow METHOD.md sections 1-6.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from rtsplat.schema import setting
+
+
+@dataclass
+class Ablations:
+    """The paper's ablation switches (all on: the full method)."""
+
+    occupancy: bool = setting(True, help="off: one opacity does both jobs (surface weights = volume weights)")
+    joint_optimization: bool = setting(
+        True, help="off: background first (transparent pixels masked), then frozen"
+    )
+    scattering: bool = setting(True, help="off: no C_scatter / tau (C_sub = C_trans)")
+    attenuation: bool = setting(True, help="off: beta = 1")
+    gating: bool = setting(True, help="off: g = 1 (no specular-aware gradient gating)")
+    mask_loss: bool = setting(True, help="off: no transparent-mask BCE")
+
+
+@dataclass
+class Gating:
+    """Specular-aware gradient gating of C_trans."""
+
+    k: float = setting(4.0, help="gate sharpness: g = exp(-k * local complexity of C_spec)", minimum=0.0)
+    mode: Literal["weighted_std", "variance"] = setting(
+        "weighted_std",
+        help="weighted_std: the reference code's weighted standard deviation (weights 1 - surface alpha, "
+        "reflect-padded 3x3 window), the default because it produced the paper's numbers; variance: the "
+        "paper's equation, plain 3x3 variance of C_spec",
+    )
+
+
+@dataclass
+class ModelSettings:
+    """Sizes, initial values and shading constants of the model."""
+
+    sh_degree: int = setting(3, help="highest spherical-harmonics degree of the volume colour", minimum=0, maximum=3)
+    env_channels: int = setting(16, help="channels of the environment feature map", minimum=1)
+    env_height: int = setting(512, help="environment map height (finest level)", minimum=2)
+    env_width: int = setting(1024, help="environment map width (finest level)", minimum=2)
+    env_levels: int = setting(9, help="mip levels of the environment map (roughness picks the level)", minimum=1)
+    mlp_width: int = setting(256, help="hidden width of the specular network", minimum=1)
+    occupancy_init: float = setting(0.1, help="initial surfel occupancy", minimum=0.0, maximum=1.0)
+    opacity_init: float = setting(0.5, help="initial optical opacity", minimum=0.0, maximum=1.0)
+    transmissivity_init: float = setting(0.5, help="initial transmissivity tau", minimum=0.0, maximum=1.0)
+    roughness_init: float = setting(0.1, help="initial roughness", minimum=0.0, maximum=1.0)
+    reflectance_init: float = setting(0.5, help="initial reflectance", minimum=0.0, maximum=1.0)
+    shade_alpha_threshold: float = setting(
+        0.05, help="deferred shading only where the surface alpha exceeds this", minimum=0.0, maximum=1.0
+    )
+    background: tuple[float, float, float] = setting(
+        (0.0, 0.0, 0.0), help="background colour behind the volume (RGB in [0, 1])"
+    )

@@ -1,0 +1,54 @@
+"""PSNR and SSIM of [H,W,C] images in [0,1] (METHOD.md section 7), optionally over a weighted region."""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_window(size: int, sigma: float, device: str, dtype: torch.dtype) -> Tensor:
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-(x * x) / (2 * sigma * sigma))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).to(device=device, dtype=dtype)
+
+
+def ssim_map(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """Per-pixel SSIM [H,W,C] of the 3DGS loss: Gaussian window 11 / 1.5, C1 = 0.01^2, C2 = 0.03^2,
+    zero padding ("same" convolution), data range 1."""
+    C = a.shape[-1]
+    w = _gaussian_window(window, sigma, str(a.device), a.dtype).expand(C, 1, window, window)
+    x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+
+    def blur(t: Tensor) -> Tensor:
+        return F.conv2d(t, w, padding=window // 2, groups=C)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x * mu_x
+    syy = blur(y * y) - mu_y * mu_y
+    sxy = blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    value = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+    return value[0].permute(1, 2, 0)
+
+
+def ssim(a: Tensor, b: Tensor) -> Tensor:
+    return ssim_map(a, b).mean()
+
+
+def masked_mean(value: Tensor, weight: Tensor | None) -> Tensor:
+    """Mean of ``value`` [H,W,C] weighted by ``weight`` [H,W,1] (plain mean when None)."""
+    if weight is None:
+        return value.mean()
+    w = weight.expand_as(value)
+    return (value * w).sum() / w.sum().clamp_min(1e-8)
+
+
+def psnr(a: Tensor, b: Tensor, weight: Tensor | None = None) -> Tensor:
+    """``-10 log10(MSE)``; with ``weight`` [H,W,1] the MSE averages the weighted pixels (all channels)."""
+    mse = masked_mean((a - b) ** 2, weight)
+    return -10.0 * torch.log10(mse.clamp_min(1e-10))
