@@ -67,6 +67,14 @@ def test_schema_also_accepts_what_snakemake_validates():
             {"overrides": {"sedan": {"train": {"iteration": 5}}}},
             ["'overrides.sedan.train.iteration' does not exist", "did you mean 'iterations'"],
         ),
+        (
+            {"defaults": {"train": {"options": {"schedule": {"iteratons": 5}}}}},
+            ["'defaults.train.options.schedule.iteratons' does not exist", "did you mean 'iterations'"],
+        ),
+        (
+            {"overrides": {"sedan": {"train": {"options": {"ablations": {"gating": "no"}}}}}},
+            ["'overrides.sedan.train.options.ablations.gating'", "boolean"],
+        ),
     ],
 )
 def test_errors_name_the_key_and_the_fix(data, expect):

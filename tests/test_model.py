@@ -9,6 +9,7 @@ import torch
 from raster_scenes import small_camera
 
 from rtsplat.model import rtmodel
+from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
 from rtsplat.model.rtmodel import ActiveEffects, RTModel
@@ -16,6 +17,7 @@ from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh, rgb_to_sh_dc
 from rtsplat.model.specular import SpecularNetwork
 from rtsplat.model.surfels import init_from_points
+from rtsplat.raster import RasterSettings
 from rtsplat.train.config import Effects
 from rtsplat.train.effects import decide_effects
 
@@ -191,3 +193,34 @@ def test_effects_auto_decides_from_masks_and_roi():
     assert effects == ActiveEffects(True, True)
     effects, why = decide_effects(Effects(transmission="on", specular="off"), 0.0, "config")
     assert effects == ActiveEffects(True, False) and why["specular"] == "config: off"
+
+
+def test_checkpoint_rebuilds_the_model_without_the_trainer_config(tmp_path):
+    model = _model(ablations=Ablations(attenuation=False))
+    raster = RasterSettings(tile_size=8)
+    write_checkpoint(tmp_path / "m.pt", model, raster, training={"iteration": 7})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pt"]  # no temporary file left behind
+    checkpoint = read_checkpoint(tmp_path / "m.pt")
+    assert checkpoint.raster == raster and checkpoint.training == {"iteration": 7}
+    assert checkpoint.ablations == model.ablations and checkpoint.settings == model.settings
+    rebuilt = checkpoint.build_model()
+    with torch.no_grad():
+        torch.testing.assert_close(_render(rebuilt).color, _render(model).color, rtol=0, atol=0)
+
+
+def test_checkpoint_reads_version_1_files_and_names_unreadable_ones(tmp_path):
+    from dataclasses import asdict
+
+    model = _model()
+    v1 = {"version": 1, "iteration": 3, "effects": model.effects.to_dict(),
+          "config": {"ablations": asdict(model.ablations), "model": asdict(model.settings), "raster": {}},
+          "surfels": {k: v.detach() for k, v in model.surfels.tensors().items()},
+          "model": {k: v for k, v in model.state_dict().items() if not k.startswith("surfels.")}}
+    torch.save(v1, tmp_path / "v1.pt")
+    checkpoint = read_checkpoint(tmp_path / "v1.pt")
+    assert checkpoint.training["iteration"] == 3 and checkpoint.raster == RasterSettings()
+    with torch.no_grad():
+        torch.testing.assert_close(_render(checkpoint.build_model()).color, _render(model).color, rtol=0, atol=0)
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="bad.pt: cannot read checkpoint"):
+        read_checkpoint(tmp_path / "bad.pt")

@@ -233,3 +233,50 @@ def test_train_downsample_trains_small_and_evaluates_at_the_prepared_size(glass_
     assert np.isfinite(summary["test_psnr"])
     with pytest.raises(ConfigError, match="train_downsample"):
         config(6, train_downsample=0).validate()
+
+
+def test_sh_degree_grows_every_sh_degree_every_iterations(glass_scene, tmp_path):
+    trainer = Trainer(glass_scene, config(5, schedule={"sh_degree_every": 2}), tmp_path / "run", progress=False,
+                      log=lambda m: None)
+    degrees, render = [], trainer.model.render
+
+    def recording_render(*args, **kwargs):
+        degrees.append(kwargs["sh_degree"])
+        return render(*args, **kwargs)
+
+    trainer.model.render = recording_render
+    for _ in range(5):
+        trainer.step()
+    assert degrees == [0, 1, 1, 2, 2]
+    assert TrainConfig().schedule.sh_degree_every == 1000
+
+
+def test_train_cli_reads_a_method_of_the_pipeline_config_like_the_workflow(tmp_path):
+    import argparse
+
+    from rtsplat.config import load_config, train_json
+    from rtsplat.train.cli import add_arguments, trainer_config_from_args
+
+    pipeline = {"methods": {"rtsplat": {}, "2dgs": {"effects": {"transmission": "off"}, "budget": 2}},
+                "defaults": {"train": {"iterations": 50, "options": {"schedule": {"log_every": 7}}}},
+                "overrides": {"sedan": {"train": {"backend": "reference"}}}}
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(pipeline))
+    (tmp_path / "tree.yaml").write_text("train:\n  seed: 4\n  schedule: {iterations: 9}\n")
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+
+    def read(*flags):
+        return trainer_config_from_args(parser.parse_args(["--data", "d", "--out", "o", *flags]))
+
+    cfg = load_config(tmp_path / "config.yaml")
+    sedan = read("--config", str(tmp_path / "config.yaml"), "--scene", "sedan", "--method", "2dgs")
+    assert sedan == TrainConfig.from_dict(json.loads(train_json(cfg, "sedan", "2dgs", quote=False)))
+    assert (sedan.schedule.iterations, sedan.schedule.log_every, sedan.backend) == (100, 7, "reference")
+    assert read("--config", str(tmp_path / "config.yaml")).effects.transmission == "auto"  # rtsplat, defaults
+    tree = read("--config", str(tmp_path / "tree.yaml"))
+    assert (tree.seed, tree.schedule.iterations) == (4, 9)
+    assert read("--config-json", '{"schedule": {"iterations": 3}}').schedule.iterations == 3
+    with pytest.raises(ConfigError, match="train.schedule.iteratons"):
+        read("--config-json", '{"schedule": {"iteratons": 3}}')
+    with pytest.raises(ConfigError, match="--scene"):
+        read("--config", str(tmp_path / "tree.yaml"), "--scene", "sedan")
