@@ -501,18 +501,43 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--config-json", help="this stage's config section as JSON (used by the workflow)")
 
 
-def stage_config_from_args(args: argparse.Namespace, section: str) -> Any:
+def stage_config_from_args(args: argparse.Namespace, section: str, overrides: dict[str, Any] | None = None) -> Any:
+    """A stage's config section from ``--config-json``, else ``--config``/``--scene``, else the defaults;
+    then :func:`apply_overrides` with ``overrides`` (the stage's own flags: config key -> value)."""
     if getattr(args, "config_json", None):
         try:
             data = json.loads(args.config_json)
         except json.JSONDecodeError as exc:
             raise ConfigError(f"--config-json is not valid JSON ({exc})", fix="pass a JSON object") from exc
-        return section_from_dict(section, data)
-    if getattr(args, "config", None):
-        cfg = load_config(args.config)
-        sc = scene_config(cfg, args.scene) if args.scene else cfg.defaults
-        return getattr(sc, section)
-    return STAGE_SECTIONS[section]()
+        cfg = section_from_dict(section, data)
+    elif getattr(args, "config", None):
+        pipeline = load_config(args.config)
+        cfg = getattr(scene_config(pipeline, args.scene) if args.scene else pipeline.defaults, section)
+    else:
+        cfg = STAGE_SECTIONS[section]()
+    return apply_overrides(section, cfg, overrides or {})
+
+
+def apply_overrides(section: str, cfg: Any, overrides: dict[str, Any]) -> Any:
+    """``cfg`` (a stage section) with the keys of ``overrides`` replaced, validated like config values.
+
+    ``overrides`` maps a key of the section (dotted for nested keys, e.g. ``onnx.model``) to its
+    command-line value; ``None`` means the flag was not given. A bad value is a :class:`ConfigError`
+    naming the key."""
+    given: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        *parents, leaf = key.split(".")
+        node = given
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    if not given:
+        return cfg
+    flags = ", ".join(f"{section}.{key}" for key, value in overrides.items() if value is not None)
+    data = deep_merge(dataclasses.asdict(cfg), given)
+    return section_from_dict(section, data, source=f"command-line override of {flags}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,15 +23,13 @@ from __future__ import annotations
 import argparse
 import html
 import json
-import os
 import re
 import shutil
-import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import atomic_dir
 
 MAIN = "rtsplat"
 ABLATION_PREFIX = "ablation_"
@@ -235,16 +233,8 @@ def build_report(results: str | Path, out: str | Path, *, config_file: str | Pat
     the config files of the run (printed in the Reproduce section, later ones layered over earlier)."""
     results, out = Path(results), Path(out)
     scenes = collect(results)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+    with atomic_dir(out) as tmp:
         _write(results, scenes, tmp, config_file, commands)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out / "index.html"
 
 
@@ -358,10 +348,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        index = build_report(args.results, args.out, config_file=args.config, commands=args.command or None)
-    except PipelineError as exc:
-        print(f"rtsplat report: error: {exc}", file=sys.stderr)
-        return 2
+    index = build_report(args.results, args.out, config_file=args.config, commands=args.command or None)
     print(f"report: {index}")
     return 0

@@ -194,3 +194,20 @@ def test_stage_cli_reads_config_file_with_scene_overrides(tmp_path):
     args = parser.parse_args(["--config-json", '{"downsampel": 3}'])
     with pytest.raises(ConfigError, match="'defaults.prepare.downsampel' does not exist"):
         stage_config_from_args(args, "prepare")
+
+
+def test_stage_flags_are_validated_overrides_of_the_config_section():
+    import argparse
+
+    from rtsplat.config import add_config_arguments, stage_config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser)
+    args = parser.parse_args(["--config-json", '{"downsample": 2, "test_every": 5}'])
+    cfg = stage_config_from_args(args, "prepare", {"downsample": 4})
+    assert (cfg.downsample, cfg.test_every) == (4, 5)  # the flag wins, the rest of the section stays
+    assert stage_config_from_args(args, "prepare", {"downsample": None}).downsample == 2  # flag not given
+    with pytest.raises(ConfigError, match=r"prepare\.downsample.*less than the minimum of 1"):
+        stage_config_from_args(args, "prepare", {"downsample": 0})
+    masks = stage_config_from_args(parser.parse_args([]), "masks", {"source": "none", "onnx.model": "m.onnx"})
+    assert masks.source == "none" and masks.onnx.model == "m.onnx" and masks.onnx.kind == "auto"

@@ -89,4 +89,4 @@ def test_no_results_is_a_clear_error_and_leaves_nothing(tmp_path):
     assert not (tmp_path / "report").exists()
     result = subprocess.run([sys.executable, "-m", "rtsplat.cli", "report", "--results", str(tmp_path),
                              "--out", str(tmp_path / "r")], capture_output=True, text=True)
-    assert result.returncode == 2 and "rtsplat train" in result.stderr
+    assert result.returncode == 1 and "rtsplat train" in result.stderr  # bad input: status 1, as every stage
