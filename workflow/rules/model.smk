@@ -3,9 +3,9 @@
 import shlex
 from pathlib import Path
 
-from rtsplat.config import render_edit_args, scene_config, train_json
+from rtsplat.config import main_method, render_edit_args, roles_json, scene_config, train_json
 
-MAIN_METHOD = "rtsplat" if "rtsplat" in METHODS else METHODS[0]
+MAIN_METHOD = main_method(CFG)  # the method with role main: the scene edits are rendered for it
 
 
 def edit_names(scene):
@@ -150,8 +150,9 @@ rule report:
         report=f"{RESULTS}/report",
         config_files=" ".join(f"--config {shlex.quote(f)}" for f in config_files_in_order()),
         command=shlex.quote(reproduce_command()),
+        roles=roles_json(CFG),
     conda:
         ENV
     shell:
         "{RTSPLAT} report --results {params.results:q} --out {params.report:q} {params.config_files} "
-        "--command {params.command} > {log:q} 2>&1"
+        "--command {params.command} --roles-json {params.roles} > {log:q} 2>&1"
