@@ -16,9 +16,9 @@ cv2 = pytest.importorskip("cv2")
 from rtsplat.camera import camera_from_fov  # noqa: E402
 from rtsplat.cli import main as cli_main  # noqa: E402
 from rtsplat.errors import ConfigError  # noqa: E402
+from rtsplat.io.colmap import quaternion_to_rotation, rotation_to_quaternion  # noqa: E402
 from rtsplat.io.images import read_image  # noqa: E402
 from rtsplat.synth import cli as synth_cli  # noqa: E402
-from rtsplat.synth.colmap_model import quaternion_to_rotation, rotation_to_quaternion  # noqa: E402
 from rtsplat.synth.dataset import SynthConfig, render_dataset  # noqa: E402
 from rtsplat.synth.render import load_scene, render_view, set_variant  # noqa: E402
 

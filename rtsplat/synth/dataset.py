@@ -28,11 +28,11 @@ import numpy as np
 from rtsplat.camera import Camera
 from rtsplat.errors import ConfigError, PipelineError
 from rtsplat.io.atomic import atomic_dir
+from rtsplat.io.colmap import ColmapImage, ColmapPoints, write_sparse_model
+from rtsplat.io.images import linear_to_srgb, to_uint, write_png
 from rtsplat.synth.cameras import SAMPLER, effective_spp
-from rtsplat.synth.colmap_model import ColmapImage, ColmapPoints, write_model
 from rtsplat.synth.render import VARIANT, ViewRender, load_scene, render_view, set_variant
 from rtsplat.synth.scenes import SCENES, SceneSpec, build_scene
-from rtsplat.synth.textures import to_srgb8
 
 FORMAT = "rtsplat-synth/1"
 VIEW_RANGE = (40, 200)
@@ -100,14 +100,14 @@ def view_seed(seed: int, i: int) -> int:
     return (seed * 7919 + i * 104729 + 1) % 2**31
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
-    import cv2
+def to_srgb8(x: np.ndarray) -> np.ndarray:
+    """Linear float image -> 8-bit sRGB image (clipped, rounded)."""
+    return to_uint(linear_to_srgb(x), 8)
 
+
+def _write_png(path: Path, image: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    if image.ndim == 3:
-        image = image[..., ::-1]  # RGB -> BGR
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
-        raise OSError(f"could not write {path}")
+    write_png(path, image)
 
 
 def _camera_json(name: str, cam: Camera) -> dict:
@@ -310,7 +310,7 @@ def render_dataset(
                 )
             )
         bar.close()
-        write_model(
+        write_sparse_model(
             tmp / "sparse" / "0",
             colmap_images,
             ColmapPoints(np.array(xyz).reshape(-1, 3), np.array(rgb, dtype=np.uint8).reshape(-1, 3), tracks),
