@@ -32,7 +32,7 @@ demo: $(STAMP)
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake -s Snakefile -d demo --cores 2
 	@echo "report: demo/results/report/index.html"
 
-# issue 7's target numbers: dome + cabin, demo budget and 4x, ablations, half resolution (reuses the demo's jobs)
+# the benchmark targets: dome + cabin, demo budget and 4x, ablations, half resolution, noise reruns (reuses the demo's jobs)
 targets: $(STAMP)
 	@test -f demo/data/dome/scene.json || $(BIN)/rtsplat synth --scene dome --out demo/data/dome --views $(DEMO_VIEWS) --layers-every 8
 	@test -f demo/data/cabin/scene.json || $(BIN)/rtsplat synth --scene cabin --out demo/data/cabin --views $(DEMO_VIEWS) --layers-every 8

@@ -86,6 +86,19 @@ class Camera:
         return uvw[:, :2] / z[:, None], z
 
 
+def pixel_rays(camera: Camera, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """World-space rays through continuous pixel positions ``u``, ``v`` (any equal shapes; the image's
+    top-left corner is (0, 0), pixel centres are at + :data:`PIXEL_CENTER_OFFSET`).
+
+    Returns (the camera centre [3], unit directions [..., 3]) in the camera's dtype.
+    """
+    K, R = camera.K, camera.rotation
+    u, v = torch.as_tensor(u, dtype=K.dtype, device=K.device), torch.as_tensor(v, dtype=K.dtype, device=K.device)
+    d_cam = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], dim=-1)
+    d = d_cam @ R  # R^T applied to row vectors
+    return camera.center, d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+
+
 def intrinsics(fx: float, fy: float, cx: float, cy: float, *, dtype=torch.float32, device=None) -> Tensor:
     return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device)
 

@@ -8,7 +8,16 @@ Each stage lives in its own module that exposes two functions:
 The CLI only parses arguments and calls ``run``; the work is done by the stage's function API.
 Stage modules are imported lazily, so ``rtsplat --help`` stays fast and a stage's heavy
 dependencies (pycolmap, mitsuba, onnxruntime, ...) are loaded only when that stage runs.
-A stage that is not implemented yet says so and exits with status 3.
+
+Exit statuses, the same for every stage:
+
+* 0: done;
+* 1: bad input. A stage's ``run`` raises :class:`rtsplat.errors.PipelineError` (or a subclass such
+  as :class:`~rtsplat.errors.ConfigError`) and never catches it; :func:`main` prints it once as
+  ``rtsplat <stage>: error: <message>`` on stderr;
+* 2: a command-line usage error (argparse's own status);
+* 3: the stage is not implemented;
+* 130: interrupted (ctrl-C); stages write their outputs atomically, so nothing partial is left.
 """
 
 from __future__ import annotations
@@ -18,7 +27,11 @@ import importlib
 import sys
 from dataclasses import dataclass
 
+from rtsplat.errors import PipelineError
+
+BAD_INPUT_EXIT = 1
 NOT_IMPLEMENTED_EXIT = 3
+INTERRUPTED_EXIT = 130
 
 
 @dataclass(frozen=True)
@@ -87,7 +100,14 @@ def main(argv: list[str] | None = None) -> int:
     stage_parser = argparse.ArgumentParser(prog=f"rtsplat {stage.name}", description=stage.help)
     module.add_arguments(stage_parser)
     args = stage_parser.parse_args(argv[1:])
-    return int(module.run(args) or 0)
+    try:
+        return int(module.run(args) or 0)
+    except PipelineError as exc:
+        print(f"rtsplat {stage.name}: error: {exc}", file=sys.stderr)
+        return BAD_INPUT_EXIT
+    except KeyboardInterrupt:
+        print(f"rtsplat {stage.name}: interrupted; its outputs were left as they were", file=sys.stderr)
+        return INTERRUPTED_EXIT
 
 
 if __name__ == "__main__":

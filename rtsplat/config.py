@@ -5,7 +5,9 @@
     data: data                 # dataset directory: <data>/<scene>/images/*
     results: results           # where every stage writes
     scenes: []                 # empty: every <data>/<scene> that has images/
-    methods: {rtsplat: {}}     # name -> trainer config overrides; trained / rendered / evaluated per scene
+    methods:                   # name -> trainer config overrides; trained / rendered / evaluated per scene
+      rtsplat: {role: main}    # role (main | baseline | ablation | repeat, see method_roles) is not a
+      rtsplat_seed1: {role: repeat, of: rtsplat, seed: 1}   # trainer key; a repeat names what it reruns
     defaults:                  # a SceneConfig: sfm, masks, prepare, train, render, metrics
       prepare: {downsample: 4}
     overrides:                 # per-scene SceneConfig fragments merged over the defaults
@@ -191,6 +193,18 @@ class SceneConfig:
     metrics: MetricsConfig = _f(help="metrics", factory=MetricsConfig)
 
 
+MethodRoleName = Literal["main", "baseline", "ablation", "repeat"]
+ROLE_KEYS = ("role", "of")  # keys of a method that describe its role, not the trainer
+
+
+@dataclass(frozen=True)
+class MethodRole:
+    """What a method is for: the report's tables and the workflow's "main method" read this."""
+
+    role: MethodRoleName
+    of: str | None = None  # role repeat: the method it reruns
+
+
 @dataclass
 class PipelineConfig:
     """The whole ``config.yaml``."""
@@ -200,9 +214,21 @@ class PipelineConfig:
     scenes: list[str] = _f(help="scenes to run; empty: every <data>/<scene> with an images/ folder", factory=list)
     methods: dict[str, dict[str, Any]] = _f(
         help="methods trained, rendered and evaluated per scene: name -> trainer config overrides "
-        "(e.g. 2dgs: {effects: {transmission: 'off', specular: 'off'}})",
-        factory=lambda: {"rtsplat": {}},
+        "(e.g. 2dgs: {role: baseline, effects: {transmission: 'off', specular: 'off'}}) plus the method's "
+        "role in the report: main (one method; default: the first listed), baseline (the default), "
+        "ablation (compared with the main method), repeat (a rerun of the method named by 'of', same or "
+        "another seed: the report's noise measurement)",
+        factory=lambda: {"rtsplat": {"role": "main"}},
         minProperties=1,
+        additionalProperties={
+            "type": "object",
+            "properties": {
+                "role": {"type": "string", "enum": list(typing.get_args(MethodRoleName)),
+                         "description": "the method's role in the report and the workflow"},
+                "of": {"type": "string", "description": "role repeat: the method this one reruns"},
+            },
+            "additionalProperties": True,
+        },
     )
     defaults: SceneConfig = _f(help="settings for every scene", factory=SceneConfig)
     overrides: dict[str, SceneConfig] = _f(help="per-scene settings merged over the defaults", factory=dict)
@@ -323,6 +349,8 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
     train = scene_config(cfg, scene).train
     overrides = dict(cfg.methods[method] or {})
     budget = overrides.pop("budget", None)
+    for key in ROLE_KEYS:  # the method's role (method_roles), not a trainer key
+        overrides.pop(key, None)
     tree = copy.deepcopy(train.options)
     if train.iterations is not None:
         tree = deep_merge(tree, {"schedule": {"iterations": train.iterations}})
@@ -348,9 +376,49 @@ def train_json(cfg: PipelineConfig, scene: str, method: str, quote: bool = True)
     return shlex.quote(text) if quote else text
 
 
+def method_roles(cfg: PipelineConfig) -> dict[str, MethodRole]:
+    """Every method's :class:`MethodRole`, in the order of ``methods``.
+
+    A method without ``role`` is a baseline, except that the first method listed is the main one when
+    no method says ``role: main``. Exactly one main method; a repeat names with ``of`` another method
+    that is not a repeat itself; ``of`` belongs to repeats only. Anything else is a ConfigError."""
+    explicit = {name: (opts or {}).get("role") for name, opts in cfg.methods.items()}
+    mains = [name for name, role in explicit.items() if role == "main"]
+    if len(mains) > 1:
+        raise ConfigError(f"several methods have role main: {', '.join(mains)}",
+                          fix="give exactly one method 'role: main' (the others: baseline, ablation or repeat)")
+    main = mains[0] if mains else next(iter(cfg.methods))
+    roles = {}
+    for name, opts in cfg.methods.items():
+        role = explicit[name] or ("main" if name == main else "baseline")
+        of = (opts or {}).get("of")
+        if role == "repeat":
+            if of not in cfg.methods or of == name or explicit.get(of) == "repeat":
+                raise ConfigError(f"methods.{name}.of is {of!r}; a repeat must name the method it reruns",
+                                  fix=f"set 'of' to one of {sorted(m for m in cfg.methods if m != name)} "
+                                  "that is not a repeat itself")
+        elif of is not None:
+            raise ConfigError(f"methods.{name}.of is set but its role is {role}",
+                              fix="remove 'of', or set 'role: repeat' when the method reruns another one")
+        roles[name] = MethodRole(role, of)
+    return roles
+
+
+def main_method(cfg: PipelineConfig) -> str:
+    """The method with role main (:func:`method_roles`): the one the workflow renders the edits for."""
+    return next(name for name, r in method_roles(cfg).items() if r.role == "main")
+
+
+def roles_json(cfg: PipelineConfig, quote: bool = True) -> str:
+    """:func:`method_roles` as JSON for ``rtsplat report --roles-json`` (shell-quoted unless ``quote=False``)."""
+    text = json.dumps({name: dataclasses.asdict(r) for name, r in method_roles(cfg).items()})
+    return shlex.quote(text) if quote else text
+
+
 def check_methods(cfg: PipelineConfig, scenes: typing.Iterable[str] = ()) -> None:
-    """Build every method's trainer config for the defaults and each given or overridden scene, so a bad
-    key fails when the config is loaded, not hours later when its training job starts."""
+    """Check the methods' roles and build every method's trainer config for the defaults and each given or
+    overridden scene, so a bad key fails when the config is loaded, not hours later when its job starts."""
+    method_roles(cfg)
     for scene in dict.fromkeys([*scenes, *cfg.overrides, "__defaults__"]):
         for method in cfg.methods:
             trainer_options(cfg, scene, method)
@@ -381,18 +449,43 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--config-json", help="this stage's config section as JSON (used by the workflow)")
 
 
-def stage_config_from_args(args: argparse.Namespace, section: str) -> Any:
+def stage_config_from_args(args: argparse.Namespace, section: str, overrides: dict[str, Any] | None = None) -> Any:
+    """A stage's config section from ``--config-json``, else ``--config``/``--scene``, else the defaults;
+    then :func:`apply_overrides` with ``overrides`` (the stage's own flags: config key -> value)."""
     if getattr(args, "config_json", None):
         try:
             data = json.loads(args.config_json)
         except json.JSONDecodeError as exc:
             raise ConfigError(f"--config-json is not valid JSON ({exc})", fix="pass a JSON object") from exc
-        return section_from_dict(section, data)
-    if getattr(args, "config", None):
-        cfg = load_config(args.config)
-        sc = scene_config(cfg, args.scene) if args.scene else cfg.defaults
-        return getattr(sc, section)
-    return STAGE_SECTIONS[section]()
+        cfg = section_from_dict(section, data)
+    elif getattr(args, "config", None):
+        pipeline = load_config(args.config)
+        cfg = getattr(scene_config(pipeline, args.scene) if args.scene else pipeline.defaults, section)
+    else:
+        cfg = STAGE_SECTIONS[section]()
+    return apply_overrides(section, cfg, overrides or {})
+
+
+def apply_overrides(section: str, cfg: Any, overrides: dict[str, Any]) -> Any:
+    """``cfg`` (a stage section) with the keys of ``overrides`` replaced, validated like config values.
+
+    ``overrides`` maps a key of the section (dotted for nested keys, e.g. ``onnx.model``) to its
+    command-line value; ``None`` means the flag was not given. A bad value is a :class:`ConfigError`
+    naming the key."""
+    given: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        *parents, leaf = key.split(".")
+        node = given
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    if not given:
+        return cfg
+    flags = ", ".join(f"{section}.{key}" for key, value in overrides.items() if value is not None)
+    data = deep_merge(dataclasses.asdict(cfg), given)
+    return section_from_dict(section, data, source=f"command-line override of {flags}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,7 +17,6 @@ and is trained without transparency.
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -374,14 +373,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        cfg = stage_config_from_args(args, "masks")
-        if args.source:
-            cfg.source = args.source
-        s = make_masks(args.scene_dir, args.out, cfg)
-    except PipelineError as exc:
-        print(f"rtsplat masks: error: {exc}", file=sys.stderr)
-        return 1
+    cfg = stage_config_from_args(args, "masks", {"source": args.source})
+    s = make_masks(args.scene_dir, args.out, cfg)
     if s.has_masks:
         how = "ingested" if s.source == "ingest" else f"segmented with ONNX ({s.model_kind})"
         cover = f"{100 * s.mean_coverage:.2f}%"

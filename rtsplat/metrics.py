@@ -8,7 +8,7 @@ Definitions (METHOD.md section 7), images in [0,1]:
   map over mask pixels. Inside the image (5 px from the border) the map equals scikit-image's
   ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
   data_range=1)``, which a test checks; at the border 3DGS pads with zeros.
-* LPIPS-VGG: real weights only (``--lpips-weights`` or the torch hub cache, see
+* LPIPS-VGG: real weights only (``metrics.lpips_weights`` / ``--lpips-weights`` or the torch hub cache, see
   :mod:`rtsplat.quality.lpips`); the region's value is the mean of the spatial LPIPS map over mask
   pixels. Without weights the value is the string ``"n/a (weights not found)"``.
 
@@ -26,15 +26,15 @@ import hashlib
 import json
 import os
 import platform
-import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import write_json_atomic
 from rtsplat.model.composite import transmission_with_scatter
 from rtsplat.quality import psnr, ssim_map
 from rtsplat.scene import GT_LAYERS_DIR
@@ -181,15 +181,6 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
     }
 
 
-def write_json_atomic(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as handle:
-        json.dump(data, handle, indent=2)
-        handle.write("\n")
-    os.replace(tmp, path)
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = __doc__
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -197,18 +188,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="the prepared scene (images and masks)")
     parser.add_argument("--out", type=Path, required=True, help="metrics JSON file (written atomically)")
     parser.add_argument("--run", type=Path, help="run directory (for the config hash; default: from render.json)")
-    parser.add_argument("--lpips-weights", default="", help="directory with vgg16-397923af.pth and vgg.pth")
+    parser.add_argument("--lpips-weights", help="override metrics.lpips_weights (directory with "
+                        "vgg16-397923af.pth and vgg.pth)")
     parser.add_argument("--gt-layers", type=Path, help="ground-truth reflection/transmission layers "
                         "(default: <data>/gt_layers when it exists)")
+    add_config_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        result = compute_metrics(args.renders, args.data, run_dir=args.run, lpips_weights=args.lpips_weights,
-                                 gt_layers=args.gt_layers)
-    except PipelineError as exc:
-        print(f"rtsplat metrics: error: {exc}", file=sys.stderr)
-        return 2
+    cfg = stage_config_from_args(args, "metrics", {"lpips_weights": args.lpips_weights})
+    result = compute_metrics(args.renders, args.data, run_dir=args.run, lpips_weights=cfg.lpips_weights,
+                             gt_layers=args.gt_layers)
     write_json_atomic(args.out, result)
     m = result["mean"]
     parts = [f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in m.items()]

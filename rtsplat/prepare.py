@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -324,14 +323,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        cfg = stage_config_from_args(args, "prepare")
-        if args.downsample is not None:
-            cfg.downsample = args.downsample
-        s = prepare_scene(args.scene_dir, args.sfm, args.out, cfg, args.masks)
-    except PipelineError as exc:
-        print(f"rtsplat prepare: error: {exc}", file=sys.stderr)
-        return 1
+    cfg = stage_config_from_args(args, "prepare", {"downsample": args.downsample})
+    s = prepare_scene(args.scene_dir, args.sfm, args.out, cfg, args.masks)
     print(
         f"prepared {args.out}: {s.num_train} train + {s.num_test} test views at {s.width}x{s.height} "
         f"(downsample {s.downsample}{', pre-scaled images' if s.used_prescaled else ''}), "

@@ -17,18 +17,13 @@ Scene edits (the paper's applications) are exact operations on the trained model
 ``transparency=S`` scales the optical opacity of the surfels (S < 1: clearer glass),
 ``reflections=off`` removes ``C_spec`` from the image, ``tint=R,G,B`` multiplies the transmission layer.
 Everything is written into a temporary directory that replaces ``<out>`` only when all views are
-done, so a failed run leaves no partial output.
+done (:func:`rtsplat.io.atomic.atomic_dir`), so a failed run leaves no partial output.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import shutil
-import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -36,7 +31,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import atomic_dir, write_json_atomic
 from rtsplat.model.composite import compose_layers, scatter_layer
 
 LAYER_DIRS = ("color", "reflection", "transmission", "scatter", "normal", "depth")
@@ -156,9 +153,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
             render(camera)
         seconds = time.perf_counter() - start
 
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         for layer in LAYER_DIRS:
             (tmp / layer).mkdir()
         with torch.inference_mode():
@@ -176,13 +171,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
             "width": records[0].width, "height": records[0].height, "effects": checkpoint.effects.to_dict(),
             "run": str(run_dir),
         }
-        (tmp / "render.json").write_text(json.dumps(info, indent=2) + "\n")
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        write_json_atomic(tmp / "render.json", info)
     return info
 
 
@@ -204,19 +193,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--edit", action="append", default=[], metavar="KEY=VALUE",
                         help="scene edit, repeatable: roughness=S, transparency=S, reflections=off, tint=R,G,B")
     parser.add_argument("--backend", default="auto", help="rasterizer backend (auto, cpu, reference)")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed renders before measuring FPS")
+    parser.add_argument("--warmup", type=int, help="override render.warmup (untimed renders before measuring FPS)")
     parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        edits = Edits.parse(args.edit)
-        info = render_run(args.run, args.data, args.out, split=args.split, edits=edits, backend=args.backend,
-                          warmup=args.warmup, device=args.device, progress=not args.quiet)
-    except PipelineError as exc:
-        print(f"rtsplat render: error: {exc}", file=sys.stderr)
-        return 2
+    cfg = stage_config_from_args(args, "render", {"warmup": args.warmup})
+    edits = Edits.parse(args.edit)
+    info = render_run(args.run, args.data, args.out, split=args.split, edits=edits, backend=args.backend,
+                      warmup=cfg.warmup, device=args.device, progress=not args.quiet)
     print(f"rendered {len(info['views'])} views to {args.out}: {info['fps']:.2f} FPS on {info['device']}")
     return 0
 

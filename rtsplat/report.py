@@ -7,15 +7,17 @@ It reads what the other stages wrote under ``--results`` (the layout of ``docs/a
     <scene>/renders/<method>@<edit>/                                       rtsplat render --edit ...
     <scene>/metrics/<method>.json                                          rtsplat metrics
 
-and writes, per scene: the quality table (entire image / transparent region, FPS, training time),
-the ablation table (methods named ``ablation_*`` against ``rtsplat``), decomposition scores when the
-scene has ground-truth layers, the accuracy-against-time plots and table with the Pareto front
-(every run's final test PSNR against its training time, and the test-PSNR curves logged during
-training), test-view comparisons (ground truth / ours / baseline), decomposition and editing
-images; then the machine, the package versions, the exact commands and the config. Noise: when
-the results contain ``<method>_repeat`` runs (the same config and seed run twice) or
-``<method>_seed<N>`` runs (the same config, another seed), the report prints the measured
-differences to ``<method>``; otherwise it says that none were measured.
+Each method's role comes from the pipeline config (``methods.<name>.role``, see
+:func:`rtsplat.config.method_roles`), handed over as ``--roles-json``; without it every method is a
+baseline and there is no main method. The report writes, per scene: the quality table (entire
+image / transparent region, FPS, training time), the ablation table (the ablations against the main
+method), decomposition scores when the scene has ground-truth layers, the accuracy-against-time
+plots and table with the Pareto front (every run's final test PSNR against its training time, and
+the test-PSNR curves logged during training), test-view comparisons (ground truth / main / the
+other methods except ablations), the main method's decomposition and editing images; then the
+machine, the package versions, the exact commands and the config. Noise: for every repeat (the
+same config run again, with the same seed or another one, as its ``config.json`` says) the report
+prints the measured differences to the method it repeats; otherwise it says that none were measured.
 """
 
 from __future__ import annotations
@@ -23,19 +25,51 @@ from __future__ import annotations
 import argparse
 import html
 import json
-import os
-import re
 import shutil
-import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import atomic_dir
 
-MAIN = "rtsplat"
-ABLATION_PREFIX = "ablation_"
-NOISE_RUN = re.compile(r"^(?P<base>.+)_(?P<kind>repeat|seed\d+)$")  # rtsplat_repeat, rtsplat_seed1
+ROLES = ("main", "baseline", "ablation", "repeat")
+
+
+@dataclass(frozen=True)
+class Roles:
+    """Each method's role (``main``, ``baseline``, ``ablation``, ``repeat``) and what a repeat reruns."""
+
+    role: dict[str, str] = field(default_factory=dict)
+    of: dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "--roles-json") -> Roles:
+        """``{method: {"role": ..., "of": ...}}`` as :func:`rtsplat.config.roles_json` writes it."""
+        if not isinstance(data, dict):
+            raise PipelineError(f"{source} must be a JSON object {{method: {{role, of}}}}")
+        role, of = {}, {}
+        for method, entry in data.items():
+            entry = entry if isinstance(entry, dict) else {}
+            if entry.get("role") not in ROLES:
+                raise PipelineError(f"{source}: method {method!r} has role {entry.get('role')!r}",
+                                    fix=f"use one of {list(ROLES)}")
+            role[method] = entry["role"]
+            if entry["role"] == "repeat":
+                if not entry.get("of"):
+                    raise PipelineError(f"{source}: repeat {method!r} does not say which method it reruns",
+                                        fix="give it 'of': <method>")
+                of[method] = entry["of"]
+        if list(role.values()).count("main") > 1:
+            raise PipelineError(f"{source}: more than one method has role main", fix="keep one")
+        return cls(role, of)
+
+    @property
+    def main(self) -> str | None:
+        return next((m for m, r in self.role.items() if r == "main"), None)
+
+    def of_role(self, runs: dict, role: str) -> list[str]:
+        """The methods of ``runs`` with ``role``, sorted by name (unlisted methods are baselines)."""
+        return sorted(m for m in runs if self.role.get(m, "baseline") == role)
 
 
 @dataclass
@@ -143,9 +177,9 @@ class Document:
         return "\n".join(self.html + ["</body></html>"]) + "\n", "\n".join(self.md) + "\n"
 
 
-def quality_rows(runs: dict[str, Run]) -> list[list[str]]:
+def quality_rows(runs: dict[str, Run], main: str | None = None) -> list[list[str]]:
     rows = []
-    for method in sorted(runs, key=lambda m: (m != MAIN, m)):
+    for method in sorted(runs, key=lambda m: (m != main, m)):
         r = runs[method]
         m = r.mean
         fps = r.metrics.get("fps")
@@ -210,16 +244,17 @@ def _copy_image(src: Path, out: Path, name: str) -> str | None:
     return f"images/{name}"
 
 
-def _noise_rows(scene: str, runs: dict[str, Run]) -> list[list[str]]:
-    """|difference| of each ``<method>_repeat`` / ``<method>_seed<N>`` run to its ``<method>`` run."""
+def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[list[str]]:
+    """|difference| of each repeat to the method it reruns; the seeds come from the runs' config.json."""
     rows = []
-    for method, r in runs.items():
-        match = NOISE_RUN.match(method)
-        if not match or match["base"] not in runs:
+    for method in roles.of_role(runs, "repeat"):
+        r, base_name = runs[method], roles.of[method]
+        if base_name not in runs:
             continue
-        base = runs[match["base"]]
-        kind = "same seed" if match["kind"] == "repeat" else f"seed {match['kind'][4:]}"
-        row = [scene, match["base"], kind]
+        base = runs[base_name]
+        seed, base_seed = (_run_seed(results / scene / "runs" / m) for m in (method, base_name))
+        kind = "same seed" if seed == base_seed else f"seed {seed}"
+        row = [scene, base_name, kind]
         for key in ("psnr", "psnr_transparent"):
             a, b = base.mean.get(key), r.mean.get(key)
             row.append(_fmt(abs(a - b), 3) if isinstance(a, float) and isinstance(b, float) else "-")
@@ -229,26 +264,27 @@ def _noise_rows(scene: str, runs: dict[str, Run]) -> list[list[str]]:
     return rows
 
 
-def build_report(results: str | Path, out: str | Path, *, config_file: str | Path | list | None = None,
-                 commands: list[str] | None = None) -> Path:
-    """Write the report of ``results`` into ``out`` (atomically). ``config_file``: one path or a list of
-    the config files of the run (printed in the Reproduce section, later ones layered over earlier)."""
+def _run_seed(run_dir: Path):
+    """The seed of a run's trainer config (``config.json``), None when it has none."""
+    path = run_dir / "config.json"
+    return _read_json(path).get("seed") if path.is_file() else None
+
+
+def build_report(results: str | Path, out: str | Path, *, roles: Roles | None = None,
+                 config_file: str | Path | list | None = None, commands: list[str] | None = None) -> Path:
+    """Write the report of ``results`` into ``out`` (atomically). ``roles``: the methods' roles (none:
+    every method is a baseline). ``config_file``: one path or a list of the config files of the run
+    (printed in the Reproduce section, later ones layered over earlier)."""
     results, out = Path(results), Path(out)
     scenes = collect(results)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        _write(results, scenes, tmp, config_file, commands)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with atomic_dir(out) as tmp:
+        _write(results, scenes, tmp, roles or Roles(), config_file, commands)
     return out / "index.html"
 
 
-def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_file, commands) -> None:
+def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: Roles, config_file,
+           commands) -> None:
+    main = roles.main
     doc = Document("rtsplat benchmark report")
     any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
     machine = any_metrics.get("machine", {})
@@ -261,18 +297,18 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_f
     for scene, runs in scenes.items():
         doc.heading(f"Scene {scene}")
         doc.heading("Quality, speed and training time", 3)
-        doc.table(header, quality_rows(runs))
+        doc.table(header, quality_rows(runs, main))
 
-        ablations = sorted(m for m in runs if m.startswith(ABLATION_PREFIX))
-        if ablations and MAIN in runs:
+        ablations = roles.of_role(runs, "ablation")
+        if ablations and main in runs:
             doc.heading("Ablations (transparent-region PSNR)", 3)
-            full = runs[MAIN].mean.get("psnr_transparent")
-            rows = [[MAIN, _fmt(full), "0.00"]]
+            full = runs[main].mean.get("psnr_transparent")
+            rows = [[main, _fmt(full), "0.00"]]
             for m in ablations:
                 v = runs[m].mean.get("psnr_transparent")
                 delta = v - full if isinstance(v, float) and isinstance(full, float) else None
                 rows.append([m, _fmt(v), _fmt(delta)])
-            doc.table(["method", "PSNR (transp.)", "vs rtsplat"], rows)
+            doc.table(["method", "PSNR (transp.)", f"vs {main}"], rows)
 
         layer_rows = [[m, _fmt(r.mean.get("psnr_reflection_layer")), _fmt(r.mean.get("psnr_transmission_layer"))]
                       for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]
@@ -298,7 +334,9 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_f
             gt = _copy_image(prepared, out, f"{scene}_{view}_gt.png")
             if gt:
                 items.append((gt, "ground truth"))
-            for method in [MAIN] + sorted(m for m in runs if m != MAIN and not m.startswith(ABLATION_PREFIX)):
+            compared = [main] if main in runs else []
+            compared += [m for m in sorted(runs) if m != main and roles.role.get(m, "baseline") != "ablation"]
+            for method in compared:
                 img = _copy_image(results / scene / "renders" / method / "color" / f"{view}.png", out,
                                   f"{scene}_{view}_{method}.png")
                 if img:
@@ -308,15 +346,17 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_f
                 doc.images(items)
             layers = []
             for layer in ("reflection", "transmission", "scatter", "normal", "depth"):
-                img = _copy_image(results / scene / "renders" / MAIN / layer / f"{view}.png", out,
+                if main is None:
+                    break
+                img = _copy_image(results / scene / "renders" / main / layer / f"{view}.png", out,
                                   f"{scene}_{view}_{layer}.png")
                 if img:
                     layers.append((img, layer))
             if layers:
-                doc.heading("Decomposition (rtsplat)", 3)
+                doc.heading(f"Decomposition ({main})", 3)
                 doc.images(layers)
             edits = []
-            for edit_dir in sorted((results / scene / "renders").glob(f"{MAIN}@*")):
+            for edit_dir in sorted((results / scene / "renders").glob(f"{main}@*") if main else []):
                 img = _copy_image(edit_dir / "color" / f"{view}.png", out, f"{scene}_{view}_{edit_dir.name}.png")
                 if img:
                     edits.append((img, edit_dir.name.split("@", 1)[1]))
@@ -325,7 +365,7 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, config_f
                 doc.images(edits)
 
     doc.heading("Noise")
-    noise = [row for scene, runs in scenes.items() for row in _noise_rows(scene, runs)]
+    noise = [row for scene, runs in scenes.items() for row in _noise_rows(scene, runs, roles, results)]
     if noise:
         doc.paragraph("Differences between runs of the same config on this machine. Same seed: quality differences "
                       "come from non-deterministic floating-point reductions, time differences from machine load; "
@@ -355,13 +395,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, action="append", default=[],
                         help="a config file to print in the Reproduce section (repeat for layered configs)")
     parser.add_argument("--command", action="append", default=[], help="a command to print in Reproduce")
+    parser.add_argument("--roles-json", help="the methods' roles as JSON {method: {role, of}} "
+                        "(rtsplat.config.roles_json; the workflow passes them); none: every method is a baseline")
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        index = build_report(args.results, args.out, config_file=args.config, commands=args.command or None)
-    except PipelineError as exc:
-        print(f"rtsplat report: error: {exc}", file=sys.stderr)
-        return 2
+    roles = Roles()
+    if args.roles_json:
+        try:
+            roles = Roles.from_dict(json.loads(args.roles_json))
+        except json.JSONDecodeError as exc:
+            raise PipelineError(f"--roles-json is not valid JSON ({exc})", fix="pass a JSON object") from None
+    index = build_report(args.results, args.out, roles=roles, config_file=args.config, commands=args.command or None)
     print(f"report: {index}")
     return 0

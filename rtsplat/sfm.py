@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import sys
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -214,16 +213,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        cfg = stage_config_from_args(args, "sfm")
-        if args.matcher:
-            cfg.matcher = args.matcher
-        if args.num_threads is not None:
-            cfg.num_threads = args.num_threads
-        s = run_sfm(args.scene_dir, args.out, cfg, args.masks)
-    except PipelineError as exc:
-        print(f"rtsplat sfm: error: {exc}", file=sys.stderr)
-        return 1
+    cfg = stage_config_from_args(args, "sfm", {"matcher": args.matcher, "num_threads": args.num_threads})
+    s = run_sfm(args.scene_dir, args.out, cfg, args.masks)
     err = "n/a" if s.mean_reprojection_error is None else f"{s.mean_reprojection_error:.3f} px"
     how = "model from the dataset" if s.source == "dataset" else f"SfM ({s.matcher} matching)"
     print(

@@ -51,3 +51,16 @@ def test_invalid_cameras_are_rejected_with_a_clear_message():
         Camera(torch.eye(3), torch.eye(4), 0, 10)
     with pytest.raises(ValueError, match="parallel"):
         look_at((0, 0, 0), (0, 0, 1), up=(0, 0, 1))
+
+
+def test_pixel_rays_project_back_to_their_pixels():
+    from rtsplat.camera import pixel_rays
+
+    cam = camera_from_fov((1.0, -3.0, 2.0), (0.2, 0.1, 0.3), width=64, height=48, fov_x_deg=55.0, dtype=torch.float64)
+    cam = Camera(intrinsics(70.0, 64.0, 30.5, 25.0, dtype=torch.float64), cam.world_to_camera, 64, 48)
+    u = torch.tensor([0.0, 0.5, 31.25, 63.9])
+    v = torch.tensor([0.0, 47.5, 12.0, 30.0])
+    origin, dirs = pixel_rays(cam, u, v)
+    assert torch.allclose(origin, cam.center) and torch.allclose(dirs.norm(dim=-1), torch.ones(4, dtype=torch.float64))
+    pix, depth = cam.project(origin + 2.5 * dirs)
+    assert (depth > 0).all() and torch.allclose(pix, torch.stack([u, v], -1).double(), atol=1e-9)

@@ -22,6 +22,21 @@ def test_unimplemented_stage_says_so_and_exits_nonzero(monkeypatch, capsys):
     assert "not implemented yet" in capsys.readouterr().err
 
 
+def test_bad_input_of_any_stage_is_printed_once_and_exits_1(monkeypatch, tmp_path, capsys):
+    (tmp_path / "failing_stage_mod.py").write_text(
+        "from rtsplat.errors import ConfigError\n"
+        "def add_arguments(parser):\n    parser.add_argument('--n', type=int, required=True)\n"
+        "def run(args):\n    raise ConfigError('n is bad', path='x.yaml', fix='use another n')\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(cli, "STAGES", (*cli.STAGES, cli.Stage("failing", "failing_stage_mod", "always fails")))
+    assert cli.main(["failing", "--n", "1"]) == cli.BAD_INPUT_EXIT == 1
+    assert capsys.readouterr().err == "rtsplat failing: error: x.yaml: n is bad\n  Fix: use another n\n"
+    with pytest.raises(SystemExit) as exc:  # a usage error stays argparse's status 2
+        cli.main(["failing"])
+    assert exc.value.code == 2
+
+
 def test_a_missing_dependency_inside_a_stage_is_not_reported_as_unimplemented(monkeypatch, tmp_path):
     (tmp_path / "broken_stage_mod.py").write_text("import a_dependency_that_is_not_installed\n")
     monkeypatch.syspath_prepend(str(tmp_path))

@@ -159,6 +159,33 @@ def test_budget_method_scales_every_iteration_count_and_bad_methods_fail_at_load
             load_config_dict({"methods": {"bad": bad}})
 
 
+def test_method_roles_are_explicit_validated_and_not_trainer_keys():
+    from rtsplat.config import MethodRole, main_method, method_roles, roles_json
+
+    methods = {"base": {"role": "baseline"}, "full": {"role": "main", "seed": 2},
+               "no_gating": {"role": "ablation", "ablations": {"gating": False}},
+               "again": {"role": "repeat", "of": "full", "seed": 5}, "other": {}}
+    cfg = load_config_dict({"methods": methods})
+    assert method_roles(cfg) == {"base": MethodRole("baseline"), "full": MethodRole("main"),
+                                 "no_gating": MethodRole("ablation"), "again": MethodRole("repeat", "full"),
+                                 "other": MethodRole("baseline")}
+    assert main_method(cfg) == "full"
+    assert json.loads(roles_json(cfg, quote=False))["again"] == {"role": "repeat", "of": "full"}
+    # role keys never reach the trainer; the method's own keys do
+    again = json.loads(train_json(cfg, "s", "again", quote=False))
+    assert "role" not in again and "of" not in again and again["seed"] == 5
+    # without any role: the first method listed is the main one, the others baselines
+    plain = load_config_dict({"methods": {"b": {}, "a": {}}})
+    assert main_method(plain) == "b" and method_roles(plain)["a"] == MethodRole("baseline")
+    for bad, match in (({"a": {"role": "star"}}, r"methods\.a\.role.*one of"),
+                       ({"a": {"role": "main"}, "b": {"role": "main"}}, "several methods have role main"),
+                       ({"a": {}, "b": {"role": "repeat"}}, "methods.b.of is None"),
+                       ({"a": {}, "b": {"role": "repeat", "of": "c"}}, "methods.b.of is 'c'"),
+                       ({"a": {}, "b": {"role": "ablation", "of": "a"}}, "its role is ablation")):
+        with pytest.raises(ConfigError, match=match):
+            load_config_dict({"methods": bad})
+
+
 def test_scene_discovery(tmp_path):
     for s in ("b", "a"):
         (tmp_path / s / "images").mkdir(parents=True)
@@ -202,3 +229,20 @@ def test_stage_cli_reads_config_file_with_scene_overrides(tmp_path):
     args = parser.parse_args(["--config-json", '{"downsampel": 3}'])
     with pytest.raises(ConfigError, match="'defaults.prepare.downsampel' does not exist"):
         stage_config_from_args(args, "prepare")
+
+
+def test_stage_flags_are_validated_overrides_of_the_config_section():
+    import argparse
+
+    from rtsplat.config import add_config_arguments, stage_config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser)
+    args = parser.parse_args(["--config-json", '{"downsample": 2, "test_every": 5}'])
+    cfg = stage_config_from_args(args, "prepare", {"downsample": 4})
+    assert (cfg.downsample, cfg.test_every) == (4, 5)  # the flag wins, the rest of the section stays
+    assert stage_config_from_args(args, "prepare", {"downsample": None}).downsample == 2  # flag not given
+    with pytest.raises(ConfigError, match=r"prepare\.downsample.*less than the minimum of 1"):
+        stage_config_from_args(args, "prepare", {"downsample": 0})
+    masks = stage_config_from_args(parser.parse_args([]), "masks", {"source": "none", "onnx.model": "m.onnx"})
+    assert masks.source == "none" and masks.onnx.model == "m.onnx" and masks.onnx.kind == "auto"

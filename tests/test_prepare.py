@@ -162,6 +162,9 @@ def test_prepare_cli_and_failures_keep_earlier_output(base, tmp_path, capsys):
     args = ["prepare", "--scene-dir", str(scene), "--sfm", str(sfm), "--masks", str(masks), "--out", str(out)]
     assert cli_main(args + ["--downsample", "2"]) == 0
     assert "8 train + 2 test views at 80x60 (downsample 2)" in capsys.readouterr().out
+    # a flag is an override of its config key, validated like one: status 1 and the key, no traceback
+    assert cli_main(args + ["--downsample", "0"]) == 1
+    assert "prepare.downsample" in capsys.readouterr().err
     before = (out / "scene.json").read_text()
     # an image truncated after SfM: clear error naming it, earlier prepared scene intact
     img = Path(json.loads((sfm / "summary.json").read_text())["image_dir"]) / "view_004.png"

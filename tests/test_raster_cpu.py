@@ -188,7 +188,7 @@ def test_float32_cpu_is_as_accurate_as_float32_reference():
     )
 
 
-# -- hard cases (the rasterizer issue's) --------------------------------------------------------------
+# -- hard cases: edge-on surfels, extreme scales, occupancy and opacity extremes ------------------------
 
 
 def _hard_scenes(dtype):

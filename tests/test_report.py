@@ -11,9 +11,10 @@ import pytest
 
 from rtsplat.bench.toy_scene import write_scene
 from rtsplat.errors import PipelineError
-from rtsplat.metrics import compute_metrics, write_json_atomic
+from rtsplat.io.atomic import write_json_atomic
+from rtsplat.metrics import compute_metrics
 from rtsplat.render import Edits, render_run
-from rtsplat.report import build_report, pareto_front
+from rtsplat.report import Roles, build_report, pareto_front
 from rtsplat.train.config import TrainConfig
 from rtsplat.train.trainer import Trainer
 
@@ -22,6 +23,7 @@ METHODS = {
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
     "ablation_gating": {"ablations": {"gating": False}},
 }
+ROLES = {"rtsplat": {"role": "main"}, "2dgs": {"role": "baseline"}, "ablation_gating": {"role": "ablation"}}
 
 
 def test_pareto_front_by_hand():
@@ -50,7 +52,7 @@ def results(tmp_path_factory):
 
 
 def test_report_has_tables_plots_and_images(results, tmp_path):
-    index = build_report(results, tmp_path / "report", commands=["make demo"])
+    index = build_report(results, tmp_path / "report", roles=Roles.from_dict(ROLES), commands=["make demo"])
     html, md = index.read_text(), (tmp_path / "report" / "index.md").read_text()
     for method in METHODS:
         assert f"<td>{method}</td>" in html and f"| {method} |" in md
@@ -74,13 +76,36 @@ def test_report_measures_noise_from_repeated_runs(results, tmp_path):
     shutil.copytree(copy / "toy" / "runs" / "2dgs", copy / "toy" / "runs" / "2dgs_repeat")
     shutil.copy(copy / "toy" / "metrics" / "2dgs.json", copy / "toy" / "metrics" / "2dgs_repeat.json")
     shutil.copytree(copy / "toy" / "runs" / "2dgs", copy / "toy" / "runs" / "2dgs_seed3")
+    config = json.loads((copy / "toy" / "runs" / "2dgs_seed3" / "config.json").read_text())
+    (copy / "toy" / "runs" / "2dgs_seed3" / "config.json").write_text(json.dumps({**config, "seed": 3}))
     metrics = json.loads((copy / "toy" / "metrics" / "2dgs.json").read_text())
     metrics["mean"]["psnr"] += 0.25  # another seed scored a quarter dB higher on the entire image
     (copy / "toy" / "metrics" / "2dgs_seed3.json").write_text(json.dumps(metrics))
-    md = build_report(copy, tmp_path / "report").with_suffix(".md").read_text()
+    # the roles say which runs are repeats (their names do not matter: "again" reruns 2dgs too)
+    shutil.copytree(copy / "toy" / "runs" / "2dgs", copy / "toy" / "runs" / "again")
+    roles = Roles.from_dict({**ROLES, **{m: {"role": "repeat", "of": "2dgs"} for m in ("2dgs_repeat", "2dgs_seed3")},
+                             "again": {"role": "baseline"}})
+    md = build_report(copy, tmp_path / "report", roles=roles).with_suffix(".md").read_text()
     assert "| toy | 2dgs | same seed | 0.000 | 0.000 | " in md  # identical copies: zero difference
     assert "| toy | 2dgs | seed 3 | 0.250 | 0.000 | " in md
+    assert md.count("| toy | 2dgs | ") == 2  # a baseline is no repeat, whatever its name or config
     assert "run-to-run noise was not measured" not in md
+    # without roles nothing is a repeat, an ablation or the main method: the report does not guess from names
+    plain = build_report(copy, tmp_path / "plain").with_suffix(".md").read_text()
+    assert "run-to-run noise was not measured" in plain and "Ablations" not in plain
+    assert "Decomposition (" not in plain and "Scene editing" not in plain
+
+
+def test_bad_roles_are_clear_errors(results, tmp_path):
+    for roles, text in (({"rtsplat": {"role": "star"}}, "role 'star'"),
+                        ({"a": {"role": "repeat"}}, "which method it reruns"),
+                        ({"a": {"role": "main"}, "b": {"role": "main"}}, "more than one")):
+        with pytest.raises(PipelineError, match=text):
+            Roles.from_dict(roles)
+    result = subprocess.run([sys.executable, "-m", "rtsplat.cli", "report", "--results", str(results),
+                             "--out", str(tmp_path / "r"), "--roles-json", "{"], capture_output=True, text=True)
+    assert result.returncode == 1 and "--roles-json is not valid JSON" in result.stderr
+    assert not (tmp_path / "r").exists()
 
 
 def test_no_results_is_a_clear_error_and_leaves_nothing(tmp_path):
@@ -89,4 +114,4 @@ def test_no_results_is_a_clear_error_and_leaves_nothing(tmp_path):
     assert not (tmp_path / "report").exists()
     result = subprocess.run([sys.executable, "-m", "rtsplat.cli", "report", "--results", str(tmp_path),
                              "--out", str(tmp_path / "r")], capture_output=True, text=True)
-    assert result.returncode == 2 and "rtsplat train" in result.stderr
+    assert result.returncode == 1 and "rtsplat train" in result.stderr  # bad input: status 1, as every stage

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
@@ -175,3 +176,26 @@ def test_computed_model_registering_too_few_images_fails(tmp_path):
     assert re.search(r"only [0-3] of 8 images are registered|registered no images", msg), msg
     assert "Fix:" in msg and "images" in msg
     assert not (tmp_path / "sfm").exists()
+
+
+def test_written_models_read_back_identical_in_binary_and_text(tmp_path):
+    from rtsplat.camera import camera_from_fov
+
+    rng = np.random.default_rng(1)
+    cams = [camera_from_fov(tuple(rng.normal(size=3) + [0, 0, 4]), (0, 0, 0), width=80, height=60, fov_x_deg=40 + i,
+                            dtype=torch.float64) for i in range(4)]
+    views = [(f"v{i}.png", c.K.numpy(), c.world_to_camera.numpy(), 80, 60) for i, c in enumerate(cams)]
+    xyz, rgb = rng.normal(size=(9, 3)), rng.integers(0, 256, (9, 3)).astype(np.uint8)
+    write_model(tmp_path / "bin", views, xyz, rgb)
+    shutil.copytree(tmp_path / "bin", tmp_path / "txt")
+    for f in (tmp_path / "txt").glob("*.bin"):
+        f.unlink()  # pycolmap reads the .txt twins
+    for folder in ("bin", "txt"):
+        model = load_model(tmp_path / folder)
+        assert [v.name for v in model.views] == [v[0] for v in views]
+        for v, (_, K, w2c, w, h) in zip(model.views, views, strict=True):
+            assert (v.model, v.width, v.height) == ("PINHOLE", w, h)
+            assert np.allclose(v.K, K, rtol=0, atol=1e-12) and np.allclose(v.world_to_camera, w2c, rtol=0, atol=1e-12)
+        order = np.lexsort(model.xyz.T)
+        assert np.allclose(model.xyz[order], xyz[np.lexsort(xyz.T)], rtol=0, atol=1e-12)
+        assert np.array_equal(model.rgb[order], rgb[np.lexsort(xyz.T)])

@@ -14,9 +14,11 @@ mi = pytest.importorskip("mitsuba")
 cv2 = pytest.importorskip("cv2")
 
 from rtsplat.camera import camera_from_fov  # noqa: E402
+from rtsplat.cli import main as cli_main  # noqa: E402
+from rtsplat.errors import ConfigError  # noqa: E402
+from rtsplat.io.colmap import quaternion_to_rotation, rotation_to_quaternion  # noqa: E402
 from rtsplat.io.images import read_image  # noqa: E402
 from rtsplat.synth import cli as synth_cli  # noqa: E402
-from rtsplat.synth.colmap_model import quaternion_to_rotation, rotation_to_quaternion  # noqa: E402
 from rtsplat.synth.dataset import SynthConfig, render_dataset  # noqa: E402
 from rtsplat.synth.render import load_scene, render_view, set_variant  # noqa: E402
 
@@ -68,13 +70,14 @@ def test_quaternion_round_trip():
 
 
 def test_bad_arguments_are_rejected(tmp_path, capsys):
-    rc, out = _cli(tmp_path, "teapot")
-    assert rc == 2 and "unknown scene" in capsys.readouterr().err and not out.exists()
-    rc, out = _cli(tmp_path, "dome", views=8)
-    assert rc == 2 and "views must be in 40-200" in capsys.readouterr().err and not out.exists()
-    rc, out = _cli(tmp_path, "dome", views=40, spp=0)
-    assert rc == 2 and "spp" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="views"):
+    # bad input exits with status 1, the convention of every stage (rtsplat.cli.main prints the error)
+    def main(scene, *extra):
+        return cli_main(["synth", "--scene", scene, "--out", str(tmp_path / scene), "--no-progress", *extra])
+
+    assert main("teapot") == 1 and "unknown scene" in capsys.readouterr().err
+    assert main("dome", "--views", "8") == 1 and "views must be in 40-200" in capsys.readouterr().err
+    assert main("dome", "--views", "40", "--spp", "0") == 1 and "spp" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="views"):
         SynthConfig(views=201).validate()
     SynthConfig(views=8, allow_any_views=True).validate()
     assert list(tmp_path.iterdir()) == []

@@ -206,8 +206,9 @@ def test_whole_dag_to_the_report(tmp_path):
     """Train, render (plus an edit), metrics and the report for real, on a tiny two-method run."""
     make_corner_scene(tmp_path / "data" / "glass", n_views=9, width=80, height=60, with_model=True, with_masks=True)
     cfg = _config(
-        tmp_path, overrides={}, methods={"rtsplat": {}, "2dgs": {"effects": {"transmission": "off", "specular": "off"}}}
-    )
+        tmp_path, overrides={},
+        methods={"rtsplat": {"role": "main"}, "2dgs": {"effects": {"transmission": "off", "specular": "off"}}},
+    )  # the main method is named: yaml.safe_dump sorts the keys, so "first listed" would be 2dgs
     data = yaml.safe_load(cfg.read_text())
     data["defaults"]["prepare"] = {"downsample": 2}
     data["defaults"]["train"] = {

@@ -1,4 +1,5 @@
-"""COLMAP sparse models as plain numpy data (read with pycolmap, written for test fixtures).
+"""COLMAP sparse models as plain numpy data: read with pycolmap, written (text and binary) for
+ground-truth cameras (``rtsplat synth``) and test fixtures.
 
 Poses are COLMAP's ``cam_from_world``, which is exactly rtsplat's ``world_to_camera`` (OpenCV axes,
 pixel corner at (0, 0)); see :mod:`rtsplat.camera`.
@@ -6,6 +7,7 @@ pixel corner at (0, 0)); see :mod:`rtsplat.camera`.
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -109,24 +111,158 @@ def write_model(
     xyz: np.ndarray | None = None,
     rgb: np.ndarray | None = None,
 ) -> None:
-    """Write a binary COLMAP model of PINHOLE cameras: ``views`` = [(name, K, world_to_camera, w, h)].
+    """Write a COLMAP model of PINHOLE cameras: ``views`` = [(name, K, world_to_camera, w, h)].
 
-    Points get empty tracks; this is meant for known-pose datasets and test fixtures.
+    Points get empty tracks (grey when ``rgb`` is None); this is meant for known-pose datasets and
+    test fixtures. See :func:`write_sparse_model`.
     """
-    import pycolmap
+    images = [ColmapImage(name, np.asarray(K, np.float64), np.asarray(w2c, np.float64), int(w), int(h))
+              for name, K, w2c, w, h in views]
+    xyz = np.zeros((0, 3)) if xyz is None else np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    colors = np.full((len(xyz), 3), 128, np.uint8) if rgb is None else np.asarray(rgb, np.uint8).reshape(-1, 3)
+    write_sparse_model(path, images, ColmapPoints(xyz, colors, [[] for _ in range(len(xyz))]))
 
-    rec = pycolmap.Reconstruction()
-    for i, (name, K, w2c, w, h) in enumerate(views, start=1):
-        cam = pycolmap.Camera.create_from_model_name(
-            i, "PINHOLE", float(K[0, 0]), int(w), int(h)
+
+PINHOLE_MODEL_ID = 1
+
+
+@dataclass
+class ColmapImage:
+    name: str
+    K: np.ndarray  # 3x3
+    world_to_camera: np.ndarray  # 4x4
+    width: int
+    height: int
+    points2d: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # [M, 2] pixels
+    point3d_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # [M]
+
+
+@dataclass
+class ColmapPoints:
+    xyz: np.ndarray  # [N, 3]
+    rgb: np.ndarray  # [N, 3] uint8
+    tracks: list[list[tuple[int, int]]]  # per point: (image_id, point2D index)
+
+
+def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """3x3 rotation -> unit quaternion (w, x, y, z) with w >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    m = (
+        np.array(
+            [
+                [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
+                [R[0, 1] + R[1, 0], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
+                [R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], R[2, 2] - R[0, 0] - R[1, 1], 0],
+                [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
+            ]
         )
-        cam.params = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
-        rec.add_camera_with_trivial_rig(cam)
-        image = pycolmap.Image(name=name, camera_id=i, image_id=i)
-        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(np.asarray(w2c, dtype=np.float64)[:3, :4]))
-    if xyz is not None:
-        colors = np.full((len(xyz), 3), 128, np.uint8) if rgb is None else np.asarray(rgb, np.uint8)
-        for p, c in zip(np.asarray(xyz, dtype=np.float64), colors, strict=True):
-            rec.add_point3D(p, pycolmap.Track(), c)
-    Path(path).mkdir(parents=True, exist_ok=True)
-    rec.write_binary(str(path))
+        / 3.0
+    )
+    # The eigenvector of the largest eigenvalue of this symmetric matrix is (x, y, z, w).
+    vals, vecs = np.linalg.eigh(m)
+    x, y, z, w = vecs[:, np.argmax(vals)]
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
+
+
+def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) -> 3x3 rotation."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _camera_groups(images: list[ColmapImage]) -> tuple[list[tuple], list[int]]:
+    """Distinct intrinsics -> camera list [(width, height, fx, fy, cx, cy)] and per-image ids."""
+    cams: list[tuple] = []
+    ids: list[int] = []
+    for im in images:
+        key = (
+            int(im.width),
+            int(im.height),
+            float(im.K[0, 0]),
+            float(im.K[1, 1]),
+            float(im.K[0, 2]),
+            float(im.K[1, 2]),
+        )
+        if key not in cams:
+            cams.append(key)
+        ids.append(cams.index(key) + 1)
+    return cams, ids
+
+
+def write_sparse_model(path: str | Path, images: list[ColmapImage], points: ColmapPoints) -> None:
+    """Write ``cameras``, ``images``, ``points3D`` as ``.txt`` and ``.bin`` into ``path``: PINHOLE cameras
+    (images with equal intrinsics share one), ``cam_from_world`` poses as a unit quaternion (w, x, y, z)
+    and a translation, the images' 2D points and the points' tracks, in the layout COLMAP, pycolmap
+    and 3DGS-style loaders read."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    cams, cam_ids = _camera_groups(images)
+    poses = []
+    for im in images:
+        w2c = np.asarray(im.world_to_camera, dtype=np.float64)
+        poses.append((rotation_to_quaternion(w2c[:3, :3]), w2c[:3, 3]))
+
+    # cameras
+    with open(path / "cameras.txt", "w") as f:
+        f.write("# Camera list with one line of data per camera:\n")
+        f.write("#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
+        f.write(f"# Number of cameras: {len(cams)}\n")
+        for cid, (w, h, fx, fy, cx, cy) in enumerate(cams, start=1):
+            f.write(f"{cid} PINHOLE {w} {h} {fx!r} {fy!r} {cx!r} {cy!r}\n")
+    with open(path / "cameras.bin", "wb") as f:
+        f.write(struct.pack("<Q", len(cams)))
+        for cid, (w, h, fx, fy, cx, cy) in enumerate(cams, start=1):
+            f.write(struct.pack("<iiQQdddd", cid, PINHOLE_MODEL_ID, w, h, fx, fy, cx, cy))
+
+    # images
+    with open(path / "images.txt", "w") as f:
+        f.write("# Image list with two lines of data per image:\n")
+        f.write("#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n")
+        f.write("#   POINTS2D[] as (X, Y, POINT3D_ID)\n")
+        f.write(f"# Number of images: {len(images)}\n")
+        for iid, (im, (q, t), cid) in enumerate(zip(images, poses, cam_ids, strict=True), start=1):
+            f.write(f"{iid} {' '.join(repr(float(v)) for v in (*q, *t))} {cid} {im.name}\n")
+            f.write(
+                " ".join(
+                    f"{x!r} {y!r} {int(p)}" for (x, y), p in zip(im.points2d.tolist(), im.point3d_ids, strict=True)
+                )
+                + "\n"
+            )
+    with open(path / "images.bin", "wb") as f:
+        f.write(struct.pack("<Q", len(images)))
+        for iid, (im, (q, t), cid) in enumerate(zip(images, poses, cam_ids, strict=True), start=1):
+            f.write(struct.pack("<i7di", iid, *q, *t, cid))
+            f.write(im.name.encode("utf-8") + b"\x00")
+            f.write(struct.pack("<Q", len(im.point3d_ids)))
+            for (x, y), p in zip(im.points2d.tolist(), im.point3d_ids, strict=True):
+                f.write(struct.pack("<ddq", x, y, int(p)))
+
+    # points3D (ids start at 1)
+    n = len(points.xyz)
+    with open(path / "points3D.txt", "w") as f:
+        f.write("# 3D point list with one line of data per point:\n")
+        f.write("#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
+        f.write(f"# Number of points: {n}\n")
+        for pid in range(n):
+            x, y, z = (float(v) for v in points.xyz[pid])
+            r, g, b = (int(c) for c in points.rgb[pid])
+            track = " ".join(f"{i} {j}" for i, j in points.tracks[pid])
+            f.write(f"{pid + 1} {x!r} {y!r} {z!r} {r} {g} {b} 0.0 {track}\n")
+    with open(path / "points3D.bin", "wb") as f:
+        f.write(struct.pack("<Q", n))
+        for pid in range(n):
+            f.write(
+                struct.pack(
+                    "<Q3d3Bd", pid + 1, *(float(v) for v in points.xyz[pid]), *(int(c) for c in points.rgb[pid]), 0.0
+                )
+            )
+            f.write(struct.pack("<Q", len(points.tracks[pid])))
+            for i, j in points.tracks[pid]:
+                f.write(struct.pack("<ii", i, j))

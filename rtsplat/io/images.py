@@ -48,8 +48,15 @@ def list_images(directory: str | Path) -> list[Path]:
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
+    """Linear values -> sRGB-encoded values in [0, 1] (clipped; float32; IEC 61966-2-1)."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear values (float32; the inverse of :func:`linear_to_srgb`)."""
+    x = np.asarray(x, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def _oiio():
@@ -165,7 +172,8 @@ def to_uint(image: np.ndarray, bits: int = 8) -> np.ndarray:
 
 
 def write_png(path: str | Path, image: np.ndarray, bits: int = 8) -> None:
-    """Write a float image in [0, 1] (``[H, W]`` or ``[H, W, 3]``) or a bool mask as PNG."""
+    """Write a float image in [0, 1] (``[H, W]`` or ``[H, W, 3]``), a uint8/uint16 image (as is) or a
+    bool mask as PNG."""
     import cv2
 
     path = Path(path)

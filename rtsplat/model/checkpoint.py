@@ -80,8 +80,8 @@ def write_checkpoint(path: str | Path, model: RTModel, raster: RasterSettings,
         "training": dict(training or {}),
     }
     path = Path(path)
-    with atomic_file(path) as tmp:
-        torch.save(state, tmp)
+    with atomic_file(path, "wb") as fh:
+        torch.save(state, fh)
     return path
 
 

@@ -9,12 +9,12 @@ reflectance, scatter_0..2, material_0..3 (activated values).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from rtsplat.io.atomic import atomic_file
 from rtsplat.model.surfels import SurfelParameters
 
 FLAT_LOG_SCALE = float(np.log(1e-7))
@@ -63,11 +63,9 @@ def write_surfel_ply(path: str | Path, surfels: SurfelParameters, uses_opacity: 
     header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
     header += "".join(f"property float {k}\n" for k in cols) + "end_header\n"
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_file(path, "wb") as fh:
         fh.write(header.encode("ascii"))
         fh.write(data.tobytes())
-    os.replace(tmp, path)
     return path
 
 

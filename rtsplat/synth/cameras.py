@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from rtsplat.camera import Camera, camera_from_fov
+from rtsplat.camera import pixel_rays as camera_pixel_rays
 
 
 @dataclass(frozen=True)
@@ -115,14 +116,6 @@ def mitsuba_sensor(camera: Camera, spp: int, seed: int = 0) -> dict:
 
 
 def pixel_rays(camera: Camera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World-space rays through continuous pixel positions (u, v) (corner of the image = (0, 0)).
-
-    Returns (origin [3], unit directions [N, 3]), float64.
-    """
-    K = camera.K.detach().cpu().double().numpy()
-    w2c = camera.world_to_camera.detach().cpu().double().numpy()
-    R, t = w2c[:3, :3], w2c[:3, 3]
-    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
-    d = d_cam @ R  # R^T applied to row vectors
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return -R.T @ t, d
+    """:func:`rtsplat.camera.pixel_rays` in float64 numpy, for Mitsuba: (origin [3], unit directions [N, 3])."""
+    origin, directions = camera_pixel_rays(camera.to(device="cpu", dtype=torch.float64), u, v)
+    return origin.detach().numpy(), directions.detach().numpy()

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
+from rtsplat.errors import PipelineError
 from rtsplat.synth.dataset import VIEW_RANGE, SynthConfig
 from rtsplat.synth.scenes import SCENES
 
@@ -61,33 +61,17 @@ def run(args: argparse.Namespace) -> int:
         max_depth=args.max_depth,
         allow_any_views=args.any_views,
     )
-    try:
-        config.validate()
-    except ValueError as exc:
-        print(f"rtsplat synth: error: {exc}", file=sys.stderr)
-        return 2
+    config.validate()
     if args.out.exists() and not args.overwrite:
-        print(f"rtsplat synth: error: {args.out} exists (use --overwrite)", file=sys.stderr)
-        return 2
+        raise PipelineError("the output exists", path=args.out, fix="pass --overwrite to replace it")
     try:
         import mitsuba  # noqa: F401
     except ImportError as exc:
-        print(
-            f"rtsplat synth: error: Mitsuba 3 is not installed ({exc})\n  Fix: pip install 'mitsuba>=3.5'",
-            file=sys.stderr,
-        )
-        return 1
+        raise PipelineError(f"Mitsuba 3 is not installed ({exc})", fix="pip install 'mitsuba>=3.5'") from None
     from rtsplat.synth.dataset import render_dataset
 
     start = time.perf_counter()
-    try:
-        summary = render_dataset(config, args.out, overwrite=args.overwrite, progress=not args.no_progress)
-    except KeyboardInterrupt:
-        print(f"rtsplat synth: interrupted; {args.out} was left as it was", file=sys.stderr)
-        return 130
-    except (OSError, ValueError) as exc:
-        print(f"rtsplat synth: error: {exc}", file=sys.stderr)
-        return 1
+    summary = render_dataset(config, args.out, overwrite=args.overwrite, progress=not args.no_progress)
     check = summary.layer_check
     print(
         f"rtsplat synth: {summary.views} views of '{config.scene}' in {args.out} ({time.perf_counter() - start:.1f} s)"

@@ -26,12 +26,13 @@ from pathlib import Path
 import numpy as np
 
 from rtsplat.camera import Camera
+from rtsplat.errors import ConfigError, PipelineError
 from rtsplat.io.atomic import atomic_dir
+from rtsplat.io.colmap import ColmapImage, ColmapPoints, write_sparse_model
+from rtsplat.io.images import linear_to_srgb, to_uint, write_png
 from rtsplat.synth.cameras import SAMPLER, effective_spp
-from rtsplat.synth.colmap_model import ColmapImage, ColmapPoints, write_model
 from rtsplat.synth.render import VARIANT, ViewRender, load_scene, render_view, set_variant
 from rtsplat.synth.scenes import SCENES, SceneSpec, build_scene
-from rtsplat.synth.textures import to_srgb8
 
 FORMAT = "rtsplat-synth/1"
 VIEW_RANGE = (40, 200)
@@ -54,15 +55,15 @@ class SynthConfig:
     allow_any_views: bool = False
 
     def validate(self) -> None:
-        """Raise ``ValueError`` with a clear message for any bad setting."""
+        """Raise :class:`~rtsplat.errors.ConfigError` with a clear message for any bad setting."""
         if self.scene not in SCENES:
-            raise ValueError(f"unknown scene {self.scene!r}; choose from {', '.join(SCENES)}")
+            raise ConfigError(f"unknown scene {self.scene!r}; choose from {', '.join(SCENES)}")
         lo, hi = VIEW_RANGE
         if self.allow_any_views:
             if not 1 <= self.views <= 1000:
-                raise ValueError(f"views must be in 1-1000, got {self.views}")
+                raise ConfigError(f"views must be in 1-1000, got {self.views}")
         elif not lo <= self.views <= hi:
-            raise ValueError(f"views must be in {lo}-{hi}, got {self.views} (tests may override this)")
+            raise ConfigError(f"views must be in {lo}-{hi}, got {self.views} (tests may override this)")
         for name, value, vlo, vhi in (
             ("width", self.width, 16, 4096),
             ("height", self.height, 16, 4096),
@@ -73,9 +74,9 @@ class SynthConfig:
             ("point_stride", self.point_stride, 1, 1024),
         ):
             if not vlo <= value <= vhi:
-                raise ValueError(f"{name} must be in {vlo}-{vhi}, got {value}")
+                raise ConfigError(f"{name} must be in {vlo}-{vhi}, got {value}")
         if not 0 <= self.seed < 2**31:
-            raise ValueError(f"seed must be in 0-{2**31 - 1}, got {self.seed}")
+            raise ConfigError(f"seed must be in 0-{2**31 - 1}, got {self.seed}")
 
 
 def texture_scale(config: SynthConfig) -> float:
@@ -99,14 +100,14 @@ def view_seed(seed: int, i: int) -> int:
     return (seed * 7919 + i * 104729 + 1) % 2**31
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
-    import cv2
+def to_srgb8(x: np.ndarray) -> np.ndarray:
+    """Linear float image -> 8-bit sRGB image (clipped, rounded)."""
+    return to_uint(linear_to_srgb(x), 8)
 
+
+def _write_png(path: Path, image: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    if image.ndim == 3:
-        image = image[..., ::-1]  # RGB -> BGR
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
-        raise OSError(f"could not write {path}")
+    write_png(path, image)
 
 
 def _camera_json(name: str, cam: Camera) -> dict:
@@ -268,7 +269,7 @@ def render_dataset(
     config.validate()
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
-        raise FileExistsError(f"{out_dir} exists; pass overwrite=True (--overwrite) to replace it")
+        raise PipelineError("the output exists", path=out_dir, fix="pass overwrite=True (--overwrite) to replace it")
     with atomic_dir(out_dir) as tmp:  # a failure or ctrl-C leaves no partial dataset (nor harms an old one)
         set_variant()
         work = tmp / "_work"
@@ -309,7 +310,7 @@ def render_dataset(
                 )
             )
         bar.close()
-        write_model(
+        write_sparse_model(
             tmp / "sparse" / "0",
             colmap_images,
             ColmapPoints(np.array(xyz).reshape(-1, 3), np.array(rgb, dtype=np.uint8).reshape(-1, 3), tracks),

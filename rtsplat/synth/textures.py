@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rtsplat.io.images import srgb_to_linear
+
 # scikit-image data images that are bundled with the package (no network needed), colour ones.
 # name -> file inside skimage.data.data_dir
 _PHOTO_FILES: dict[str, str] = {
@@ -44,23 +46,6 @@ FLOOR_PHOTOS: tuple[str, ...] = (
     "motorcycle",
     "astronaut",
 )
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """sRGB-encoded values in [0, 1] -> linear values (IEC 61966-2-1)."""
-    x = np.asarray(x, dtype=np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """Linear values -> sRGB-encoded values in [0, 1] (clipped)."""
-    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
-
-
-def to_srgb8(x: np.ndarray) -> np.ndarray:
-    """Linear float image -> 8-bit sRGB image (rounded, clipped)."""
-    return np.round(linear_to_srgb(x) * 255.0).astype(np.uint8)
 
 
 @functools.lru_cache(maxsize=32)

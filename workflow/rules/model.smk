@@ -1,11 +1,11 @@
 # Training, rendering, metrics and the report: each rule calls one `rtsplat <stage>` CLI; what
-# the arguments are is decided in rtsplat/config.py (train_json, render_edit_args).
+# the arguments are is decided in rtsplat/config.py (train_json, section_json, render_edit_args).
 import shlex
 from pathlib import Path
 
-from rtsplat.config import render_edit_args, scene_config, train_json
+from rtsplat.config import main_method, render_edit_args, roles_json, scene_config, train_json
 
-MAIN_METHOD = "rtsplat" if "rtsplat" in METHODS else METHODS[0]
+MAIN_METHOD = main_method(CFG)  # the method with role main: the scene edits are rendered for it
 
 
 def edit_names(scene):
@@ -45,7 +45,7 @@ rule render:
     benchmark:
         f"{RESULTS}/{{scene}}/benchmarks/render_{{method}}.tsv"
     params:
-        warmup=lambda wildcards: scene_config(CFG, wildcards.scene).render.warmup,
+        cfg=stage_json("render"),
     threads: 2
     resources:
         gpu=1,
@@ -55,7 +55,7 @@ rule render:
         ENV
     shell:
         "{RTSPLAT} render --data {input.prepared:q} --run {input.run:q} --out {output:q} "
-        "--warmup {params.warmup} --quiet > {log:q} 2>&1"
+        "--config-json {params.cfg} --quiet > {log:q} 2>&1"
 
 
 rule render_edit:
@@ -69,13 +69,14 @@ rule render_edit:
     benchmark:
         f"{RESULTS}/{{scene}}/benchmarks/render_{{method}}@{{edit}}.tsv"
     params:
+        cfg=stage_json("render"),
         edits=lambda wildcards: render_edit_args(CFG, wildcards.scene, wildcards.edit),
     threads: 2
     conda:
         ENV
     shell:
         "{RTSPLAT} render --data {input.prepared:q} --run {input.run:q} --out {output:q} {params.edits} "
-        "--warmup 0 --quiet > {log:q} 2>&1"
+        "--config-json {params.cfg} --warmup 0 --quiet > {log:q} 2>&1"
 
 
 rule metrics:
@@ -90,12 +91,12 @@ rule metrics:
     benchmark:
         f"{RESULTS}/{{scene}}/benchmarks/metrics_{{method}}.tsv"
     params:
-        lpips=lambda wildcards: shlex.quote(scene_config(CFG, wildcards.scene).metrics.lpips_weights),
+        cfg=stage_json("metrics"),
     conda:
         ENV
     shell:
         "{RTSPLAT} metrics --data {input.prepared:q} --renders {input.renders:q} --run {input.run:q} --out {output:q} "
-        "--lpips-weights {params.lpips} > {log:q} 2>&1"
+        "--config-json {params.cfg} > {log:q} 2>&1"
 
 
 def config_files_in_order():
@@ -149,8 +150,9 @@ rule report:
         report=f"{RESULTS}/report",
         config_files=" ".join(f"--config {shlex.quote(f)}" for f in config_files_in_order()),
         command=shlex.quote(reproduce_command()),
+        roles=roles_json(CFG),
     conda:
         ENV
     shell:
         "{RTSPLAT} report --results {params.results:q} --out {params.report:q} {params.config_files} "
-        "--command {params.command} > {log:q} 2>&1"
+        "--command {params.command} --roles-json {params.roles} > {log:q} 2>&1"
