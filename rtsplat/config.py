@@ -132,14 +132,14 @@ class PrepareConfig:
 
 
 def _trainer_config_class() -> type:
-    from rtsplat.train.config import TrainConfig as TrainerConfig  # imports torch: only when needed
+    from rtsplat.train_config import TrainConfig as TrainerConfig  # imports torch: only when needed
 
     return TrainerConfig
 
 
 @dataclass
 class TrainConfig:
-    """Training: the trainer's config tree (``rtsplat train --help``, rtsplat/train/config.py)."""
+    """Training: the trainer's config tree (``rtsplat train --help``, rtsplat/train_config.py)."""
 
     iterations: int | None = _f(None, help="schedule.iterations (null: the trainer's default)", minimum=1)
     backend: str = _f("auto", help="rasterizer backend: auto | cpu | reference")
@@ -340,9 +340,9 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
     """The trainer config tree of ``method`` on ``scene``: the scene's ``train.options`` and
     ``iterations``, the method's overrides merged over them (a method's own ``schedule.iterations``
     wins), ``backend``; then a method's ``budget: F`` scales every iteration count by F
-    (:func:`rtsplat.train.config.scale_budget`). Validated: an unknown or bad key is a ConfigError."""
-    from rtsplat.train.config import TrainConfig as TrainerConfig
-    from rtsplat.train.config import scale_budget
+    (:func:`rtsplat.train_config.scale_budget`). Validated: an unknown or bad key is a ConfigError."""
+    from rtsplat.train_config import TrainConfig as TrainerConfig
+    from rtsplat.train_config import scale_budget
 
     if method not in cfg.methods:
         raise ConfigError(f"unknown method {method!r}", fix=f"add it under 'methods' (known: {sorted(cfg.methods)})")
@@ -365,7 +365,7 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
                 raise ConfigError(f"budget must be a number (a factor on every iteration count), got {budget!r}")
             tree = scale_budget(trainer, float(budget)).validate().to_dict()
     except ConfigError as exc:
-        raise ConfigError(f"{where}: {exc}", fix="use the trainer's keys (rtsplat/train/config.py) and a budget > 0") \
+        raise ConfigError(f"{where}: {exc}", fix="use the trainer's keys (rtsplat/train_config.py) and a budget > 0") \
             from exc
     return tree
 

@@ -5,7 +5,7 @@ A field made with :func:`setting` carries its help text and extra JSON-schema ke
 :func:`check` validates a parsed YAML/JSON dict against it and raises one
 :class:`~rtsplat.errors.ConfigError` whose lines name each wrong key (``train.schedule.iteratons``)
 and the fix; :func:`build` turns a checked dict into the dataclasses. The pipeline config
-(:mod:`rtsplat.config`), the trainer's (:mod:`rtsplat.train.config`), the model's settings
+(:mod:`rtsplat.config`), the trainer's (:mod:`rtsplat.train_config`), the model's settings
 (:mod:`rtsplat.model.settings`) and the rasterizer's (:class:`rtsplat.raster.RasterSettings`) are
 built this way. This module imports nothing else from rtsplat but the error type.
 """

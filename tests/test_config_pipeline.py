@@ -112,7 +112,7 @@ def test_per_scene_overrides_merge_over_defaults():
 
 
 def test_method_overrides_reach_the_trainer_config():
-    from rtsplat.train.config import TrainConfig
+    from rtsplat.train_config import TrainConfig
 
     cfg = load_config_dict(
         {
@@ -135,7 +135,7 @@ def test_method_overrides_reach_the_trainer_config():
 
 
 def test_budget_method_scales_every_iteration_count_and_bad_methods_fail_at_load():
-    from rtsplat.train.config import ITERATION_COUNTS, TrainConfig
+    from rtsplat.train_config import ITERATION_COUNTS, TrainConfig
 
     options = {"schedule": {"volume_until": 100, "specular_from": 200, "densify_every": 100, "eval_every": 0}}
     cfg = load_config_dict({

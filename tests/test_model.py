@@ -18,8 +18,8 @@ from rtsplat.model.sh import eval_sh, rgb_to_sh_dc
 from rtsplat.model.specular import SpecularNetwork
 from rtsplat.model.surfels import init_from_points
 from rtsplat.raster import RasterSettings
-from rtsplat.train.config import Effects
 from rtsplat.train.effects import decide_effects
+from rtsplat.train_config import Effects
 
 SMALL = ModelSettings(env_height=16, env_width=32, env_levels=3, mlp_width=32)
 

@@ -384,8 +384,8 @@ def test_compile_cache_goes_to_the_user_cache(monkeypatch, tmp_path):
 
 
 def train_psnr(backend: str, root: Path, scene, iterations: int = 150, seed: int = 0) -> dict:
-    from rtsplat.train.config import TrainConfig
     from rtsplat.train.trainer import Trainer
+    from rtsplat.train_config import TrainConfig
 
     cfg = TrainConfig.from_dict(
         {

@@ -17,8 +17,8 @@ from rtsplat.metrics import NOT_AVAILABLE, image_metrics
 from rtsplat.model.checkpoint import read_checkpoint
 from rtsplat.quality import ssim_map
 from rtsplat.render import Edits, apply_parameter_edits, render_run
-from rtsplat.train.config import TrainConfig
 from rtsplat.train.trainer import Trainer
+from rtsplat.train_config import TrainConfig
 
 QUANT = 1.5 / 255  # 8-bit PNGs: each layer is rounded separately
 

@@ -15,8 +15,8 @@ from rtsplat.io.atomic import write_json_atomic
 from rtsplat.metrics import compute_metrics
 from rtsplat.render import Edits, render_run
 from rtsplat.report import Roles, build_report, pareto_front
-from rtsplat.train.config import TrainConfig
 from rtsplat.train.trainer import Trainer
+from rtsplat.train_config import TrainConfig
 
 METHODS = {
     "rtsplat": {},

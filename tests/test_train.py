@@ -19,8 +19,8 @@ from rtsplat.bench.toy_scene import write_scene
 from rtsplat.errors import ConfigError
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint
 from rtsplat.model.export import read_surfel_ply
-from rtsplat.train.config import TrainConfig
 from rtsplat.train.trainer import Trainer
+from rtsplat.train_config import TrainConfig
 
 SMALL_MODEL = {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32}
 

@@ -38,7 +38,7 @@ CONFIGS = {
 
 
 def _config(effects: dict, iterations: int, backend: str):
-    from rtsplat.train.config import TrainConfig
+    from rtsplat.train_config import TrainConfig
 
     return TrainConfig.from_dict({
         "effects": effects,

@@ -1,7 +1,7 @@
 """Settings of the RT-Splatting model: its sizes and initial values, the paper's ablation switches
 and the gradient gating. With the active effects and the rasterizer settings they are everything
 needed to rebuild a trained model (:mod:`rtsplat.model.checkpoint`); the trainer's config
-(:mod:`rtsplat.train.config`) holds them as sections. Every ablation changes only the computation it
+(:mod:`rtsplat.train_config`) holds them as sections. Every ablation changes only the computation it
 names. Defaults follow METHOD.md sections 1-6.
 """
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from rtsplat.config import PipelineConfig, add_config_arguments, load_config, trainer_options
 from rtsplat.errors import ConfigError
-from rtsplat.train.config import TrainConfig
+from rtsplat.train_config import TrainConfig
 
 PIPELINE_KEYS = frozenset(f.name for f in dataclasses.fields(PipelineConfig))
 

@@ -19,8 +19,8 @@ from torch import Tensor
 from rtsplat.model.surfels import PARAMETERS, SurfelParameters, logit
 from rtsplat.raster import RasterOutput
 from rtsplat.raster.projection import quat_to_rotmat
-from rtsplat.train.config import Densification, Schedule
 from rtsplat.train.optim import append_rows, keep_rows, reset_rows
+from rtsplat.train_config import Densification, Schedule
 
 
 @dataclass

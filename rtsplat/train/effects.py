@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from rtsplat.model.rtmodel import ActiveEffects
-from rtsplat.train.config import Effects
+from rtsplat.train_config import Effects
 
 
 def decide_effects(

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from rtsplat.model.surfels import PARAMETERS, SurfelParameters
-from rtsplat.train.config import LearningRates
+from rtsplat.train_config import LearningRates
 
 LR_OF = {
     "means": "position_init", "quats": "rotation", "log_scales": "scaling", "occupancy_logit": "occupancy",

@@ -32,11 +32,11 @@ from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
-from rtsplat.train.config import TrainConfig
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.effects import decide_effects
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
+from rtsplat.train_config import TrainConfig
 
 
 @dataclass

@@ -1,4 +1,6 @@
 """Configuration of the RT-Splatting trainer: one dataclass tree, the ``train:`` tree of a config.
+It is plain settings (no training code), so the pipeline config and the stages can read it without
+importing the trainer.
 
 The model's own settings (:class:`ModelSettings`, :class:`Ablations`, :class:`Gating`) live in
 :mod:`rtsplat.model.settings` and the rasterizer's in :class:`rtsplat.raster.RasterSettings`; this
