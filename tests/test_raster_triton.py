@@ -26,23 +26,24 @@ if importlib.util.find_spec("triton") is None:
     pytest.skip("triton is not installed", allow_module_level=True)
 
 import torch  # noqa: E402
-from raster_scenes import random_surfels, replace, small_camera, with_grad  # noqa: E402
+from raster_scenes import SURFEL_FIELDS, random_surfels, replace, small_camera, with_grad  # noqa: E402
 from test_raster_cpu import (  # noqa: E402
     F32,
     F32_ILL,
     F64,
     F64_HARD,
     ILL_CONDITIONED_FLOAT32,
+    _extreme_mixtures,
     _python,
     _scale,
     assert_as_accurate_as_reference,
     assert_mostly_close,
     assert_parity,
 )
-from test_raster_hard_cases import CAMERA_EYE, render_and_check, surfels_at  # noqa: E402
+from test_raster_hard_cases import CAMERA_EYE, surfels_at  # noqa: E402
 
 from rtsplat.bench.raster import sphere_scene  # noqa: E402
-from rtsplat.raster import RasterSettings, default_backend, rasterize  # noqa: E402
+from rtsplat.raster import RasterSettings, Surfels, default_backend, rasterize  # noqa: E402
 from rtsplat.raster.gpu import kernels_interpreted  # noqa: E402
 
 
@@ -159,15 +160,39 @@ def test_hard_cases_float64(name, camera, surfels):
     parity(surfels, camera, F64_HARD)
 
 
+def assert_transmittance_in_range(out) -> None:
+    """alpha = 1 - T of both sets stays in [0, 1], and the distortion is not negative (as render_and_check)."""
+    for name in ("alpha", "volume_alpha"):
+        value = getattr(out, name)
+        assert value.min() >= 0 and value.max() <= 1 + 1e-6, f"{name} outside [0,1]: transmittance < 0"
+    assert (out.distortion >= -1e-6).all()
+
+
 @_hard_cases(torch.float32)
 def test_hard_cases_float32(name, camera, surfels):
-    render_and_check(surfels, camera, backend="triton")  # finite outputs and gradients, T in [0, 1]
+    # parity also asserts that every output and gradient is finite
     if name not in ILL_CONDITIONED_FLOAT32:
-        parity(surfels, camera, F32)
-        return
-    parity(surfels, camera, F32_ILL)
-    camera64 = {n: c for n, c, _ in _hard_scenes(torch.float64)}[name]
-    assert_as_accurate_as_reference(surfels, camera, camera64, floor=1e-3, backend="triton")
+        _, fast = parity(surfels, camera, F32)
+    else:
+        _, fast = parity(surfels, camera, F32_ILL)
+        camera64 = {n: c for n, c, _ in _hard_scenes(torch.float64)}[name]
+        assert_as_accurate_as_reference(surfels, camera, camera64, floor=1e-3, backend="triton")
+    assert_transmittance_in_range(fast)
+
+
+@pytest.mark.parametrize("seed,scale,occupancy,opacity,distance,tilt", list(_extreme_mixtures(3)))
+def test_extreme_mixtures_float32(seed, scale, occupancy, opacity, distance, tilt):
+    """The first draws of the cpu tests' extreme mixtures, on 6 ordinary surfels instead of 12."""
+    camera = small_camera(24, 16, torch.float32, eye=CAMERA_EYE)
+    base = random_surfels(6, seed, dtype=torch.float32, spread=0.8, n_features=3)
+    torch.manual_seed(seed)
+    extreme = surfels_at(
+        [[0.0, -3.0 + distance, 0.0]], (math.sin(tilt), -math.cos(tilt), 0.0), scale, occupancy=occupancy,
+        opacity=opacity,
+    )
+    merged = Surfels(*[torch.cat([getattr(base, f), getattr(extreme, f)]) for f in SURFEL_FIELDS])
+    _, fast = parity(merged, camera, F32)
+    assert_transmittance_in_range(fast)
 
 
 # -- densification signal, backend switch ------------------------------------------------------------
@@ -202,7 +227,7 @@ def test_without_the_interpreter_cpu_tensors_are_refused_and_import_loads_no_tri
         import torch
         import rtsplat.raster
         print('triton' in sys.modules)
-        from raster_scenes import random_surfels, small_camera
+        from raster_scenes import SURFEL_FIELDS, random_surfels, small_camera
         from rtsplat.raster import rasterize
         try:
             rasterize(random_surfels(4, 0, dtype=torch.float32), small_camera(16, 12, torch.float32), backend="triton")
