@@ -21,13 +21,16 @@ The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
 Arithmetic runs in float32, or float64 for float64 inputs; outputs and gradients come back in the
 input dtype.
 
-Devices: CUDA tensors run the compiled kernels. CPU tensors run only in Triton's interpreter
-(``TRITON_INTERPRET=1`` in the environment before the kernels are first imported): slow, meant for
-testing the kernels without a GPU; otherwise a ``ValueError`` says how to proceed.
+Devices: CUDA tensors run the compiled kernels (Triton compiles them on first use per tile size,
+channel count and dtype, and caches them in ``$TRITON_CACHE_DIR``, default ``~/.triton/cache``).
+CPU tensors run only in Triton's interpreter (``TRITON_INTERPRET=1`` in the environment before
+triton is first imported): slow, meant for testing the kernels without a GPU
+(``tests/test_raster_triton.py``); otherwise a ``ValueError`` says how to proceed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 
@@ -116,6 +119,11 @@ def compile_options(tile_size: int) -> dict:
     return dict(num_warps=max(1, min(8, lanes // 32)), enable_fp_fusion=False)
 
 
+def _on(device: torch.device):
+    """Launch on the tensors' GPU (Triton launches on the current CUDA device)."""
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
+
+
 class _Composite(torch.autograd.Function):
     """Per-pixel compositing of both weight sets; inputs are per-surfel projected tensors."""
 
@@ -149,9 +157,10 @@ class _Composite(torch.autograd.Function):
         shape = dict(kernel_constexprs(bins.tile_size, fc, cdt), **compile_options(bins.tile_size))
         has_pairs = lists[0].shape[0] > 0
         if has_pairs:
-            k.forward_kernel[(bins.num_tiles,)](
-                *inputs, *lists, params, out, aux, stops, used, bins.tiles_x, width, height, fc, **shape
-            )
+            with _on(device):
+                k.forward_kernel[(bins.num_tiles,)](
+                    *inputs, *lists, params, out, aux, stops, used, bins.tiles_x, width, height, fc, **shape
+                )
         ctx.save_for_backward(*inputs, *lists, params, out, aux, stops)
         ctx.meta = (n, fc, width, height, M.dtype, bins.tiles_x, bins.num_tiles, shape, has_pairs)
         visible = torch.zeros(n, dtype=torch.bool, device=device)
@@ -172,9 +181,10 @@ class _Composite(torch.autograd.Function):
         grad = torch.zeros(n, 16 + fc, dtype=cdt, device=out.device)
         if has_pairs:
             grad_out = grad_image.reshape(width * height, fc + 9).to(cdt).contiguous()
-            _kernels().backward_kernel[(num_tiles,)](
-                *inputs, *lists, params, out, aux, stops, grad_out, grad, tiles_x, width, height, fc, **shape
-            )
+            with _on(out.device):
+                _kernels().backward_kernel[(num_tiles,)](
+                    *inputs, *lists, params, out, aux, stops, grad_out, grad, tiles_x, width, height, fc, **shape
+                )
         grad = grad.to(dtype)
         return (
             grad[:, 0:9].reshape(n, 3, 3),
