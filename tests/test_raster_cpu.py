@@ -61,7 +61,7 @@ def run(surfels: Surfels, camera, backend: str, seed: int = 0, settings: RasterS
     out = rasterize(s, camera, settings, backend=backend)
     g = torch.Generator().manual_seed(seed)  # weights drawn in float64: the same loss for either dtype
     loss = sum(
-        (value * torch.rand(value.shape, generator=g, dtype=torch.float64).to(value.dtype)).sum()
+        (value * torch.rand(value.shape, generator=g, dtype=torch.float64).to(value.device, value.dtype)).sum()
         for value in (getattr(out, name) for name in IMAGE_OUTPUTS)
     )
     grads = {}

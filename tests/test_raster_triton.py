@@ -1,10 +1,12 @@
-"""The ``triton`` backend against the torch reference (the oracle), run in Triton's interpreter.
+"""The ``triton`` backend against the torch reference (the oracle), in Triton's interpreter or on a GPU.
 
-``TRITON_INTERPRET=1`` is set before the kernels are imported, so their Python bodies run on CPU
-tensors with numpy semantics: the same kernel source as on a GPU, no GPU needed. The interpreter
-costs ~0.1 s per (tile, surfel) step, so the scenes are tiny (a few 16x16 tiles, a dozen surfels):
-this is an oracle of the semantics, not a speed test. Compiling the same kernels for a CUDA target
-is checked in ``test_raster_triton_aot.py``.
+Without a CUDA device, ``TRITON_INTERPRET=1`` is set before triton is first imported, so the kernels'
+Python bodies run on CPU tensors with numpy semantics: the same kernel source as on a GPU, no GPU
+needed. The interpreter costs ~0.1 s per (tile, surfel) step, so the scenes are tiny (a few 16x16
+tiles, a dozen surfels): this is an oracle of the semantics, not a speed test. Compiling the same
+kernels for a CUDA target is checked in ``test_raster_triton_aot.py``. With a CUDA device the
+interpreter is left off and the same tests compare the compiled kernels with the reference, both on
+the GPU.
 
 The checks and tolerances are those of the cpu backend's parity tests (``test_raster_cpu.py``):
 every image output, ``visible``/``radii``/``means2d``, and the gradient of a random mix of every
@@ -19,13 +21,16 @@ import math
 import os
 
 import pytest
+import torch
 
-# read when triton.language and the kernels are decorated, i.e. on their first import: set it before
-os.environ["TRITON_INTERPRET"] = "1"
 if importlib.util.find_spec("triton") is None:
     pytest.skip("triton is not installed", allow_module_level=True)
+ON_GPU = torch.cuda.is_available()
+if not ON_GPU:
+    # read when triton.language and the kernels are decorated, i.e. on their first import: set it before
+    os.environ["TRITON_INTERPRET"] = "1"
+DEVICE = torch.device("cuda" if ON_GPU else "cpu")
 
-import torch  # noqa: E402
 from raster_scenes import SURFEL_FIELDS, random_surfels, replace, small_camera, with_grad  # noqa: E402
 from test_raster_cpu import (  # noqa: E402
     F32,
@@ -42,19 +47,26 @@ from test_raster_cpu import (  # noqa: E402
 )
 from test_raster_hard_cases import CAMERA_EYE, surfels_at  # noqa: E402
 
-from rtsplat.bench.raster import sphere_scene  # noqa: E402
+from rtsplat.bench.raster import sphere_scene, surfels_to  # noqa: E402
 from rtsplat.raster import RasterSettings, Surfels, default_backend, rasterize  # noqa: E402
 from rtsplat.raster.gpu import kernels_interpreted  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
 def _interpreted():
-    if not kernels_interpreted():
-        pytest.skip("the triton kernels were imported compiled earlier in this process")
+    if not ON_GPU and not kernels_interpreted():
+        pytest.skip("triton was imported without TRITON_INTERPRET=1 earlier in this process")
 
 
 def parity(surfels, camera, tolerances, **kw):
-    return assert_parity(surfels, camera, backend="triton", **tolerances, **kw)
+    """assert_parity of the triton backend against the reference, both on ``DEVICE``."""
+    return assert_parity(surfels_to(surfels, DEVICE), camera.to(DEVICE), backend="triton", **tolerances, **kw)
+
+
+def as_accurate_as_reference(surfels32, camera32, camera64, **kw):
+    return assert_as_accurate_as_reference(
+        surfels_to(surfels32, DEVICE), camera32.to(DEVICE), camera64.to(DEVICE), backend="triton", **kw
+    )
 
 
 # -- random scenes ---------------------------------------------------------------------------------
@@ -97,11 +109,8 @@ def test_layered_sphere_float32_terminates_early_like_the_reference():
 
 def test_float32_triton_is_as_accurate_as_float32_reference():
     scene = sphere_scene(30, seed=4, n_features=2)
-    assert_as_accurate_as_reference(
-        scene,
-        small_camera(16, 16, torch.float32, eye=CAMERA_EYE),
-        small_camera(16, 16, torch.float64, eye=CAMERA_EYE),
-        backend="triton",
+    as_accurate_as_reference(
+        scene, small_camera(16, 16, torch.float32, eye=CAMERA_EYE), small_camera(16, 16, torch.float64, eye=CAMERA_EYE)
     )
 
 
@@ -176,7 +185,7 @@ def test_hard_cases_float32(name, camera, surfels):
     else:
         _, fast = parity(surfels, camera, F32_ILL)
         camera64 = {n: c for n, c, _ in _hard_scenes(torch.float64)}[name]
-        assert_as_accurate_as_reference(surfels, camera, camera64, floor=1e-3, backend="triton")
+        as_accurate_as_reference(surfels, camera, camera64, floor=1e-3)
     assert_transmittance_in_range(fast)
 
 
@@ -199,12 +208,12 @@ def test_extreme_mixtures_float32(seed, scale, occupancy, opacity, distance, til
 
 
 def test_densification_grad_matches_with_a_caller_probe():
-    camera = small_camera(20, 16, torch.float32)
-    surfels = random_surfels(8, 7, dtype=torch.float32, n_features=2)
+    camera = small_camera(20, 16, torch.float32).to(DEVICE)
+    surfels = surfels_to(random_surfels(8, 7, dtype=torch.float32, n_features=2), DEVICE)
     grads = {}
     for backend in ("reference", "triton"):
         s = with_grad(surfels)
-        probe = torch.zeros(len(s), 2, requires_grad=True)
+        probe = torch.zeros(len(s), 2, device=DEVICE, requires_grad=True)
         out = rasterize(s, camera, backend=backend, screen_probe=probe)
         assert out.screen_probe is probe and out.densification_grad() is None
         (out.color.square().sum() + out.normal.sum() + out.depth.mean()).backward()
@@ -220,6 +229,15 @@ def test_auto_picks_triton_on_cuda_and_cpu_on_cpu():
     assert default_backend(torch.device("cpu")) == "cpu"
 
 
+@pytest.mark.skipif(ON_GPU, reason="with a CUDA device the bench runs instead")
+def test_gpu_bench_exits_with_a_message_without_cuda(capsys):
+    from rtsplat.bench import gpu
+
+    assert gpu.main([]) == 2
+    err = capsys.readouterr().err
+    assert "needs a CUDA device" in err and "no CUDA device" in err
+
+
 def test_without_the_interpreter_cpu_tensors_are_refused_and_import_loads_no_triton():
     result = _python(
         """
@@ -227,7 +245,7 @@ def test_without_the_interpreter_cpu_tensors_are_refused_and_import_loads_no_tri
         import torch
         import rtsplat.raster
         print('triton' in sys.modules)
-        from raster_scenes import SURFEL_FIELDS, random_surfels, small_camera
+        from raster_scenes import random_surfels, small_camera
         from rtsplat.raster import rasterize
         try:
             rasterize(random_surfels(4, 0, dtype=torch.float32), small_camera(16, 12, torch.float32), backend="triton")
@@ -244,8 +262,8 @@ def test_without_the_interpreter_cpu_tensors_are_refused_and_import_loads_no_tri
 
 def test_surfels_with_a_grad_free_parameter():
     # only some inputs require gradients: the backward returns None-free, finite gradients for those
-    camera = small_camera(16, 16, torch.float64)
-    surfels = random_surfels(6, 3, dtype=torch.float64)
+    camera = small_camera(16, 16, torch.float64).to(DEVICE)
+    surfels = surfels_to(random_surfels(6, 3, dtype=torch.float64), DEVICE)
     colors = surfels.colors.clone().requires_grad_(True)
     out = rasterize(replace(surfels, colors=colors), camera, backend="triton")
     ref_colors = surfels.colors.clone().requires_grad_(True)
