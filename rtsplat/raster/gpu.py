@@ -111,7 +111,7 @@ def compile_options(tile_size: int) -> dict:
     """Launch/compile options of both kernels.
 
     One warp per 32 lanes (up to 8), so that a 16x16 tile gives every thread one pixel (sm_90, float32:
-    77 registers in the forward, 128 in the backward, no spills, per ptxas). No fused multiply-add:
+    98 registers in the forward, 128 in the backward, no spills, per ptxas). No fused multiply-add:
     the backward recomputes each pair's alphas and tests with the forward's exact rounding, so it
     replays the forward's decisions (which pairs hit, where each set stopped) bit for bit.
     """
@@ -178,21 +178,25 @@ class _Composite(torch.autograd.Function):
         saved = ctx.saved_tensors
         inputs, lists, params, out, aux, stops = saved[:6], saved[6:9], saved[9], saved[10], saved[11], saved[12]
         cdt = out.dtype
-        grad = torch.zeros(n, 16 + fc, dtype=cdt, device=out.device)
+        k = _kernels()
+        grad = torch.zeros(n, int(k.G_FEAT) + fc, dtype=cdt, device=out.device)
         if has_pairs:
             grad_out = grad_image.reshape(width * height, fc + 9).to(cdt).contiguous()
             with _on(out.device):
-                _kernels().backward_kernel[(num_tiles,)](
+                k.backward_kernel[(num_tiles,)](
                     *inputs, *lists, params, out, aux, stops, grad_out, grad, tiles_x, width, height, fc, **shape
                 )
         grad = grad.to(dtype)
+        g_m, g_center, g_occ, g_opa, g_color, g_feat = (
+            int(x) for x in (k.G_M, k.G_CENTER, k.G_OCC, k.G_OPA, k.G_COLOR, k.G_FEAT)
+        )
         return (
-            grad[:, 0:9].reshape(n, 3, 3),
-            grad[:, 9:11],
-            grad[:, 11],
-            grad[:, 12],
-            grad[:, 16 : 16 + fc],
-            grad[:, 13:16],
+            grad[:, g_m : g_m + 9].reshape(n, 3, 3),
+            grad[:, g_center : g_center + 2],
+            grad[:, g_occ],
+            grad[:, g_opa],
+            grad[:, g_feat : g_feat + fc],
+            grad[:, g_color : g_color + 3],
             None,
             None,
         )

@@ -38,8 +38,14 @@ from __future__ import annotations
 import triton
 import triton.language as tl
 
-G_M, G_CENTER, G_OCC, G_OPA, G_COLOR, G_FEAT = 0, 9, 11, 12, 13, 16
-N_PARAMS = 7
+# gradient row layout (offsets of M, centers, occ, opa, colors, feats), shared with rtsplat.raster.gpu
+G_M = tl.constexpr(0)
+G_CENTER = tl.constexpr(9)
+G_OCC = tl.constexpr(11)
+G_OPA = tl.constexpr(12)
+G_COLOR = tl.constexpr(13)
+G_FEAT = tl.constexpr(16)
+LIVE_CHECK = tl.constexpr(8)
 
 
 @triton.jit
@@ -130,8 +136,12 @@ def forward_kernel(
     depth_sum_v = zero
 
     j = 0
-    go = cnt > 0
-    while go:  # front to back; ends when the list ends or both sets of every lane have stopped
+    pair_lanes = tl.zeros([PIX], tl.int32)
+    any_live = cnt > 0
+    go = any_live
+    # front to back; ends when the list ends or both sets of every lane have stopped (checked every
+    # LIVE_CHECK steps: the check is a reduction over the tile, and extra steps composite nothing)
+    while go:
         i = tl.load(ids_ptr + start + j)
         z, rho, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _ = _pair(
             M_ptr, centers_ptr, i, px, py, lowpass, edge_on_ratio
@@ -182,9 +192,12 @@ def forward_kernel(
         depth_sum_v += w * z
         T_v = tl.where(comp_v, next_v, T_v)
 
-        tl.store(used_ptr + start + j, tl.max((comp_s | comp_v).to(tl.int8), axis=0))
+        # every lane that composited the pair writes the same flag: no reduction needed
+        tl.store(used_ptr + start + j + pair_lanes, 1, mask=comp_s | comp_v)
         j += 1
-        go = (j < cnt) & (tl.max((live_s | live_v).to(tl.int32), axis=0) > 0)
+        if j % LIVE_CHECK == 0:
+            any_live = tl.max((live_s | live_v).to(tl.int32), axis=0) > 0
+        go = (j < cnt) & any_live
 
     row = fc + 9
     tl.store(out_ptr + pix[:, None] * row + ch[None, :], feat_acc, mask=inside[:, None] & ch_ok[None, :])
@@ -344,21 +357,21 @@ def backward_kernel(
             g_cy = tl.where(on_filter, g_rho * lowpass * 2.0 * dy, 0.0)
 
             # one atomic add per value of this surfel for the whole tile; relaxed: the sums need no ordering
-            dst = grad_ptr + i * (fc + 16)
-            tl.atomic_add(dst + 0, tl.sum(ghx0, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 1, tl.sum(ghx1, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 2, tl.sum(ghx2, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 3, tl.sum(ghy0, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 4, tl.sum(ghy1, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 5, tl.sum(ghy2, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 6, tl.sum(g_m6, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 7, tl.sum(g_m7, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 8, tl.sum(g_m8, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 9, tl.sum(g_cx, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 10, tl.sum(g_cy, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 11, tl.sum(g_occ, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 12, tl.sum(g_opa, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 13, tl.sum(g_c0 * w, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 14, tl.sum(g_c1 * w, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 15, tl.sum(g_c2 * w, axis=0), sem="relaxed")
-            tl.atomic_add(dst + 16 + ch, g_f, mask=ch_ok, sem="relaxed")
+            dst = grad_ptr + i * (fc + G_FEAT)
+            tl.atomic_add(dst + G_M + 0, tl.sum(ghx0, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_M + 1, tl.sum(ghx1, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_M + 2, tl.sum(ghx2, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_M + 3, tl.sum(ghy0, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_M + 4, tl.sum(ghy1, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_M + 5, tl.sum(ghy2, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_M + 6, tl.sum(g_m6, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_M + 7, tl.sum(g_m7, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_M + 8, tl.sum(g_m8, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_CENTER, tl.sum(g_cx, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_CENTER + 1, tl.sum(g_cy, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_OCC, tl.sum(g_occ, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_OPA, tl.sum(g_opa, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_COLOR, tl.sum(g_c0 * w, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_COLOR + 1, tl.sum(g_c1 * w, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_COLOR + 2, tl.sum(g_c2 * w, axis=0), sem="relaxed")
+            tl.atomic_add(dst + G_FEAT + ch, g_f, mask=ch_ok, sem="relaxed")
