@@ -61,7 +61,7 @@ def run(surfels: Surfels, camera, backend: str, seed: int = 0, settings: RasterS
     out = rasterize(s, camera, settings, backend=backend)
     g = torch.Generator().manual_seed(seed)  # weights drawn in float64: the same loss for either dtype
     loss = sum(
-        (value * torch.rand(value.shape, generator=g, dtype=torch.float64).to(value.dtype)).sum()
+        (value * torch.rand(value.shape, generator=g, dtype=torch.float64).to(value.device, value.dtype)).sum()
         for value in (getattr(out, name) for name in IMAGE_OUTPUTS)
     )
     grads = {}
@@ -102,9 +102,10 @@ def assert_parity(
     grad_atol,
     grad_outlier_atol=None,
     settings: RasterSettings | None = None,
+    backend: str = "cpu",
 ):
     ref, ref_grads = run(surfels, camera, "reference", settings=settings)
-    fast, fast_grads = run(surfels, camera, "cpu", settings=settings)
+    fast, fast_grads = run(surfels, camera, backend, settings=settings)
     for name in IMAGE_OUTPUTS:
         actual, expected = getattr(fast, name), getattr(ref, name)
         assert actual.dtype == expected.dtype and actual.shape == expected.shape, name
@@ -114,7 +115,7 @@ def assert_parity(
     assert torch.equal(fast.visible, ref.visible)
     assert torch.equal(fast.radii, ref.radii)
     torch.testing.assert_close(fast.means2d, ref.means2d, rtol=0, atol=0)
-    # with nothing visible the reference's loss has no graph at all; the cpu's gradients must then be 0
+    # with nothing visible the reference's loss has no graph at all; the backend's gradients must then be 0
     for name in set(ref_grads) | set(fast_grads):
         actual, expected = fast_grads.get(name), ref_grads.get(name)
         if expected is None or actual is None:
@@ -162,14 +163,16 @@ def test_custom_settings_reach_the_kernels():
     assert_parity(random_surfels(50, 5, dtype=torch.float64, n_features=3), camera, settings=settings, **F64)
 
 
-def assert_as_accurate_as_reference(surfels32: Surfels, camera32, camera64, *, floor: float = 1e-6):
-    """Against the float64 reference, the float32 cpu results err (norm over each output or gradient) at most
-    1.5 x as much as the float32 reference's, plus ``floor`` x the norm of the float64 value."""
+def assert_as_accurate_as_reference(
+    surfels32: Surfels, camera32, camera64, *, floor: float = 1e-6, backend: str = "cpu"
+):
+    """Against the float64 reference, the float32 results of ``backend`` err (norm over each output or gradient)
+    at most 1.5 x as much as the float32 reference's, plus ``floor`` x the norm of the float64 value."""
     surfels64 = Surfels(*[getattr(surfels32, f).double() for f in SURFEL_FIELDS])
     (truth, truth_grads), (ref, ref_grads), (fast, fast_grads) = (
         run(surfels64, camera64, "reference"),
         run(surfels32, camera32, "reference"),
-        run(surfels32, camera32, "cpu"),
+        run(surfels32, camera32, backend),
     )
     pairs = [(getattr(fast, n), getattr(ref, n), getattr(truth, n), n) for n in IMAGE_OUTPUTS]
     pairs += [(fast_grads[n], ref_grads[n], truth_grads[n], n) for n in truth_grads if truth_grads[n] is not None]
@@ -178,7 +181,7 @@ def assert_as_accurate_as_reference(surfels32: Surfels, camera32, camera64, *, f
         err_ref = float((reference.detach().double() - exact).norm())
         err_fast = float((actual.detach().double() - exact).norm())
         bound = 1.5 * err_ref + floor * float(exact.norm()) + 1e-12
-        assert err_fast <= bound, f"{name}: cpu error {err_fast:.2e}, reference error {err_ref:.2e}"
+        assert err_fast <= bound, f"{name}: {backend} error {err_fast:.2e}, reference error {err_ref:.2e}"
 
 
 def test_float32_cpu_is_as_accurate_as_float32_reference():

@@ -7,6 +7,10 @@ resident memory above the process baseline during forward+backward; then the rat
 backend to the first (default: cpu / reference). All backends run in the same process on the same
 scene, so the ratios are comparable even on a loaded machine; absolute times are not.
 
+With a CUDA device (and triton installed) the ``triton`` backend is added as the last column; it
+runs on the GPU (times include ``torch.cuda.synchronize``; its peak column is the GPU memory
+allocated above the baseline, not resident memory). Without one it is skipped with a note.
+
 The scene: ``N`` surfels tangent to a unit sphere (front and back layers overlap, like a trained
 object), sizes matched to the surfel spacing, 12 surface feature channels (the G-buffer width of
 RT-Splatting), seen from 3 units away with a 50 degree field of view.
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import dataclasses
 import math
 import os
 import statistics
@@ -134,11 +139,62 @@ def _loss(out) -> torch.Tensor:
     total = 0.0
     for name in IMAGE_OUTPUTS:
         value = getattr(out, name)
-        total = total + (value * torch.rand(value.shape, generator=g, dtype=value.dtype)).sum()
+        weights = torch.rand(value.shape, generator=g, dtype=value.dtype).to(value.device)
+        total = total + (value * weights).sum()
     return total
 
 
-def _with_grad(surfels: Surfels) -> Surfels:
+GPU_BACKENDS = ("triton",)
+
+
+def backend_device(backend: str) -> torch.device:
+    """Where a backend's inputs live in this benchmark: CUDA for the GPU backends, else CPU."""
+    return torch.device("cuda" if backend in GPU_BACKENDS else "cpu")
+
+
+def gpu_unavailable_reason() -> str | None:
+    """Why the GPU backends cannot run here (None when they can)."""
+    if not torch.cuda.is_available():
+        return "no CUDA device"
+    from rtsplat.raster.gpu import triton_available
+
+    if not triton_available():
+        return "triton is not installed"
+    return None
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+class PeakCUDA:
+    """Peak CUDA memory allocated above the value at entry."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+
+    def __enter__(self):
+        torch.cuda.synchronize(self.device)
+        self.baseline = torch.cuda.memory_allocated(self.device)
+        torch.cuda.reset_peak_memory_stats(self.device)
+        return self
+
+    def __exit__(self, *exc):
+        torch.cuda.synchronize(self.device)
+        self.peak = torch.cuda.max_memory_allocated(self.device)
+        return False
+
+    @property
+    def megabytes(self) -> float:
+        return (self.peak - self.baseline) / 2**20
+
+
+def surfels_to(surfels: Surfels, device: torch.device) -> Surfels:
+    return Surfels(**{f.name: getattr(surfels, f.name).detach().to(device) for f in dataclasses.fields(Surfels)})
+
+
+def with_grad(surfels: Surfels) -> Surfels:
     return Surfels(
         *[
             t.detach().clone().requires_grad_(True)
@@ -156,19 +212,25 @@ def _with_grad(surfels: Surfels) -> Surfels:
 
 
 def time_backend(backend: str, surfels: Surfels, camera, repeats: int, budget_s: float) -> dict:
-    """Median forward and forward+backward times (s) and peak memory (MB) of one backend."""
+    """Median forward and forward+backward times (s) and peak memory (MB) of one backend, on its device."""
+    device = backend_device(backend)
+    camera = camera.to(device)
+    surfels = surfels_to(surfels, device)
     fwd, step, peak = [], [], 0.0
     spent = 0.0
     for _ in range(repeats):
+        _sync(device)
         t0 = time.perf_counter()
         with torch.no_grad():
             rasterize(surfels, camera, backend=backend)
+        _sync(device)
         fwd.append(time.perf_counter() - t0)
-        leaf = _with_grad(surfels)
-        with PeakRSS() as mem:
+        leaf = with_grad(surfels)
+        with PeakCUDA(device) if device.type == "cuda" else PeakRSS() as mem:
             t0 = time.perf_counter()
             out = rasterize(leaf, camera, backend=backend)
             _loss(out).backward()
+            _sync(device)
             step.append(time.perf_counter() - t0)
             del out, leaf
         peak = max(peak, mem.megabytes)
@@ -182,8 +244,9 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--backends",
-        default="reference,cpu",
-        help="comma-separated backends; ratios are last / first (default: reference,cpu)",
+        default=None,
+        help="comma-separated backends; ratios are last / first (default: reference,cpu, and triton on a "
+        "CUDA machine)",
     )
     parser.add_argument("--sizes", default="5000,20000,100000", help="surfel counts (default: 5000,20000,100000)")
     parser.add_argument("--resolutions", default="160x120,640x480", help="WxH list (default: 160x120,640x480)")
@@ -203,10 +266,18 @@ def main(argv=None) -> None:
         "forward+backward, extrapolated from its earlier cells, exceeds this (default 150)",
     )
     args = parser.parse_args(argv)
-    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    gpu_missing = gpu_unavailable_reason()
+    requested = args.backends or ("reference,cpu" if gpu_missing else "reference,cpu,triton")
+    backends = [b.strip() for b in requested.split(",") if b.strip()]
     for b in backends:
         if b not in available_backends():
             parser.error(f"unknown backend {b!r}; available: {available_backends()}")
+    if gpu_missing:
+        skipped = [b for b in backends if b in GPU_BACKENDS] or list(GPU_BACKENDS)
+        print(f"note: {', '.join(skipped)} skipped ({gpu_missing}); run on a CUDA machine for its column")
+        backends = [b for b in backends if b not in GPU_BACKENDS]
+        if not backends:
+            return
     sizes = [int(s) for s in args.sizes.split(",")]
     resolutions = [tuple(int(v) for v in r.lower().split("x")) for r in args.resolutions.split(",")]
     settings = RasterSettings()
@@ -219,8 +290,10 @@ def main(argv=None) -> None:
     warm_camera = camera_from_fov((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), width=32, height=24, fov_x_deg=50.0)
     for b in backends:
         t0 = time.perf_counter()
-        leaf = _with_grad(sphere_scene(200))
-        _loss(rasterize(leaf, warm_camera, backend=b)).backward()
+        device = backend_device(b)
+        leaf = with_grad(surfels_to(sphere_scene(200), device))
+        _loss(rasterize(leaf, warm_camera.to(device), backend=b)).backward()
+        _sync(device)
         print(f"warm-up {b}: {time.perf_counter() - t0:.1f} s (includes kernel compilation/cache load)")
 
     cols = " | ".join(f"{b + ' fwd':>14} {'fwd+bwd':>9} {'peak MB':>8}" for b in backends)

@@ -15,6 +15,7 @@ any torch device); it is the oracle that every faster backend is tested against.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from collections.abc import Callable
 
 from torch import Tensor
@@ -32,6 +33,7 @@ __all__ = [
 BACKENDS: dict[str, str] = {
     "reference": "rtsplat.raster.reference:rasterize_reference",
     "cpu": "rtsplat.raster.cpu:rasterize_cpu",
+    "triton": "rtsplat.raster.gpu:rasterize_triton",
 }
 
 
@@ -52,11 +54,16 @@ def available_backends() -> list[str]:
 
 
 def default_backend(device) -> str:
-    """The backend ``auto`` picks: the fastest registered one for the device."""
+    """The backend ``auto`` picks: the fastest registered one for the device.
+
+    CUDA tensors: ``triton`` when the triton package is installed, else ``reference``; CPU
+    tensors: ``cpu``. The triton backend also runs on CPU tensors in Triton's interpreter, but
+    only when asked for by name (it is a test harness there, far slower than ``cpu``).
+    """
     kind = getattr(device, "type", str(device))
-    preferred = ["cuda"] if kind == "cuda" else ["cpu"]
+    preferred = ["triton"] if kind == "cuda" else ["cpu"]
     for name in preferred:
-        if name in BACKENDS:
+        if name in BACKENDS and (name != "triton" or importlib.util.find_spec("triton") is not None):
             return name
     return "reference"
 
