@@ -175,3 +175,77 @@ def test_computed_model_registering_too_few_images_fails(tmp_path):
     assert re.search(r"only [0-3] of 8 images are registered|registered no images", msg), msg
     assert "Fix:" in msg and "images" in msg
     assert not (tmp_path / "sfm").exists()
+
+
+@pytest.fixture(scope="module")
+def glass_dome(tmp_path_factory) -> Path:
+    """A small Mitsuba render of the glass dome: 40 views, 4 spp (ground-truth cameras in sparse/0)."""
+    pytest.importorskip("mitsuba")
+    from rtsplat.synth.dataset import SynthConfig, render_dataset
+
+    out = tmp_path_factory.mktemp("glass") / "dome"
+    render_dataset(SynthConfig(scene="dome", views=40, spp=4, layer_spp=0, allow_any_views=True), out, progress=False)
+    return out
+
+
+@pytest.mark.slow
+def test_retry_registers_views_the_first_attempt_lost(glass_dome, tmp_path):
+    """A first attempt whose mapper demands more 2D-3D inliers per view than these 200x150 views
+    have (1000) loses the views; the retries register them, and the chosen model's poses agree
+    with the ground-truth cameras. About a minute (render 40 s, SfM 25 s on two loaded cores)."""
+    cfg = SfmConfig(
+        use_dataset_model=False,
+        camera_model="SIMPLE_PINHOLE",
+        num_threads=2,
+        abs_pose_min_num_inliers=1000,
+        max_attempts=3,
+    )
+    lines: list[str] = []
+    s = run_sfm(glass_dome, tmp_path / "sfm", cfg, progress=False, log=lines.append)
+    summary = json.loads((tmp_path / "sfm" / "summary.json").read_text())
+    print("\n".join(lines))
+    attempts = summary["attempts"]
+    first = attempts[0]
+    assert first["name"] == "configured" and first["settings"]["abs_pose_min_num_inliers"] == 1000
+    assert first["registered"] <= 2, first  # no view beyond an initial pair
+    assert 2 <= len(attempts) <= 3
+    assert all(a["settings"] != first["settings"] for a in attempts[1:])  # each retry changes something
+    chosen = attempts[summary["chosen_attempt"]]
+    assert summary["chosen_attempt"] > 0 and chosen["acceptable"]
+    assert s.registered == chosen["registered"] >= 39
+    assert chosen["name"] in summary["choice"]
+    assert max(a["registered"] for a in attempts) == s.registered  # the most views were kept
+    for a in attempts:
+        assert a["seconds"] > 0
+    for i, a in enumerate(attempts):
+        assert any(line.startswith(f"sfm attempt {i + 1}: {a['name']}:") for line in lines)
+    # the synth's ground-truth cameras are in sparse/0: the poses are checked against them
+    assert summary["reference_model"] == str(glass_dome / "sparse" / "0")
+    assert summary["pose_errors"]["compared"] == s.registered
+    assert summary["pose_errors"]["rotation_error_deg_mean"] < 1.5, summary["pose_errors"]
+    assert summary["pose_errors"]["center_error_relative"] < 0.03, summary["pose_errors"]
+
+
+def test_failure_lists_unregistered_images_and_attempts(tmp_path):
+    """When every attempt falls short, the error names each unregistered image and each attempt,
+    and the output folder is left as it was."""
+    make_corner_scene(tmp_path / "s", n_views=3, width=160, height=120)
+    from rtsplat.io.images import write_png
+
+    rng = np.random.default_rng(2)
+    for i in range(3):
+        write_png(tmp_path / "s" / "images" / f"noise_{i}.png", rng.random((120, 160, 3)).astype(np.float32))
+    (tmp_path / "sfm").mkdir()
+    (tmp_path / "sfm" / "keep.txt").write_text("earlier result")
+    cfg = SfmConfig(
+        use_dataset_model=False, camera_model="PINHOLE", num_threads=2, max_attempts=2, min_registered_fraction=0.9
+    )
+    with pytest.raises(PipelineError) as err:
+        run_sfm(tmp_path / "s", tmp_path / "sfm", cfg, progress=False, log=lambda line: None)
+    msg = str(err.value)
+    print(msg)
+    for i in range(3):
+        assert f"noise_{i}.png" in msg
+    assert "attempts:" in msg and "1. configured:" in msg and "2. " in msg
+    assert sorted(p.name for p in (tmp_path / "sfm").iterdir()) == ["keep.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "sfm"]
