@@ -249,3 +249,60 @@ def test_failure_lists_unregistered_images_and_attempts(tmp_path):
     assert "attempts:" in msg and "1. configured:" in msg and "2. " in msg
     assert sorted(p.name for p in (tmp_path / "sfm").iterdir()) == ["keep.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "sfm"]
+
+
+def test_pose_check_against_reference_model_and_report_table(tmp_path):
+    """A dataset whose sparse/0 is not used gets its SfM poses compared with it; the report's SfM
+    table shows the attempt with those errors."""
+    from rtsplat.report import sfm_section
+
+    make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150, with_model=True)
+    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=2)
+    s = run_sfm(tmp_path / "s", tmp_path / "sfm", cfg, progress=False, log=lambda line: None)
+    assert s.source == "sfm" and s.registered == 10 and s.unregistered == []
+    assert len(s.attempts) == 1 and s.chosen_attempt == 0 and "first attempt" in s.choice
+    assert s.reference_model == str(tmp_path / "s" / "sparse" / "0")
+    # the fixture's cameras are exact: SfM matches them closely after the similarity fit (on a 50 degree
+    # arc the fit to the centres leaves the tilt about the chord loosely fixed; the fit to the orientations not)
+    assert s.pose_errors["compared"] == 10
+    assert s.pose_errors["rotation_error_deg_mean"] < 1.0, s.pose_errors
+    assert s.pose_errors["orientation_aligned_rotation_error_deg_mean"] < 0.5, s.pose_errors
+    assert s.pose_errors["center_error_relative"] < 0.02, s.pose_errors
+    text, header, rows = sfm_section(json.loads((tmp_path / "sfm" / "summary.json").read_text()))
+    assert "10/10 views registered" in text and len(rows) == 1
+    row = dict(zip(header, rows[0], strict=True))
+    assert row["registered"] == "10/10" and row["chosen"] == "yes"
+    assert float(row["rot. err. deg"]) == pytest.approx(s.pose_errors["rotation_error_deg_mean"], abs=1e-3)
+
+
+def test_compare_poses_recovers_a_known_similarity():
+    """Cameras moved by a known similarity compare as equal; a rotated camera shows its angle."""
+    from scipy.spatial.transform import Rotation
+
+    from rtsplat.pose_eval import compare_poses
+
+    rng = np.random.default_rng(0)
+    ref = {}
+    for i in range(6):
+        w2c = np.eye(4)
+        w2c[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * 0.3).as_matrix()
+        w2c[:3, 3] = rng.normal(size=3)
+        ref[f"v{i}"] = w2c
+    s, R, t = 2.5, Rotation.from_rotvec([0.2, -0.4, 1.0]).as_matrix(), np.array([1.0, -2.0, 0.5])
+    # x_est = (R^T (x_ref - t)) / s: a camera's est world-to-camera is [R_ref R, s-scaled translation]
+    est = {}
+    for n, w2c in ref.items():
+        e = np.eye(4)
+        e[:3, :3] = w2c[:3, :3] @ R
+        e[:3, 3] = (w2c[:3, 3] + w2c[:3, :3] @ t) / s
+        est[n] = e
+    errors = compare_poses(est, ref)
+    assert errors.compared == 6
+    assert errors.rotation_error_deg_max < 1e-4 and errors.center_error_relative < 1e-9  # arccos near 1
+    tilted = dict(est)
+    tilted["v0"] = est["v0"].copy()
+    tilted["v0"][:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(2.0)]).as_matrix() @ est["v0"][:3, :3]
+    tilted["v0"][:3, 3] = Rotation.from_rotvec([0.0, 0.0, np.radians(2.0)]).as_matrix() @ est["v0"][:3, 3]
+    errors = compare_poses(tilted, ref)
+    assert errors.relative_rotation_error_deg_max == pytest.approx(2.0, abs=1e-6)
+    assert compare_poses({"a": np.eye(4)}, {"a": np.eye(4)}) is None
