@@ -239,7 +239,8 @@ def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
         text = (f"Cameras from the dataset's own model (sparse/0, no SfM): {summary.get('registered')}/{total} views, "
                 f"mean reprojection error {_fmt(summary.get('mean_reprojection_error'), 3)} px.")
         return text, [], []
-    header = ["attempt", "settings", "registered", "reproj. px", "time s", "rot. err. deg", "centre err. %", "chosen"]
+    header = ["attempt", "settings", "registered", "reproj. px", "time s", "rot. err. deg", "rot. err. deg (orient.)",
+              "centre err. %", "chosen"]
     rows = []
     for i, a in enumerate(summary.get("attempts", [])):
         st = a.get("settings", {})
@@ -251,7 +252,9 @@ def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
         chosen = "yes" if i == summary.get("chosen_attempt") else ("" if a.get("acceptable") else "not acceptable")
         rows.append([f"{i + 1}. {a.get('name')}", knobs, f"{a.get('registered')}/{total}",
                      _fmt(a.get("mean_reprojection_error"), 3), _fmt(a.get("seconds"), 1),
-                     _fmt(pose.get("rotation_error_deg_mean"), 3), _fmt(None if centre is None else 100 * centre, 2),
+                     _fmt(pose.get("rotation_error_deg_mean"), 3),
+                     _fmt(pose.get("orientation_aligned_rotation_error_deg_mean"), 3),
+                     _fmt(None if centre is None else 100 * centre, 2),
                      chosen])
     text = (f"SfM from the images: {summary.get('registered')}/{total} views registered, mean reprojection error "
             f"{_fmt(summary.get('mean_reprojection_error'), 3)} px, {len(rows)} attempt(s), "
@@ -259,8 +262,10 @@ def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
     if summary.get("unregistered"):
         text += " Not registered: " + ", ".join(summary["unregistered"]) + "."
     if summary.get("pose_errors"):
-        text += (" Rotation and centre errors: against the dataset's reference cameras after a similarity fit to "
-                 "the camera centres (centre error in % of the cameras' mean distance to their centroid).")
+        text += (" Rotation and centre errors (means): against the dataset's reference cameras after a similarity "
+                 "fit to the camera centres; 'orient.': the rotation fitted to the camera orientations instead, "
+                 "which an arc of cameras constrains better than its centres. Centre error in % of the cameras' "
+                 "mean distance to their centroid.")
     return text, header, rows
 
 
