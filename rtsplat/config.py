@@ -68,6 +68,40 @@ class SfmConfig:
     )
     num_threads: int = _f(-1, help="threads for pycolmap (-1: all cores)")
     seed: int = _f(0, help="random seed of the mapper", minimum=0)
+    mapper: Literal["incremental", "global"] = _f(
+        "incremental", help="first attempt's mapper: incremental (COLMAP) or global (GLOMAP-style, pycolmap)"
+    )
+    sift_peak_threshold: float = _f(
+        0.02 / 3, help="first attempt: SIFT peak threshold (lower: more, weaker features)", exclusiveMinimum=0.0
+    )
+    sift_first_octave: int = _f(-1, help="first attempt: SIFT first octave (-1 upsamples the image twice)", minimum=-4)
+    guided_matching: bool = _f(False, help="first attempt: guided matching (re-match with the two-view geometry)")
+    init_min_num_inliers: int = _f(100, help="first attempt: inliers the mapper's initial pair needs", minimum=1)
+    init_max_error: float = _f(
+        4.0, help="first attempt: initial pair's max reprojection error (px)", exclusiveMinimum=0.0
+    )
+    abs_pose_min_num_inliers: int = _f(
+        30, help="first attempt: 2D-3D inliers an image needs to register (incremental mapper)", minimum=1
+    )
+    abs_pose_min_inlier_ratio: float = _f(
+        0.25, help="first attempt: 2D-3D inlier ratio an image needs to register", minimum=0.0, maximum=1.0
+    )
+    max_attempts: int = _f(
+        4,
+        help="SfM attempts at most: while views are missing, retry with settings suited to the failure "
+        "(another mapper, relaxed mapper thresholds, more features with guided matching); 1: no retries",
+        minimum=1,
+    )
+    max_reprojection_error: float = _f(
+        2.0, help="an attempt's model is acceptable up to this mean reprojection error (px)", exclusiveMinimum=0.0
+    )
+    min_points_per_image: int = _f(
+        30,
+        help="an attempt's model is acceptable when its registered images see a median of at least this many 3D "
+        "points (the bar incremental mapping sets for registering one image); fewer: too little evidence, "
+        "as in models that global mapping assembles from few wide-baseline matches",
+        minimum=0,
+    )
 
 
 @dataclass

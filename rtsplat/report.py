@@ -6,10 +6,13 @@ It reads what the other stages wrote under ``--results`` (the layout of ``docs/a
     <scene>/renders/<method>/{render.json, color/, reflection/, ...}       rtsplat render
     <scene>/renders/<method>@<edit>/                                       rtsplat render --edit ...
     <scene>/metrics/<method>.json                                          rtsplat metrics
+    <scene>/sfm/summary.json                                               rtsplat sfm
 
 Each method's role comes from the pipeline config (``methods.<name>.role``, see
 :func:`rtsplat.config.method_roles`), handed over as ``--roles-json``; without it every method is a
-baseline and there is no main method. The report writes, per scene: the quality table (entire
+baseline and there is no main method. The report writes, per scene: the SfM table (registered/total views,
+reprojection error and time of every attempt, and for scenes whose dataset ships reference cameras
+the rotation and centre errors after a similarity fit), the quality table (entire
 image / transparent region, FPS, training time), the ablation table (the ablations against the main
 method), decomposition scores when the scene has ground-truth layers, the accuracy-against-time
 plots and table with the Pareto front (every run's final test PSNR against its training time, and
@@ -264,6 +267,43 @@ def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -
     return rows
 
 
+def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
+    """(paragraph, header, rows) of a scene's SfM table from the sfm stage's summary.json."""
+    total = summary.get("total", "?")
+    if summary.get("source") == "dataset":
+        text = (f"Cameras from the dataset's own model (sparse/0, no SfM): {summary.get('registered')}/{total} views, "
+                f"mean reprojection error {_fmt(summary.get('mean_reprojection_error'), 3)} px.")
+        return text, [], []
+    header = ["attempt", "settings", "registered", "reproj. px", "time s", "rot. err. deg", "rot. err. deg (orient.)",
+              "centre err. %", "chosen"]
+    rows = []
+    for i, a in enumerate(summary.get("attempts", [])):
+        st = a.get("settings", {})
+        knobs = f"{st.get('mapper')}, {st.get('matcher')}" + (", guided" if st.get("guided_matching") else "")
+        if st.get("mapper") == "incremental":
+            knobs += f", init {st.get('init_min_num_inliers')}, abs pose {st.get('abs_pose_min_num_inliers')}"
+        pose = a.get("pose_errors") or {}
+        centre = pose.get("center_error_relative")
+        chosen = "yes" if i == summary.get("chosen_attempt") else ("" if a.get("acceptable") else "not acceptable")
+        rows.append([f"{i + 1}. {a.get('name')}", knobs, f"{a.get('registered')}/{total}",
+                     _fmt(a.get("mean_reprojection_error"), 3), _fmt(a.get("seconds"), 1),
+                     _fmt(pose.get("rotation_error_deg_mean"), 3),
+                     _fmt(pose.get("orientation_aligned_rotation_error_deg_mean"), 3),
+                     _fmt(None if centre is None else 100 * centre, 2),
+                     chosen])
+    text = (f"SfM from the images: {summary.get('registered')}/{total} views registered, mean reprojection error "
+            f"{_fmt(summary.get('mean_reprojection_error'), 3)} px, {len(rows)} attempt(s), "
+            f"{_fmt(summary.get('seconds'), 0)} s. Choice: {summary.get('choice') or '?'}.")
+    if summary.get("unregistered"):
+        text += " Not registered: " + ", ".join(summary["unregistered"]) + "."
+    if summary.get("pose_errors"):
+        text += (" Rotation and centre errors (means): against the dataset's reference cameras after a similarity "
+                 "fit to the camera centres; 'orient.': the rotation fitted to the camera orientations instead, "
+                 "which an arc of cameras constrains better than its centres. Centre error in % of the cameras' "
+                 "mean distance to their centroid.")
+    return text, header, rows
+
+
 def _run_seed(run_dir: Path):
     """The seed of a run's trainer config (``config.json``), None when it has none."""
     path = run_dir / "config.json"
@@ -296,6 +336,13 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
               "train s", "surfels"]
     for scene, runs in scenes.items():
         doc.heading(f"Scene {scene}")
+        sfm_summary = results / scene / "sfm" / "summary.json"
+        if sfm_summary.is_file():
+            text, sfm_header, sfm_rows = sfm_section(_read_json(sfm_summary))
+            doc.heading("Structure from motion", 3)
+            doc.paragraph(text)
+            if sfm_rows:
+                doc.table(sfm_header, sfm_rows)
         doc.heading("Quality, speed and training time", 3)
         doc.table(header, quality_rows(runs, main))
 

@@ -1,19 +1,32 @@
 """``rtsplat sfm``: camera poses and sparse points with pycolmap.
 
-Function API :func:`run_sfm`. When the dataset already has ``sparse/0`` the model is validated and
-used as-is (no SfM). Otherwise: SIFT extraction (one shared camera by default), matching
-(exhaustive for small sets, sequential for ordered captures; both vocabulary-free), incremental
-mapping; the largest model is kept. Either way, a camera model with distortion is undistorted to
-PINHOLE (images and model), and the stage fails with a clear message when too few images register.
+Function API :func:`run_sfm`. When ``sfm.use_dataset_model`` is set and the dataset has ``sparse/0``,
+that model is validated and used as-is (no SfM). Otherwise SfM runs from the images: SIFT
+extraction (one shared camera by default), matching (exhaustive for small sets, sequential for
+ordered captures; both vocabulary-free), mapping. The first attempt uses the configured settings;
+while views are missing from its largest model, further attempts (at most ``sfm.max_attempts`` in
+all) retry with settings suited to the failure (:mod:`rtsplat.sfm_attempts`). The attempt whose
+largest model registers the most views at an acceptable reprojection error is kept. Every
+attempt is logged and listed in the summary, with the reason for the choice. When the dataset has
+a ``sparse/0`` that is not used, every attempt's poses are compared with it after a similarity fit
+(:mod:`rtsplat.pose_eval`; the synthetic scenes ship their ground-truth cameras there).
+
+Either way, a camera model with distortion is undistorted to PINHOLE (images and model), and the
+stage fails with a clear message (the unregistered images and the attempts) when too few images
+register; the output folder is then left as it was.
 
 Output folder::
 
     sfm/summary.json     {"model_dir", "image_dir", "source": "dataset"|"sfm", "undistorted",
-                          "registered", "total", "mean_reprojection_error", ...}
+                          "registered", "total", "mean_reprojection_error", "unregistered",
+                          "attempts": [{"name", "reason", "settings", "registered", "models",
+                          "mean_reprojection_error", "seconds", "acceptable", ...}],
+                          "chosen_attempt", "choice", "reference_model", "pose_errors", ...}
     sfm/sparse/0/        the model (copied from the dataset or computed)
     sfm/undistorted/     images/ and sparse/ after undistortion (only when needed)
 
-``model_dir``/``image_dir`` in the summary are what ``rtsplat prepare`` reads.
+``model_dir``/``image_dir`` in the summary are what ``rtsplat prepare`` reads. An attempt's
+``seconds`` include the feature extraction and matching it was the first to need.
 """
 
 from __future__ import annotations
@@ -21,14 +34,19 @@ from __future__ import annotations
 import argparse
 import shutil
 import tempfile
-from dataclasses import asdict, dataclass
+import time
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 from rtsplat.config import SfmConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import atomic_dir, write_json_atomic
 from rtsplat.io.colmap import is_model_dir, load_model
 from rtsplat.io.images import list_images, read_mask, validate_image_set, write_mask
+from rtsplat.pose_eval import compare_poses
+from rtsplat.sfm_attempts import AttemptResult, AttemptRunner, better, describe, first_settings, next_attempt
 
 
 @dataclass
@@ -42,17 +60,28 @@ class SfmSummary:
     camera_model: str
     model_dir: str
     image_dir: str
-    matcher: str = ""
+    matcher: str = ""  # matcher of the chosen attempt ("" for a dataset model)
+    unregistered: list[str] = field(default_factory=list)
+    attempts: list[dict] = field(default_factory=list)  # AttemptResult fields, in the order they ran
+    chosen_attempt: int | None = None  # index into attempts
+    choice: str = ""  # why that attempt
+    reference_model: str | None = None  # the dataset's sparse/0 the poses were compared with
+    pose_errors: dict | None = None  # PoseErrors fields of the chosen model against reference_model
+    seconds: float = 0.0
 
 
-def _check_registration(registered: list[str], names: list[str], cfg: SfmConfig, where: Path, computed: bool) -> None:
+def _check_registration(
+    registered: list[str], names: list[str], cfg: SfmConfig, where: Path, computed: bool, attempts: str = ""
+) -> None:
     total = len(names)
     need = max(cfg.min_registered_images, int(round(cfg.min_registered_fraction * total)))
     if len(registered) < need:
         missing = sorted(set(names) - set(registered))
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+        if attempts:
+            shown = ", ".join(missing) + "; attempts:" + attempts
         fix = (
-            "take more overlapping, textured photos; try sfm.matcher: exhaustive; or lower "
+            "take more overlapping, textured photos; raise sfm.max_attempts; or lower "
             "sfm.min_registered_fraction / sfm.min_registered_images"
             if computed
             else "re-run COLMAP on all images, or delete sparse/0 so 'rtsplat sfm' computes a model, "
@@ -75,49 +104,83 @@ def _colmap_masks(image_names: list[str], masks_dir: Path, out: Path) -> None:
             write_mask(out / f"{name}.png", ~read_mask(src))
 
 
-def _reconstruct(images_dir: Path, names: list[str], work: Path, cfg: SfmConfig, masks_dir: Path | None):
-    import pycolmap
+def _reference_poses(scene_dir: Path) -> tuple[Path, dict[str, np.ndarray]] | None:
+    """World-to-camera matrices of the dataset's own model (``sparse/0``), when it has one."""
+    given = scene_dir / "sparse" / "0"
+    if not is_model_dir(given):
+        return None
+    try:
+        model = load_model(given)
+    except PipelineError:
+        return None  # a broken reference only loses the check
+    return given, {v.name: v.world_to_camera for v in model.views}
 
-    db = work / "database.db"
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = cfg.camera_model
+
+def _rec_poses(rec) -> dict[str, np.ndarray]:
+    return {
+        rec.image(i).name: np.asarray(rec.image(i).cam_from_world().matrix(), dtype=np.float64)
+        for i in rec.reg_image_ids()
+    }
+
+
+def _reconstruct(
+    images_dir: Path,
+    names: list[str],
+    work: Path,
+    cfg: SfmConfig,
+    masks_dir: Path | None,
+    reference: dict[str, np.ndarray] | None,
+    log,
+):
+    """Attempts until every view registers or the ladder ends; returns (chosen rec, attempts, index, choice)."""
+    mask_dir = None
     if masks_dir is not None and cfg.use_masks:
-        _colmap_masks(names, masks_dir, work / "colmap_masks")
-        reader.mask_path = str(work / "colmap_masks")
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = cfg.max_image_size
-    extraction.num_threads = cfg.num_threads
-    extraction.use_gpu = False
-    extraction.sift.max_num_features = cfg.max_num_features
-    mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.AUTO
-    pycolmap.extract_features(
-        db,
-        images_dir,
-        image_names=names,
-        camera_mode=mode,
-        reader_options=reader,
-        extraction_options=extraction,
-        device=pycolmap.Device.cpu,
-    )
-    matcher = cfg.matcher
-    if matcher == "auto":
-        matcher = "exhaustive" if len(names) <= cfg.exhaustive_max_images else "sequential"
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.use_gpu = False
-    matching.num_threads = cfg.num_threads
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+        mask_dir = work / "colmap_masks"
+        _colmap_masks(names, masks_dir, mask_dir)
+    runner = AttemptRunner(images_dir, names, work, cfg, mask_dir)
+    first = first_settings(cfg, len(names))
+    attempts: list[AttemptResult] = []
+    recs = []
+    best: int | None = None
+    step: tuple | None = ("configured", "the configured settings", first)
+    while step is not None and len(attempts) < cfg.max_attempts:
+        name, reason, settings = step
+        log(f"sfm attempt {len(attempts) + 1}/{cfg.max_attempts}: {name} ({reason})")
+        result, rec = runner.run(len(attempts), name, reason, settings)
+        if rec is not None and reference is not None:
+            errors = compare_poses(_rec_poses(rec), reference)
+            result.pose_errors = asdict(errors) if errors else None
+        attempts.append(result)
+        recs.append(rec)
+        log(f"sfm attempt {len(attempts)}: {describe(result, len(names))}")
+        if best is None or better(result, attempts[best]):
+            best = len(attempts) - 1
+        chosen = attempts[best]
+        if chosen.acceptable and not chosen.unregistered:
+            break
+        missing = chosen.unregistered if chosen.registered else list(names)
+        poor = runner.poorly_matched(settings, missing)
+        step = next_attempt([a.name for a in attempts], first, chosen if chosen.registered else None, poor)
+    chosen = attempts[best]
+    if len(attempts) == 1:
+        choice = (
+            "the first attempt registered every view" if not chosen.unregistered else "no retries (sfm.max_attempts 1)"
+        )
     else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = cfg.sequential_overlap
-        pairing.loop_detection = False  # needs a vocabulary tree
-        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = cfg.num_threads
-    options.random_seed = cfg.seed
-    options.min_model_size = 2
-    recs = pycolmap.incremental_mapping(db, images_dir, work / "models", options=options)
-    return recs, matcher
+        others = ", ".join(f"{a.name} {a.registered}" for i, a in enumerate(attempts) if i != best)
+        why = "registers the most views" + (" at an acceptable reprojection error" if chosen.acceptable else "")
+        choice = f"attempt {best + 1} ({chosen.name}, {chosen.registered}/{len(names)}) {why}; others: {others}"
+        if chosen.unregistered and len(attempts) < cfg.max_attempts:
+            choice += "; no further step suits the failure"
+    return recs[best], attempts, best, choice
+
+
+def _attempts_text(attempts: list[AttemptResult], total: int) -> str:
+    return "".join(f"\n    {i + 1}. {describe(a, total)}" for i, a in enumerate(attempts))
+
+
+def _log(message: str) -> None:
+    print(message, flush=True)
 
 
 def run_sfm(
@@ -126,10 +189,15 @@ def run_sfm(
     cfg: SfmConfig | None = None,
     masks_dir: str | Path | None = None,
     progress: bool = True,
+    log=_log,
 ) -> SfmSummary:
-    """Poses for ``<scene_dir>/images`` into ``out_dir`` (atomically); see the module docstring."""
+    """Poses for ``<scene_dir>/images`` into ``out_dir`` (atomically); see the module docstring.
+
+    ``log``: called with one line per attempt (default: print).
+    """
     import pycolmap
 
+    t0 = time.perf_counter()
     cfg = cfg or SfmConfig()
     scene_dir = Path(scene_dir)
     images_dir = scene_dir / "images"
@@ -137,6 +205,8 @@ def run_sfm(
     headers = validate_image_set(images_dir, decode=True, progress=progress)
     names = [h.path.name for h in headers]
     given = scene_dir / "sparse" / "0"
+    attempts: list[AttemptResult] = []
+    chosen, choice, pose_errors, reference_dir = None, "", None, None
     matcher = ""
     with atomic_dir(out_dir) as tmp:
         model_dir = tmp / "sparse" / "0"
@@ -159,17 +229,45 @@ def run_sfm(
                 raise PipelineError(
                     "SfM needs at least 2 images", path=images_dir, fix="add more overlapping photos of the scene"
                 )
+            ref = _reference_poses(scene_dir)
             with tempfile.TemporaryDirectory(prefix="rtsplat-sfm-", dir=tmp) as work:
-                recs, matcher = _reconstruct(images_dir, names, Path(work), cfg, Path(masks_dir) if masks_dir else None)
-                if not recs:
+                rec, attempts, chosen, choice = _reconstruct(
+                    images_dir,
+                    names,
+                    Path(work),
+                    cfg,
+                    Path(masks_dir) if masks_dir else None,
+                    ref[1] if ref else None,
+                    log,
+                )
+                best = attempts[chosen]
+                matcher = best.settings["matcher"]
+                log(f"sfm: chose {choice}")
+                if rec is None or best.registered == 0:
                     raise PipelineError(
-                        f"SfM registered no images ({len(names)} given): no image pair could be matched",
+                        f"SfM registered no images ({len(names)} given) in {len(attempts)} attempt(s):"
+                        + _attempts_text(attempts, len(names)),
                         path=images_dir,
                         fix="take more overlapping, textured photos, or try sfm.matcher: exhaustive",
                     )
-                rec = max(recs.values(), key=lambda r: r.num_reg_images())
-                reg = [rec.image(i).name for i in rec.reg_image_ids()]
-                _check_registration(reg, names, cfg, images_dir, computed=True)
+                _check_registration(
+                    [n for n in names if n not in best.unregistered],
+                    names,
+                    cfg,
+                    images_dir,
+                    computed=True,
+                    attempts=_attempts_text(attempts, len(names)),
+                )
+                if not best.acceptable:
+                    raise PipelineError(
+                        f"no SfM attempt gave an acceptable model (the best: {best.verdict}); attempts:"
+                        + _attempts_text(attempts, len(names)),
+                        path=images_dir,
+                        fix="raise sfm.max_reprojection_error or lower sfm.min_points_per_image if the model is "
+                        "good enough for you, or take sharper, more overlapping photos",
+                    )
+            if ref is not None:
+                pose_errors, reference_dir = best.pose_errors, str(ref[0])
             source = "sfm"
         model_dir.mkdir(parents=True)
         rec.write_binary(str(model_dir))
@@ -185,9 +283,10 @@ def run_sfm(
             shutil.rmtree(und / "stereo", ignore_errors=True)  # dense-stereo scaffolding we do not use
             for script in und.glob("*.sh"):
                 script.unlink()
+        registered = {rec.image(i).name for i in rec.reg_image_ids()}
         summary = SfmSummary(
             source=source,
-            registered=int(rec.num_reg_images()),
+            registered=len(registered),
             total=len(names),
             num_points=int(rec.num_points3D()),
             mean_reprojection_error=(
@@ -198,6 +297,13 @@ def run_sfm(
             model_dir=str(final_model.resolve()),
             image_dir=str(final_images),
             matcher=matcher,
+            unregistered=[n for n in names if n not in registered],
+            attempts=[asdict(a) for a in attempts],
+            chosen_attempt=chosen,
+            choice=choice,
+            reference_model=reference_dir,
+            pose_errors=pose_errors,
+            seconds=time.perf_counter() - t0,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
     return summary
@@ -217,10 +323,18 @@ def run(args: argparse.Namespace) -> int:
     s = run_sfm(args.scene_dir, args.out, cfg, args.masks)
     err = "n/a" if s.mean_reprojection_error is None else f"{s.mean_reprojection_error:.3f} px"
     how = "model from the dataset" if s.source == "dataset" else f"SfM ({s.matcher} matching)"
+    pose = ""
+    if s.pose_errors:
+        pose = (
+            f"; against {s.reference_model}: rotation error {s.pose_errors['rotation_error_deg_mean']:.3f} deg "
+            f"mean, centre error {100 * s.pose_errors['center_error_relative']:.2f}% of the camera spread"
+        )
     print(
         f"sfm {args.scene_dir}: {how}: {s.registered}/{s.total} images registered, {s.num_points} points, "
         f"mean reprojection error {err}, camera {s.camera_model}"
         + (", undistorted to PINHOLE" if s.undistorted else "")
+        + (f", {len(s.attempts)} attempt(s), {s.seconds:.0f} s" if s.attempts else "")
+        + pose
     )
     return 0
 

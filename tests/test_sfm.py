@@ -199,3 +199,134 @@ def test_written_models_read_back_identical_in_binary_and_text(tmp_path):
         order = np.lexsort(model.xyz.T)
         assert np.allclose(model.xyz[order], xyz[np.lexsort(xyz.T)], rtol=0, atol=1e-12)
         assert np.array_equal(model.rgb[order], rgb[np.lexsort(xyz.T)])
+
+
+@pytest.fixture(scope="module")
+def glass_dome(tmp_path_factory) -> Path:
+    """A small Mitsuba render of the glass dome: 40 views, 4 spp (ground-truth cameras in sparse/0)."""
+    pytest.importorskip("mitsuba")
+    from rtsplat.synth.dataset import SynthConfig, render_dataset
+
+    out = tmp_path_factory.mktemp("glass") / "dome"
+    render_dataset(SynthConfig(scene="dome", views=40, spp=4, layer_spp=0, allow_any_views=True), out, progress=False)
+    return out
+
+
+@pytest.mark.slow
+def test_retry_registers_views_the_first_attempt_lost(glass_dome, tmp_path):
+    """A first attempt whose mapper demands more 2D-3D inliers per view than these 200x150 views
+    have (1000) loses the views; the retries register them, and the chosen model's poses agree
+    with the ground-truth cameras. About a minute (render 40 s, SfM 25 s on two loaded cores)."""
+    cfg = SfmConfig(
+        use_dataset_model=False,
+        camera_model="SIMPLE_PINHOLE",
+        num_threads=2,
+        abs_pose_min_num_inliers=1000,
+        max_attempts=3,
+    )
+    lines: list[str] = []
+    s = run_sfm(glass_dome, tmp_path / "sfm", cfg, progress=False, log=lines.append)
+    summary = json.loads((tmp_path / "sfm" / "summary.json").read_text())
+    print("\n".join(lines))
+    attempts = summary["attempts"]
+    first = attempts[0]
+    assert first["name"] == "configured" and first["settings"]["abs_pose_min_num_inliers"] == 1000
+    assert first["registered"] <= 2, first  # no view beyond an initial pair
+    assert 2 <= len(attempts) <= 3
+    assert all(a["settings"] != first["settings"] for a in attempts[1:])  # each retry changes something
+    chosen = attempts[summary["chosen_attempt"]]
+    assert summary["chosen_attempt"] > 0 and chosen["acceptable"]
+    assert s.registered == chosen["registered"] >= 39
+    assert chosen["name"] in summary["choice"]
+    assert max(a["registered"] for a in attempts) == s.registered  # the most views were kept
+    for a in attempts:
+        assert a["seconds"] > 0
+    for i, a in enumerate(attempts):
+        assert any(line.startswith(f"sfm attempt {i + 1}: {a['name']}:") for line in lines)
+    # the synth's ground-truth cameras are in sparse/0: the poses are checked against them
+    assert summary["reference_model"] == str(glass_dome / "sparse" / "0")
+    assert summary["pose_errors"]["compared"] == s.registered
+    assert summary["pose_errors"]["rotation_error_deg_mean"] < 1.5, summary["pose_errors"]
+    assert summary["pose_errors"]["center_error_relative"] < 0.03, summary["pose_errors"]
+
+
+def test_failure_lists_unregistered_images_and_attempts(tmp_path):
+    """When every attempt falls short, the error names each unregistered image and each attempt,
+    and the output folder is left as it was."""
+    make_corner_scene(tmp_path / "s", n_views=3, width=160, height=120)
+    from rtsplat.io.images import write_png
+
+    rng = np.random.default_rng(2)
+    for i in range(3):
+        write_png(tmp_path / "s" / "images" / f"noise_{i}.png", rng.random((120, 160, 3)).astype(np.float32))
+    (tmp_path / "sfm").mkdir()
+    (tmp_path / "sfm" / "keep.txt").write_text("earlier result")
+    cfg = SfmConfig(
+        use_dataset_model=False, camera_model="PINHOLE", num_threads=2, max_attempts=2, min_registered_fraction=0.9
+    )
+    with pytest.raises(PipelineError) as err:
+        run_sfm(tmp_path / "s", tmp_path / "sfm", cfg, progress=False, log=lambda line: None)
+    msg = str(err.value)
+    print(msg)
+    for i in range(3):
+        assert f"noise_{i}.png" in msg
+    assert "attempts:" in msg and "1. configured:" in msg and "2. " in msg
+    assert sorted(p.name for p in (tmp_path / "sfm").iterdir()) == ["keep.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "sfm"]
+
+
+def test_pose_check_against_reference_model_and_report_table(tmp_path):
+    """A dataset whose sparse/0 is not used gets its SfM poses compared with it; the report's SfM
+    table shows the attempt with those errors."""
+    from rtsplat.report import sfm_section
+
+    make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150, with_model=True)
+    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=2)
+    s = run_sfm(tmp_path / "s", tmp_path / "sfm", cfg, progress=False, log=lambda line: None)
+    assert s.source == "sfm" and s.registered == 10 and s.unregistered == []
+    assert len(s.attempts) == 1 and s.chosen_attempt == 0 and "first attempt" in s.choice
+    assert s.reference_model == str(tmp_path / "s" / "sparse" / "0")
+    # the fixture's cameras are exact: SfM matches them closely after the similarity fit (on a 50 degree
+    # arc the fit to the centres leaves the tilt about the chord loosely fixed; the fit to the orientations not)
+    assert s.pose_errors["compared"] == 10
+    assert s.pose_errors["rotation_error_deg_mean"] < 1.0, s.pose_errors
+    assert s.pose_errors["orientation_aligned_rotation_error_deg_mean"] < 0.5, s.pose_errors
+    assert s.pose_errors["center_error_relative"] < 0.02, s.pose_errors
+    text, header, rows = sfm_section(json.loads((tmp_path / "sfm" / "summary.json").read_text()))
+    assert "10/10 views registered" in text and len(rows) == 1
+    row = dict(zip(header, rows[0], strict=True))
+    assert row["registered"] == "10/10" and row["chosen"] == "yes"
+    assert float(row["rot. err. deg"]) == pytest.approx(s.pose_errors["rotation_error_deg_mean"], abs=1e-3)
+
+
+def test_compare_poses_recovers_a_known_similarity():
+    """Cameras moved by a known similarity compare as equal; a rotated camera shows its angle."""
+    from scipy.spatial.transform import Rotation
+
+    from rtsplat.pose_eval import compare_poses
+
+    rng = np.random.default_rng(0)
+    ref = {}
+    for i in range(6):
+        w2c = np.eye(4)
+        w2c[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * 0.3).as_matrix()
+        w2c[:3, 3] = rng.normal(size=3)
+        ref[f"v{i}"] = w2c
+    s, R, t = 2.5, Rotation.from_rotvec([0.2, -0.4, 1.0]).as_matrix(), np.array([1.0, -2.0, 0.5])
+    # x_est = (R^T (x_ref - t)) / s: a camera's est world-to-camera is [R_ref R, s-scaled translation]
+    est = {}
+    for n, w2c in ref.items():
+        e = np.eye(4)
+        e[:3, :3] = w2c[:3, :3] @ R
+        e[:3, 3] = (w2c[:3, 3] + w2c[:3, :3] @ t) / s
+        est[n] = e
+    errors = compare_poses(est, ref)
+    assert errors.compared == 6
+    assert errors.rotation_error_deg_max < 1e-4 and errors.center_error_relative < 1e-9  # arccos near 1
+    tilted = dict(est)
+    tilted["v0"] = est["v0"].copy()
+    tilted["v0"][:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(2.0)]).as_matrix() @ est["v0"][:3, :3]
+    tilted["v0"][:3, 3] = Rotation.from_rotvec([0.0, 0.0, np.radians(2.0)]).as_matrix() @ est["v0"][:3, 3]
+    errors = compare_poses(tilted, ref)
+    assert errors.relative_rotation_error_deg_max == pytest.approx(2.0, abs=1e-6)
+    assert compare_poses({"a": np.eye(4)}, {"a": np.eye(4)}) is None
