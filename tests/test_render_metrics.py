@@ -52,6 +52,24 @@ def test_ssim_matches_scikit_image_inside_the_border():
     assert ours == pytest.approx(theirs, abs=1e-6)
 
 
+def test_ssim_border_pixels_use_a_zero_padded_window():
+    """Direct sums over the 11x11 Gaussian window, zeros outside the image, at corner and edge pixels."""
+    g = np.random.default_rng(1)
+    a, b = g.random((14, 17, 2)), g.random((14, 17, 2))
+    ours = ssim_map(torch.from_numpy(a), torch.from_numpy(b)).numpy()
+    taps = np.exp(-((np.arange(11) - 5.0) ** 2) / (2 * 1.5**2))
+    window = np.outer(taps, taps) / taps.sum() ** 2
+    pad = lambda x: np.pad(x, ((5, 5), (5, 5), (0, 0)))  # noqa: E731
+    for i, j in [(0, 0), (0, 16), (13, 3), (7, 8), (13, 16)]:
+        def mean(x, i=i, j=j):
+            return (pad(x)[i : i + 11, j : j + 11] * window[..., None]).sum((0, 1))
+        mx, my = mean(a), mean(b)
+        sxx, syy, sxy = mean(a * a) - mx**2, mean(b * b) - my**2, mean(a * b) - mx * my
+        c1, c2 = 0.01**2, 0.03**2
+        want = (2 * mx * my + c1) * (2 * sxy + c2) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
+        np.testing.assert_allclose(ours[i, j], want, rtol=1e-10, atol=1e-12)
+
+
 def test_region_psnr_and_ssim_follow_their_definitions():
     g = torch.Generator().manual_seed(0)
     target = torch.rand(30, 40, 3, generator=g, dtype=torch.float64) * 0.8

@@ -28,10 +28,11 @@ class EnvironmentMap(nn.Module):
     def channels(self) -> int:
         return self.features.shape[1]
 
-    def pyramid(self) -> list[Tensor]:
-        """Mip levels, each half the previous size (2x2 average), at least 1x2."""
+    def pyramid(self, count: int | None = None) -> list[Tensor]:
+        """The first ``count`` (default: all) mip levels, each half the previous size (2x2 average),
+        at least 1x2."""
         levels = [self.features]
-        for _ in range(self.levels - 1):
+        for _ in range(min(count or self.levels, self.levels) - 1):
             top = levels[-1]
             if top.shape[-2] < 2 or top.shape[-1] < 4:
                 levels.append(top)
@@ -48,48 +49,63 @@ class EnvironmentMap(nn.Module):
         v = torch.acos(z.clamp(-1 + 1e-6, 1 - 1e-6)) / math.pi
         return u, v
 
-    @staticmethod
-    def _sample_level(level: Tensor, u: Tensor, v: Tensor) -> Tensor:
-        """Bilinear sample [M,C] of one level; longitude wraps around, colatitude clamps at the poles.
+    def texel_table(self, levels: int | None = None) -> tuple[Tensor, list[tuple[int, int, int]]]:
+        """The first ``levels`` (default: all) mip levels' texels as rows of one table
+        [sum H_l W_l, C] (channels contiguous, level after level, row major) and per level
+        (first row, height, width)."""
+        rows, layout, offset = [], [], 0
+        for tex in self.pyramid(levels):
+            _, C, H, W = tex.shape
+            rows.append(tex[0].permute(1, 2, 0).reshape(H * W, C))
+            layout.append((offset, H, W))
+            offset += H * W
+        return torch.cat(rows), layout
 
-        Texel (i, j) has its centre at (u, v) = ((j + 0.5) / W, (i + 0.5) / H). Written as four
-        gathers with wrapped column indices rather than ``grid_sample`` on a circularly padded copy:
-        the padded copy (and its backward) costs a full pass over the map per level and iteration,
-        which dominated the training step at the paper's 512x1024 map on a CPU.
-        """
-        _, C, H, W = level.shape
-        flat = level.reshape(C, H * W)
+    @staticmethod
+    def _bilinear_taps(u: Tensor, v: Tensor, offset: Tensor, H: Tensor, W: Tensor) -> tuple[Tensor, Tensor]:
+        """Table rows [M,4] and weights [M,4] of the bilinear sample at (u, v) in the level of
+        ``offset``/``H``/``W`` (per sample). Texel (i, j) has its centre at (u, v) = ((j + 0.5) / W,
+        (i + 0.5) / H); columns wrap around (longitude), rows clamp (poles)."""
         x = u * W - 0.5
         y = v * H - 0.5
         x0 = torch.floor(x)
         y0 = torch.floor(y)
-        fx = (x - x0)[None]
-        fy = (y - y0)[None]
+        fx = x - x0
+        fy = y - y0
         x0 = x0.long()
         y0 = y0.long()
-        xa, xb = torch.remainder(x0, W), torch.remainder(x0 + 1, W)
-        ya, yb = y0.clamp(0, H - 1), (y0 + 1).clamp(0, H - 1)
-
-        # one gather for the four corners: its backward allocates one map-sized gradient, not four
-        index = torch.cat([ya * W + xa, ya * W + xb, yb * W + xa, yb * W + xb])
-        c00, c01, c10, c11 = flat.index_select(1, index).reshape(C, 4, -1).unbind(1)
-        top = c00 * (1 - fx) + c01 * fx
-        bottom = c10 * (1 - fx) + c11 * fx
-        return (top * (1 - fy) + bottom * fy).T
+        Hi, Wi = H.long(), W.long()
+        xa, xb = torch.remainder(x0, Wi), torch.remainder(x0 + 1, Wi)
+        ya = torch.minimum(torch.clamp_min(y0, 0), Hi - 1)
+        yb = torch.minimum(torch.clamp_min(y0 + 1, 0), Hi - 1)
+        rows = offset[:, None] + torch.stack([ya * Wi + xa, ya * Wi + xb, yb * Wi + xa, yb * Wi + xb], 1)
+        weights = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
+        return rows, weights
 
     def forward(self, directions: Tensor, roughness: Tensor) -> Tensor:
-        """Features [M,C] at unit ``directions`` [M,3]; ``roughness`` [M] in [0,1] picks the level."""
+        """Features [M,C] at unit ``directions`` [M,3]; ``roughness`` [M] in [0,1] picks the level.
+
+        Trilinear: the bilinear samples of levels ``floor(l)`` and ``floor(l) + 1`` (l = roughness x
+        (levels - 1)) blended by the fraction of l. All eight taps of a sample are rows of one texel
+        table, so the forward is one gather and the backward one scatter into the table, whatever the
+        number of levels; levels above the largest one sampled are not built."""
         u, v = self.direction_to_uv(directions)
-        levels = self.pyramid()
         level = (roughness.clamp(0, 1) * (self.levels - 1)).reshape(-1)
         lo = level.floor().clamp(0, self.levels - 1)
-        frac = (level - lo)[:, None]
-        lo_i = lo.long()[:, None]
-        out = torch.zeros(directions.shape[0], self.channels, device=directions.device, dtype=directions.dtype)
-        for i, tex in enumerate(levels):
-            w = torch.where(lo_i == i, 1 - frac, torch.zeros_like(frac)) + torch.where(
-                lo_i + 1 == i, frac, torch.zeros_like(frac)
-            )
-            if bool((w > 0).any()):
-                out = out + w * self._sample_level(tex, u, v)
-        return out
+        frac = level - lo
+        lo_i = lo.long()
+        has_hi = lo_i + 1 < self.levels  # at the last level there is no next one: its taps weigh 0
+        hi_i = torch.where(has_hi, lo_i + 1, lo_i)
+        # only the levels some sample reads are built (the pyramid is rebuilt every call)
+        table, layout = self.texel_table(int(hi_i.max()) + 1 if hi_i.numel() else 1)
+        info = torch.tensor(layout, dtype=torch.long, device=u.device)  # [levels, 3]: first row, H, W
+        rows, weights = [], []
+        for idx, blend in ((lo_i, 1 - frac), (hi_i, frac * has_hi)):
+            at = info[idx]
+            r, w = self._bilinear_taps(u, v, at[:, 0], at[:, 1].to(u.dtype), at[:, 2].to(u.dtype))
+            rows.append(r)
+            weights.append(w * blend[:, None])
+        rows = torch.cat(rows, 1)  # [M, 8]
+        weights = torch.cat(weights, 1).to(table.dtype)
+        taps = table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, table.shape[1])  # [M, 8, C]
+        return (taps * weights[:, :, None]).sum(1).to(directions.dtype)

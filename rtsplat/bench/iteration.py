@@ -1,0 +1,311 @@
+"""Time of one training iteration, per phase: ``python -m rtsplat.bench.iteration --scene DIR``.
+
+Trains rtsplat and 2dgs (transmission and specular off) on a prepared scene at the demo's
+settings (demo/config.yaml: 600 iterations, 128x256 environment map with 7 levels, volume until
+100, specular from 200, densification every 100 from 150). Each (checkout, method) pair runs in
+its own worker process: it first trains ``--warmup`` iterations (default 300: past
+``specular_from``, so the full model runs, after two densifications, so the surfel count is a
+trained one), then times ``--iterations`` iterations per round. Rounds are interleaved over the
+workers (the order alternates), so every worker sees the same load; the median over the rounds is
+reported, and with two checkouts the median of the per-round ratios first / last.
+
+``--checkout DIR`` (repeatable; default: the checkout this script belongs to) names source trees
+whose ``rtsplat`` package is timed: the worker runs this file with ``PYTHONPATH=DIR``, so a second
+checkout of an earlier commit (``git worktree add /tmp/base <commit>``, or ``git archive``) is
+timed by the same script in the same run. Only names that exist in every checkout are wrapped.
+
+Phases are explicit ``time.perf_counter`` sections, measured by wrapping functions from outside
+(nothing in the package is instrumented): rasterizer projection, tile binning, compositing
+forward and backward (the ``cpu`` backend's autograd function), environment lookup forward,
+specular network forward, image loss forward (L1 + SSIM, SSIM alone listed too), the rest of the
+render (SH colours, G-buffer arithmetic, gating), backward outside the rasterizer (autograd of the
+network, environment map, losses, projection), density control, optimizer step, and the rest of
+the iteration. Each time is exclusive of the sections nested inside it. ``--torch-profile N``
+adds a torch.profiler table (self CPU time per operator, N iterations) per worker.
+
+``--finish`` trains every worker to the end of the schedule afterwards and prints its test PSNR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+DEMO_OPTIONS = {
+    "model": {"env_height": 128, "env_width": 256, "env_levels": 7},
+    "schedule": {"iterations": 600, "volume_until": 100, "specular_from": 200, "densify_from": 150,
+                 "densify_every": 100, "reset_every": 0, "eval_every": 0, "checkpoint_every": 0,
+                 "log_every": 10**9},
+}
+METHODS = {
+    "rtsplat": {},
+    "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
+}
+PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",
+          "ssim fwd", "image loss fwd (L1, rest)", "render (rest)", "backward (rest)", "density control",
+          "optimizer", "iteration (rest)")
+
+
+# -- worker: one checkout, one method ------------------------------------------------------------
+class _Sections:
+    """Exclusive perf_counter time per named section; sections may nest."""
+
+    def __init__(self):
+        self.totals: dict[str, float] = {}
+        self._stack: list[list] = []  # [name, start, child time]
+
+    def wrap(self, name: str, fn):
+        sections = self
+
+        def timed(*args, **kwargs):
+            sections._stack.append([name, time.perf_counter(), 0.0])
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                _, start, child = sections._stack.pop()
+                spent = time.perf_counter() - start
+                sections.totals[name] = sections.totals.get(name, 0.0) + spent - child
+                if sections._stack:
+                    sections._stack[-1][2] += spent
+
+        timed.__wrapped__ = fn
+        return timed
+
+    def reset(self):
+        self.totals = {}
+
+
+def _instrument(sections: _Sections) -> None:
+    import torch
+
+    import rtsplat.raster.cpu as cpu
+    from rtsplat.model import envmap, specular
+    from rtsplat.model.rtmodel import RTModel
+    from rtsplat.train import losses
+    from rtsplat.train.density import DensityControl
+    from rtsplat.train.trainer import Trainer
+
+    cpu.project_surfels = sections.wrap("projection", cpu.project_surfels)
+    cpu.bin_tiles = sections.wrap("binning", cpu.bin_tiles)
+    composite = cpu._Composite
+    composite.forward = staticmethod(sections.wrap("raster fwd", composite.forward))
+    composite.backward = staticmethod(sections.wrap("raster bwd", composite.backward))
+    envmap.EnvironmentMap.forward = sections.wrap("env lookup fwd", envmap.EnvironmentMap.forward)
+    specular.SpecularNetwork.forward = sections.wrap("specular net fwd", specular.SpecularNetwork.forward)
+    losses.ssim_map = sections.wrap("ssim fwd", losses.ssim_map)
+    losses.image_loss = sections.wrap("image loss fwd (L1, rest)", losses.image_loss)
+    RTModel.render = sections.wrap("render (rest)", RTModel.render)
+    torch.Tensor.backward = sections.wrap("backward (rest)", torch.Tensor.backward)
+    DensityControl.observe = sections.wrap("density control", DensityControl.observe)
+    DensityControl.step = sections.wrap("density control", DensityControl.step)
+    Trainer._optimizer_step = sections.wrap("optimizer", Trainer._optimizer_step)
+    Trainer.step = sections.wrap("iteration (rest)", Trainer.step)
+
+
+def _worker(args) -> int:
+    import torch
+
+    import rtsplat
+    from rtsplat.scene import PreparedScene
+    try:
+        from rtsplat.train_config import TrainConfig
+    except ImportError:  # a --checkout from before the settings tree left rtsplat.train
+        from rtsplat.train.config import TrainConfig
+    from rtsplat.train.trainer import Trainer
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    sections = _Sections()
+    _instrument(sections)
+    options = json.loads(args.options)
+    cfg = TrainConfig.from_dict({**DEMO_OPTIONS, **METHODS[args.method], **options})
+    scene = PreparedScene.load(args.scene)
+    with tempfile.TemporaryDirectory(prefix="rtsplat_bench_iteration_") as tmp:
+        trainer = Trainer(scene, cfg, tmp, progress=False, log=lambda m: None)
+        start = time.perf_counter()
+        state = Path(args.state) if args.state else None
+        if state is not None and state.exists():
+            trainer.load_checkpoint(state)
+        else:
+            for _ in range(args.warmup):
+                trainer.step()
+            if state is not None:
+                trainer.save_checkpoint(state)
+        warm = time.perf_counter() - start
+        _send({"ready": True, "package": str(Path(rtsplat.__file__).parent), "warmup_s": warm,
+               "surfels": len(trainer.model.surfels), "threads": torch.get_num_threads(),
+               "iteration": trainer.iteration})
+        for line in sys.stdin:
+            request = json.loads(line)
+            if request["cmd"] == "run":
+                sections.reset()
+                times = []
+                for _ in range(request["iterations"]):
+                    t0 = time.perf_counter()
+                    trainer.step()
+                    times.append(time.perf_counter() - t0)
+                _send({"times": times, "phases": sections.totals, "surfels": len(trainer.model.surfels),
+                       "iteration": trainer.iteration})
+            elif request["cmd"] == "profile":
+                from torch.profiler import ProfilerActivity, profile
+
+                with profile(activities=[ProfilerActivity.CPU]) as prof:
+                    for _ in range(request["iterations"]):
+                        trainer.step()
+                table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=request["rows"])
+                _send({"table": table})
+            elif request["cmd"] == "finish":
+                while trainer.iteration < cfg.schedule.iterations:
+                    trainer.step()
+                _send({"metrics": trainer.evaluate(), "surfels": len(trainer.model.surfels),
+                       "iteration": trainer.iteration})
+            elif request["cmd"] == "quit":
+                break
+    return 0
+
+
+def _send(data: dict) -> None:
+    sys.stdout.write("@@" + json.dumps(data) + "\n")
+    sys.stdout.flush()
+
+
+# -- parent: interleave the workers ---------------------------------------------------------------
+class _Worker:
+    def __init__(self, checkout: Path, method: str, args):
+        self.checkout, self.method = checkout, method
+        code = ("import runpy, sys; sys.argv = sys.argv[1:]; "
+                f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')")
+        cmd = [sys.executable, "-c", code, "prog", "--worker", "--method", method, "--scene", str(args.scene),
+               "--warmup", str(args.warmup), "--options", args.options,
+               "--state", str(args.state_dir / f"{method}.pt"), "--threads", str(args.threads)]
+        env = {**os.environ, "PYTHONPATH": str(checkout)}
+        self.proc = subprocess.Popen(cmd, cwd=checkout, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     text=True)
+
+    def receive(self) -> dict:
+        for line in self.proc.stdout:
+            if line.startswith("@@"):
+                return json.loads(line[2:])
+        raise RuntimeError(f"worker {self.method} @ {self.checkout} exited with {self.proc.wait()}")
+
+    def ask(self, request: dict) -> dict:
+        self.proc.stdin.write(json.dumps(request) + "\n")
+        self.proc.stdin.flush()
+        return self.receive()
+
+    def close(self):
+        if self.proc.poll() is None:
+            self.proc.stdin.write(json.dumps({"cmd": "quit"}) + "\n")
+            self.proc.stdin.flush()
+            self.proc.wait()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m rtsplat.bench.iteration", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", type=Path, required=False, help="prepared scene directory")
+    parser.add_argument("--checkout", type=Path, action="append",
+                        help="source tree to time (repeatable; default: this one); ratios are first / last")
+    parser.add_argument("--methods", default="rtsplat,2dgs")
+    parser.add_argument("--warmup", type=int, default=300, help="untimed iterations first (default 300)")
+    parser.add_argument("--iterations", type=int, default=20, help="timed iterations per round (default 20)")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--options", default="{}", help="extra TrainConfig options as JSON, e.g. "
+                        "'{\"model\": {\"mlp_width\": 64}}' (merged over the demo's sections)")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch (and numba) threads per worker (default: torch's default, the core count)")
+    parser.add_argument("--torch-profile", type=int, default=0, metavar="N",
+                        help="also print a torch.profiler table of N iterations per worker")
+    parser.add_argument("--finish", action="store_true", help="train to the end afterwards; print test PSNR")
+    parser.add_argument("--state-dir", type=Path,
+                        help="keep the warmed-up training states here (<method>.pt) and reuse them in later runs; "
+                        "default: a temporary folder. The first checkout warms up and writes them, the others load "
+                        "them, so every checkout times the same model")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--state", help=argparse.SUPPRESS)
+    parser.add_argument("--method", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.scene is None:
+        parser.error("--scene is required")
+    if args.worker:
+        return _worker(args)
+    options = json.loads(args.options)
+    if any(key in options for key in ("schedule", "model")):
+        merged = {k: {**DEMO_OPTIONS.get(k, {}), **v} if isinstance(v, dict) else v for k, v in options.items()}
+        args.options = json.dumps(merged)
+
+    checkouts = [c.resolve() for c in (args.checkout or [Path(__file__).resolve().parents[2]])]
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    workers: dict[tuple[int, str], _Worker] = {}
+    tmp = None
+    if args.state_dir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="rtsplat_bench_state_")
+        args.state_dir = Path(tmp.name)
+    args.state_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        for method in methods:
+            for ci, checkout in enumerate(checkouts):  # warm-ups one at a time: no competition
+                w = _Worker(checkout, method, args)
+                info = w.receive()
+                workers[ci, method] = w
+                print(f"[{method} @ {checkout}] package {info['package']}, at iteration {info['iteration']} "
+                      f"after {info['warmup_s']:.1f} s (warm-up or state load), {info['surfels']} surfels, "
+                      f"{info['threads']} torch threads", flush=True)
+        runs: dict[tuple[int, str], list[dict]] = {key: [] for key in workers}
+        for r in range(args.rounds):
+            for method in methods:
+                order = list(range(len(checkouts)))
+                if r % 2:
+                    order.reverse()
+                for ci in order:
+                    runs[ci, method].append(workers[ci, method].ask({"cmd": "run", "iterations": args.iterations}))
+        _print_results(checkouts, methods, runs, args)
+        if args.torch_profile:
+            for key, w in workers.items():
+                table = w.ask({"cmd": "profile", "iterations": args.torch_profile, "rows": 30})["table"]
+                print(f"\ntorch.profiler, {args.torch_profile} iterations, {key[1]} @ {checkouts[key[0]]}:\n{table}")
+        if args.finish:
+            print("\ntest PSNR after the whole schedule:")
+            for (ci, method), w in workers.items():
+                res = w.ask({"cmd": "finish"})
+                print(f"  {method:8s} @ {checkouts[ci]}: {json.dumps(res['metrics'])}, {res['surfels']} surfels",
+                      flush=True)
+    finally:
+        for w in workers.values():
+            w.close()
+        if tmp is not None:
+            tmp.cleanup()
+    return 0
+
+
+def _print_results(checkouts, methods, runs, args) -> None:
+    print(f"\nms per training iteration: median over {args.rounds} interleaved rounds of {args.iterations} "
+          "iterations (phases: exclusive perf_counter sections, median over rounds)")
+    for method in methods:
+        print(f"\n== {method}")
+        names = [f"[{ci}] {c.name or c}" for ci, c in enumerate(checkouts)]
+        print(f"{'phase':28s} " + " ".join(f"{n[:14]:>14s}" for n in names))
+        per = {ci: runs[ci, method] for ci in range(len(checkouts))}
+        for phase in PHASES:
+            vals = [statistics.median(1e3 * r["phases"].get(phase, 0.0) / len(r["times"]) for r in per[ci])
+                    for ci in per]
+            print(f"{phase:28s} " + " ".join(f"{v:14.2f}" for v in vals))
+        totals = [statistics.median(1e3 * sum(r["times"]) / len(r["times"]) for r in per[ci]) for ci in per]
+        print(f"{'total ms/iteration':28s} " + " ".join(f"{v:14.2f}" for v in totals))
+        surf = [per[ci][-1]["surfels"] for ci in per]
+        print(f"{'surfels (last round)':28s} " + " ".join(f"{v:14d}" for v in surf))
+        if len(checkouts) > 1:
+            ratios = [sum(a["times"]) / sum(b["times"]) for a, b in zip(per[0], per[len(checkouts) - 1], strict=True)]
+            print(f"ratio [0] / [{len(checkouts) - 1}] per round: " + ", ".join(f"{x:.2f}" for x in ratios)
+                  + f"; median {statistics.median(ratios):.2f}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
