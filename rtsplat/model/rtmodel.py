@@ -192,5 +192,5 @@ def pixel_rays(camera: Camera) -> Tensor:
     xs = torch.arange(camera.width, dtype=dtype, device=device) + PIXEL_CENTER_OFFSET
     yy, xx = torch.meshgrid(ys, xs, indexing="ij")
     pix = torch.stack([xx, yy, torch.ones_like(xx)], -1)
-    cam_dirs = pix @ torch.linalg.inv(camera.K).T
+    cam_dirs = pix @ torch.linalg.inv_ex(camera.K).inverse.T  # inv_ex: no error check, no read of the device
     return F.normalize(cam_dirs @ camera.rotation, dim=-1)  # R^T d, row-vector form

@@ -33,6 +33,7 @@ from rtsplat.model.rtmodel import RTModel
 from rtsplat.model.surfels import PARAMETERS, SurfelParameters, init_from_points
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
+from rtsplat.raster import default_backend
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.data import ViewSet, load_views, scene_extent
@@ -296,6 +297,8 @@ class Trainer:
         self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
                  f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
         self.log(f"perceptual loss: {self.perceptual_note}")
+        backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
+        self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
         total = cfg.schedule.iterations
         bar = _progress(total, self.iteration, self.progress)
         with open(log_path, "a") as log_file:
