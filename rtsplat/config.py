@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from rtsplat.devices import DEVICE_PATTERN
 from rtsplat.errors import ConfigError
 from rtsplat.schema import build, check, dataclass_schema
 from rtsplat.schema import setting as _f
@@ -176,7 +177,9 @@ class TrainConfig:
     """Training: the trainer's config tree (``rtsplat train --help``, rtsplat/train_config.py)."""
 
     iterations: int | None = _f(None, help="schedule.iterations (null: the trainer's default)", minimum=1)
-    backend: str = _f("auto", help="rasterizer backend: auto | cpu | reference")
+    backend: str = _f("auto", help="rasterizer backend: auto (triton on a GPU, else cpu) | cpu | triton | reference")
+    device: str = _f("auto", help="torch device of rtsplat train: auto (the GPU when torch sees one, else the "
+                     "CPU) | cpu | cuda | cuda:N", pattern=DEVICE_PATTERN)
     options: dict[str, Any] = _f(
         help="trainer config keys (schedule, lr, losses, ablations, effects, model, ...) merged under the "
         "method's own overrides; checked against the trainer's config tree",
@@ -198,6 +201,8 @@ class RenderConfig:
     """Rendering (``rtsplat render``)."""
 
     warmup: int = _f(2, help="untimed renders before the FPS measurement", minimum=0)
+    device: str = _f("auto", help="torch device of rtsplat render: auto (the GPU when torch sees one, else the "
+                     "CPU) | cpu | cuda | cuda:N", pattern=DEVICE_PATTERN)
     edits: dict[str, list[str]] = _f(
         help="scene edits rendered for the main method: name -> list of rtsplat render --edit values",
         factory=lambda: copy.deepcopy(DEFAULT_EDITS),
@@ -373,7 +378,7 @@ def discover_scenes(cfg: PipelineConfig) -> list[str]:
 def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, Any]:
     """The trainer config tree of ``method`` on ``scene``: the scene's ``train.options`` and
     ``iterations``, the method's overrides merged over them (a method's own ``schedule.iterations``
-    wins), ``backend``; then a method's ``budget: F`` scales every iteration count by F
+    wins), ``backend`` and ``device``; then a method's ``budget: F`` scales every iteration count by F
     (:func:`rtsplat.train_config.scale_budget`). Validated: an unknown or bad key is a ConfigError."""
     from rtsplat.train_config import TrainConfig as TrainerConfig
     from rtsplat.train_config import scale_budget
@@ -390,6 +395,7 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
         tree = deep_merge(tree, {"schedule": {"iterations": train.iterations}})
     tree = deep_merge(tree, overrides)
     tree["backend"] = train.backend
+    tree["device"] = train.device
     label = "defaults" if scene == "__defaults__" else f"scene {scene}"
     where = f"methods.{method} ({label}, merged with train.options)"
     try:

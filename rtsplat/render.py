@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from rtsplat.config import add_config_arguments, stage_config_from_args
+from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import atomic_dir, write_json_atomic
 from rtsplat.model.composite import compose_layers, scatter_layer
@@ -116,15 +117,17 @@ def _depth_image(depth: Tensor, alpha: Tensor) -> Tensor:
 
 
 def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, split: str = "test",
-               edits: Edits | None = None, backend: str = "auto", warmup: int = 2, device: str = "cpu",
+               edits: Edits | None = None, backend: str = "auto", warmup: int = 2, device: str = "auto",
                progress: bool = True) -> dict:
-    """Render ``split`` views of the prepared scene with the model of ``run_dir``; returns render.json."""
+    """Render ``split`` views of the prepared scene with the model of ``run_dir`` on ``device`` (auto, cpu,
+    cuda, cuda:N; :func:`rtsplat.devices.resolve_device`); returns render.json."""
     from tqdm.auto import tqdm
 
     from rtsplat.io.images import write_png
     from rtsplat.model.checkpoint import read_checkpoint
     from rtsplat.scene import PreparedScene
 
+    device = resolve_device(device)
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     model_path = run_dir / "model.pt"
     if not model_path.is_file():
@@ -148,9 +151,11 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
     with torch.inference_mode():
         for camera in cameras[: max(warmup, 0)]:
             render(camera)
+        _wait_for(device)
         start = time.perf_counter()
         for camera in cameras:
             render(camera)
+        _wait_for(device)  # the renders are queued on a GPU: time them to the end
         seconds = time.perf_counter() - start
 
     with atomic_dir(out_dir) as tmp:
@@ -175,9 +180,14 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
     return info
 
 
-def _device_name(device: str) -> str:
-    if str(device).startswith("cuda") and torch.cuda.is_available():
-        return torch.cuda.get_device_name(torch.device(device))
+def _wait_for(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
     from rtsplat.metrics import cpu_model
 
     return f"CPU {cpu_model()}, {torch.get_num_threads()} torch threads"
@@ -192,18 +202,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", choices=("test", "train", "all"), default="test")
     parser.add_argument("--edit", action="append", default=[], metavar="KEY=VALUE",
                         help="scene edit, repeatable: roughness=S, transparency=S, reflections=off, tint=R,G,B")
-    parser.add_argument("--backend", default="auto", help="rasterizer backend (auto, cpu, reference)")
+    parser.add_argument("--backend", default="auto",
+                        help="rasterizer backend (auto: triton on a GPU, else cpu; cpu, triton, reference)")
     parser.add_argument("--warmup", type=int, help="override render.warmup (untimed renders before measuring FPS)")
-    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    parser.add_argument("--device", help="override render.device: auto (the GPU when torch sees one), cpu, cuda, "
+                        "cuda:N")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = stage_config_from_args(args, "render", {"warmup": args.warmup})
+    cfg = stage_config_from_args(args, "render", {"warmup": args.warmup, "device": args.device})
     edits = Edits.parse(args.edit)
+    resolve_device(cfg.device, key="--device" if args.device is not None else "render.device")
     info = render_run(args.run, args.data, args.out, split=args.split, edits=edits, backend=args.backend,
-                      warmup=cfg.warmup, device=args.device, progress=not args.quiet)
+                      warmup=cfg.warmup, device=cfg.device, progress=not args.quiet)
     print(f"rendered {len(info['views'])} views to {args.out}: {info['fps']:.2f} FPS on {info['device']}")
     return 0
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from rtsplat import schema
+from rtsplat.devices import DEVICE_PATTERN
 from rtsplat.errors import ConfigError
 from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.raster import RasterSettings
@@ -141,8 +142,12 @@ class TrainConfig:
     """The trainer's config tree (rtsplat train)."""
 
     seed: int = setting(0, help="random seed", minimum=0)
-    backend: str = setting("auto", help="rasterizer backend: auto | cpu | reference")
-    device: str = setting("cpu", help="torch device (cpu, cuda)")
+    backend: str = setting("auto", help="rasterizer backend: auto (triton on a GPU, else cpu) | cpu | triton | "
+                           "reference")
+    device: str = setting(
+        "auto", help="torch device: auto (the GPU when torch sees one, else the CPU) | cpu | cuda | cuda:N",
+        pattern=DEVICE_PATTERN,
+    )
     train_downsample: int = setting(
         1, help="train on the training views box-filtered by this factor (cameras scaled to match); test views, "
         "evaluation and rtsplat render stay at the prepared resolution", minimum=1

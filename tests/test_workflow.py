@@ -242,3 +242,28 @@ def test_whole_dag_to_the_report(tmp_path):
     md = (results / "report" / "index.md").read_text()
     assert "| rtsplat |" in md and "| 2dgs |" in md and "no-reflections" in md
     assert (results / "report" / "index.html").is_file()
+
+
+def test_train_and_render_jobs_get_the_configured_device_and_a_gpu_on_slurm(dataset, tmp_path):
+    cfg = yaml.safe_load(_config(dataset).read_text())
+    cfg["defaults"]["train"]["device"] = "cuda"
+    cfg["defaults"]["render"] = {"device": "cuda:0"}
+    cfg["overrides"]["plain"]["train"] = {"device": "cpu"}
+    path = tmp_path / "device.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    r = snakemake(dataset, "-n", "--profile", str(ROOT / "profiles" / "slurm"), config=path)
+    assert r.returncode == 0, r.stderr + r.stdout
+    jobs = _jobs(r.stdout + r.stderr)
+
+    def config_json(block: str, stage: str) -> dict:
+        line = next(x for x in block.splitlines() if f" {stage} --data" in x)
+        args = shlex.split(line.strip())
+        return json.loads(args[args.index("--config-json") + 1])
+
+    train = [b for b in jobs if b.startswith("rule train")]
+    render = [b for b in jobs if b.startswith("rule render:")]
+    assert len(train) == 2 and len(render) == 2
+    devices = sorted(config_json(b, "train")["device"] for b in train)
+    assert devices == ["cpu", "cuda"]
+    assert all(config_json(b, "render")["device"] == "cuda:0" for b in render)
+    assert all("gpu=1" in b for b in train + render)

@@ -23,6 +23,10 @@ class EnvironmentMap(nn.Module):
         super().__init__()
         self.levels = int(levels)
         self.features = nn.Parameter(torch.zeros(1, channels, height, width))
+        # (first row, height, width) of every level in the texel table; a buffer, so it lives on the
+        # map's device and a lookup needs no copy from the host
+        self.register_buffer("level_layout", torch.tensor(level_layout(height, width, self.levels)),
+                             persistent=False)
 
     @property
     def channels(self) -> int:
@@ -96,9 +100,14 @@ class EnvironmentMap(nn.Module):
         lo_i = lo.long()
         has_hi = lo_i + 1 < self.levels  # at the last level there is no next one: its taps weigh 0
         hi_i = torch.where(has_hi, lo_i + 1, lo_i)
-        # only the levels some sample reads are built (the pyramid is rebuilt every call)
-        table, layout = self.texel_table(int(hi_i.max()) + 1 if hi_i.numel() else 1)
-        info = torch.tensor(layout, dtype=torch.long, device=u.device)  # [levels, 3]: first row, H, W
+        # on the CPU only the levels some sample reads are built (the pyramid is rebuilt every call);
+        # elsewhere finding the highest one would wait for the device, so all are built
+        if u.device.type == "cpu":
+            count = int(hi_i.max()) + 1 if hi_i.numel() else 1
+        else:
+            count = self.levels
+        table, _ = self.texel_table(count)
+        info = self.level_layout.to(u.device)  # [levels, 3]: first row, H, W
         rows, weights = [], []
         for idx, blend in ((lo_i, 1 - frac), (hi_i, frac * has_hi)):
             at = info[idx]
@@ -109,3 +118,15 @@ class EnvironmentMap(nn.Module):
         weights = torch.cat(weights, 1).to(table.dtype)
         taps = table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, table.shape[1])  # [M, 8, C]
         return (taps * weights[:, :, None]).sum(1).to(directions.dtype)
+
+
+def level_layout(height: int, width: int, levels: int) -> list[tuple[int, int, int]]:
+    """(first row, height, width) of each mip level in :meth:`EnvironmentMap.texel_table`, from the
+    sizes alone (the same halving rule as :meth:`EnvironmentMap.pyramid`)."""
+    layout, offset = [], 0
+    for _ in range(levels):
+        layout.append((offset, height, width))
+        offset += height * width
+        if height >= 2 and width >= 4:
+            height, width = math.ceil(height / 2), math.ceil(width / 2)
+    return layout

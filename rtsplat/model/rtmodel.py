@@ -153,21 +153,33 @@ class RTModel(nn.Module):
         layers["reflection"] = reflection_layer(spec, roi, shade)
         return RenderResult(color, out, layers)
 
-    def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor):
+    def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
+                  every_pixel: bool | None = None):
+        """C_spec and beta where ``shade``; 0 and 1 elsewhere. On the CPU only the shaded pixels are
+        evaluated; on other devices (``every_pixel``, default: not on the CPU) every pixel is and the
+        unshaded ones are masked out, because gathering the shaded ones would wait for the device to
+        count them. Both give the same values and gradients."""
         H, W = normal.shape[:2]
         flat = shade.reshape(-1)
-        idx = torch.nonzero(flat, as_tuple=False).flatten()
+        every_pixel = normal.device.type != "cpu" if every_pixel is None else every_pixel
+        idx = None if every_pixel else torch.nonzero(flat, as_tuple=False).flatten()
         spec = torch.zeros(H * W, 3, dtype=normal.dtype, device=normal.device)
         beta = torch.ones(H * W, 1, dtype=normal.dtype, device=normal.device)
-        if idx.numel() > 0:
-            incident = pixel_rays(camera).reshape(-1, 3)[idx]
-            n = normal.reshape(-1, 3)[idx]
-            reflected = F.normalize(incident - 2.0 * (incident * n).sum(-1, keepdim=True) * n, dim=-1)
-            rough = (g["roughness"] / alpha_safe).reshape(-1)[idx].clamp(0, 1)
-            material = F.normalize(g["material"].reshape(-1, 4)[idx], dim=-1)
-            reflectance = (g["reflectance"] / alpha_safe).reshape(-1, 1)[idx].clamp(0, 1)
-            env = self.env(reflected, rough)
-            s, b = self.specular_net(env, material, reflectance)
+        if idx is not None and idx.numel() == 0:
+            return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
+        rows = (lambda t: t) if idx is None else (lambda t: t[idx])  # noqa: E731
+        incident = rows(pixel_rays(camera).reshape(-1, 3))
+        n = rows(normal.reshape(-1, 3))
+        reflected = F.normalize(incident - 2.0 * (incident * n).sum(-1, keepdim=True) * n, dim=-1)
+        rough = rows((g["roughness"] / alpha_safe).reshape(-1)).clamp(0, 1)
+        material = F.normalize(rows(g["material"].reshape(-1, 4)), dim=-1)
+        reflectance = rows((g["reflectance"] / alpha_safe).reshape(-1, 1)).clamp(0, 1)
+        env = self.env(reflected, rough)
+        s, b = self.specular_net(env, material, reflectance)
+        if idx is None:
+            spec = torch.where(flat[:, None], s, spec)
+            beta = torch.where(flat[:, None], b, beta)
+        else:
             spec = spec.index_copy(0, idx, s)
             beta = beta.index_copy(0, idx, b)
         return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
@@ -180,5 +192,5 @@ def pixel_rays(camera: Camera) -> Tensor:
     xs = torch.arange(camera.width, dtype=dtype, device=device) + PIXEL_CENTER_OFFSET
     yy, xx = torch.meshgrid(ys, xs, indexing="ij")
     pix = torch.stack([xx, yy, torch.ones_like(xx)], -1)
-    cam_dirs = pix @ torch.linalg.inv(camera.K).T
+    cam_dirs = pix @ torch.linalg.inv_ex(camera.K).inverse.T  # inv_ex: no error check, no read of the device
     return F.normalize(cam_dirs @ camera.rotation, dim=-1)  # R^T d, row-vector form

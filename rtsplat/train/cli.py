@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from rtsplat.config import PipelineConfig, add_config_arguments, load_config, trainer_options
+from rtsplat.devices import resolve_device
 from rtsplat.errors import ConfigError
 from rtsplat.train_config import TrainConfig
 
@@ -30,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default: rtsplat, else the first method)")
     parser.add_argument("--iterations", type=int, help="override schedule.iterations")
     parser.add_argument("--backend", help="rasterizer backend (auto, reference, ...)")
+    parser.add_argument("--device", help="override device: auto (the GPU when torch sees one), cpu, cuda, cuda:N")
     parser.add_argument("--seed", type=int, help="random seed")
     parser.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in --out")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -79,9 +81,12 @@ def run(args: argparse.Namespace) -> int:
         cfg.schedule.iterations = args.iterations
     if args.backend is not None:
         cfg.backend = args.backend
+    if args.device is not None:
+        cfg.device = args.device
     if args.seed is not None:
         cfg.seed = args.seed
     cfg.validate(source="rtsplat train")
+    resolve_device(cfg.device, key="--device" if args.device is not None else "train.device")
     scene = PreparedScene.load(args.data)
     trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=lambda msg: print(msg, file=sys.stderr))
     trainer.train(resume=not args.no_resume)

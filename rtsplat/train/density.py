@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -59,15 +60,16 @@ class DensityControl:
         self._ensure(n, out.visible.device)
         visible = out.visible
         self.seen_since_reset |= visible
+        # masks as arithmetic, not boolean indexing: no read of the device per iteration
         signal = out.densification_grad()
         if signal is not None:
             norm = signal.norm(dim=-1)
             if trainable is not None:
                 norm = norm * trainable
-            self.grad_sum[visible] += norm[visible]
-            self.grad_count[visible] += 1
+            self.grad_sum += torch.where(visible, norm.to(self.grad_sum.dtype), 0.0)
+            self.grad_count += visible.to(self.grad_count.dtype)
         radius = out.radii.amax(-1).to(self.max_radius.dtype)
-        self.max_radius[visible] = torch.maximum(self.max_radius[visible], radius[visible])
+        self.max_radius = torch.where(visible, torch.maximum(self.max_radius, radius), self.max_radius)
 
     def state_dict(self) -> dict:
         return {"grad_sum": self.grad_sum, "grad_count": self.grad_count, "max_radius": self.max_radius,
@@ -84,8 +86,9 @@ class DensityControl:
         and the new ``frozen`` mask (frozen surfels are never cloned, split or pruned)."""
         s = self.schedule
         n = len(surfels)
-        self._ensure(n, surfels.means.device)
-        frozen = torch.zeros(n, dtype=torch.bool) if frozen is None else frozen
+        device = surfels.means.device
+        self._ensure(n, device)
+        frozen = torch.zeros(n, dtype=torch.bool, device=device) if frozen is None else frozen
         events = DensityEvents()
         if s.densify_from <= iteration < s.densify_until and iteration % s.densify_every == 0:
             frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events)
@@ -95,6 +98,7 @@ class DensityControl:
 
     def _densify_and_prune(self, surfels, optimizer, generator, frozen, events) -> Tensor:
         c = self.config
+        device = surfels.means.device
         mean_grad = self.grad_sum / self.grad_count.clamp_min(1)
         big = surfels.scales.amax(-1) > c.percent_dense * self.extent
         candidates = (mean_grad >= c.grad_threshold) & ~frozen
@@ -118,25 +122,27 @@ class DensityControl:
             rot = quat_to_rotmat(surfels.quats.detach()[idx])
             scales = surfels.scales.detach()[idx]
             for _ in range(2):
-                local = torch.randn(idx.shape[0], 2, generator=generator) * scales
+                # drawn from the CPU generator (the run's seed), then moved to the surfels' device
+                local = torch.randn(idx.shape[0], 2, generator=generator).to(device) * scales
                 offset = (rot[:, :, :2] @ local[:, :, None])[..., 0]
                 for name in PARAMETERS:
                     value = tensors[name].detach()[idx]
                     if name == "means":
                         value = value + offset
                     elif name == "log_scales":
-                        value = value - torch.log(torch.tensor(c.split_factor))
+                        value = value - math.log(c.split_factor)
                     new_rows[name].append(value)
         added = {name: torch.cat(v) if v else tensors[name].detach()[:0] for name, v in new_rows.items()}
         n_added = added["means"].shape[0]
         if n_added:
             append_rows(optimizer, surfels, added)
         events.cloned, events.split = int(clone.sum()), int(split.sum())
-        frozen = torch.cat([frozen, torch.zeros(n_added, dtype=torch.bool)])
-        grown = lambda t, fill: torch.cat([t, torch.full((n_added,), fill, dtype=t.dtype)])  # noqa: E731
+        no_rows = torch.zeros(n_added, dtype=torch.bool, device=device)
+        frozen = torch.cat([frozen, no_rows])
+        grown = lambda t, fill: torch.cat([t, torch.full((n_added,), fill, dtype=t.dtype, device=device)])  # noqa: E731
         seen = grown(self.seen_since_reset, False)
         max_radius = grown(self.max_radius, 0)
-        remove = torch.cat([split, torch.zeros(n_added, dtype=torch.bool)])
+        remove = torch.cat([split, no_rows])
 
         low_occupancy = (surfels.occupancy.detach() < c.prune_occupancy) & seen
         too_big = surfels.scales.detach().amax(-1) > c.max_world_scale * self.extent
@@ -145,14 +151,14 @@ class DensityControl:
         remove |= (low_occupancy | too_big) & ~frozen
         keep = ~remove
         if not keep.any():  # never prune the scene away entirely: drop only the split parents
-            keep = ~torch.cat([split, torch.zeros(n_added, dtype=torch.bool)])
+            keep = ~torch.cat([split, no_rows])
         keep_rows(optimizer, surfels, keep)
         events.pruned = int((~keep).sum()) - events.split
         self.seen_since_reset = seen[keep]
         n_new = int(keep.sum())
-        self.grad_sum = torch.zeros(n_new)
-        self.grad_count = torch.zeros(n_new)
-        self.max_radius = torch.zeros(n_new)
+        self.grad_sum = torch.zeros(n_new, device=device)
+        self.grad_count = torch.zeros(n_new, device=device)
+        self.max_radius = torch.zeros(n_new, device=device)
         return frozen[keep]
 
     def _reset(self, surfels, optimizer, events) -> None:
@@ -161,5 +167,5 @@ class DensityControl:
         value = getattr(surfels, name).detach().clamp_max(cap)
         reset_rows(optimizer, surfels, name, value)
         self.resets_done += 1
-        self.seen_since_reset = torch.zeros(len(surfels), dtype=torch.bool)
+        self.seen_since_reset = torch.zeros(len(surfels), dtype=torch.bool, device=surfels.means.device)
         events.reset = "occupancy" if name == "occupancy_logit" else "opacity"

@@ -26,7 +26,7 @@ def depth_to_points(depth: Tensor, camera: Camera) -> Tensor:
     xs = torch.arange(W, dtype=dtype, device=device) + 0.5
     yy, xx = torch.meshgrid(ys, xs, indexing="ij")
     pix = torch.stack([xx, yy, torch.ones_like(xx)], -1)
-    cam = (pix @ torch.linalg.inv(camera.K.to(dtype)).T) * depth
+    cam = (pix @ torch.linalg.inv_ex(camera.K.to(dtype)).inverse.T) * depth  # inv_ex: no read of the device
     R, t = camera.rotation.to(dtype), camera.translation.to(dtype)
     return (cam - t) @ R  # R^T (x - t)
 

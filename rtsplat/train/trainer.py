@@ -14,6 +14,7 @@ Run directory layout::
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,7 +22,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
+from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_text_atomic
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
@@ -30,6 +33,7 @@ from rtsplat.model.rtmodel import RTModel
 from rtsplat.model.surfels import PARAMETERS, SurfelParameters, init_from_points
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
+from rtsplat.raster import default_backend
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.data import ViewSet, load_views, scene_extent
@@ -41,11 +45,20 @@ from rtsplat.train_config import TrainConfig
 
 @dataclass
 class StepResult:
+    """One iteration's numbers, as 0-d tensors on the training device: reading them (``float``)
+    waits for the device, so the loop reads them only on logging steps."""
+
     iteration: int
-    loss: float
-    psnr: float
-    terms: dict[str, float]
+    loss: Tensor
+    psnr: Tensor
+    terms: dict[str, Tensor]
     stage: str
+
+    def numbers(self) -> dict[str, float]:
+        """loss, psnr and ``loss_<term>`` as floats (one transfer from the device)."""
+        names = ["loss", "psnr", *(f"loss_{k}" for k in self.terms)]
+        values = torch.stack([self.loss, self.psnr, *self.terms.values()]).tolist()
+        return dict(zip(names, values, strict=True))
 
 
 def stage_at(iteration: int, cfg: TrainConfig) -> str:
@@ -71,7 +84,7 @@ class Trainer:
         self.out = Path(out_dir)
         self.log = log
         self.progress = progress
-        self.device = torch.device(cfg.device)
+        self.device = resolve_device(cfg.device, key="train.device")
         torch.manual_seed(cfg.seed)
         self.rng = torch.Generator().manual_seed(cfg.seed)
         self.train_views = load_views(scene, "train", self.device, cfg.train_downsample)
@@ -91,11 +104,12 @@ class Trainer:
         self.model = self._new_model(self._init_surfels())
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
         self.density = DensityControl(cfg.densify, cfg.schedule, self.extent)
-        self.frozen = torch.zeros(len(self.model.surfels), dtype=torch.bool)
+        self.frozen = torch.zeros(len(self.model.surfels), dtype=torch.bool, device=self.device)
+        self.any_frozen = False  # kept on the host: the step tests it without reading the device
         self.iteration = 0
         self.elapsed = 0.0
         self.order: list[int] = []
-        self.perceptual, why = load_lpips(cfg.losses.lpips_weights)
+        self.perceptual, why = load_lpips(cfg.losses.lpips_weights, self.device)
         self.perceptual_note = why
 
     # -- construction ------------------------------------------------------------------------
@@ -156,10 +170,10 @@ class Trainer:
         if L.transmissivity_bce_weight > 0 and "tau" in result.layers and mask is not None:
             terms["tau"] = L.transmissivity_bce_weight * masked_mean(
                 -torch.log((1 - result.layers["tau"]).clamp_min(1e-6)), 1 - mask)
-        if L.occupancy_decay_weight > 0:
-            visible = result.raster.visible
-            if visible.any():
-                terms["occupancy_decay"] = L.occupancy_decay_weight * self.model.surfels.occupancy[visible].mean()
+        if L.occupancy_decay_weight > 0:  # mean occupancy of the visible surfels (0 when none is)
+            visible = result.raster.visible.to(self.model.surfels.occupancy.dtype)
+            terms["occupancy_decay"] = L.occupancy_decay_weight * (
+                (self.model.surfels.occupancy * visible).sum() / visible.sum().clamp_min(1))
         loss = sum(terms.values())
         loss.backward()
         trainable = (~self.frozen).float()
@@ -167,13 +181,13 @@ class Trainer:
         self._optimizer_step()
         _, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
         with torch.no_grad():
-            value = psnr(result.color.detach().clamp(0, 1), target).item()
-        return StepResult(it, float(loss.detach()), value, {k: float(v.detach()) for k, v in terms.items()}, stage)
+            value = psnr(result.color.detach().clamp(0, 1), target)
+        return StepResult(it, loss.detach(), value, {k: v.detach() for k, v in terms.items()}, stage)
 
     def _optimizer_step(self) -> None:
         frozen = self.frozen
         saved = {}
-        if frozen.any():
+        if self.any_frozen:
             for name in PARAMETERS:
                 p = getattr(self.model.surfels, name)
                 if p.grad is not None:
@@ -191,8 +205,11 @@ class Trainer:
         surfels (from the SfM points) for the see-through surfaces."""
         fresh = self._init_surfels()
         n_old = len(self.model.surfels)
-        append_rows(self.optimizer, self.model.surfels, {k: v.detach() for k, v in fresh.tensors().items()})
-        self.frozen = torch.cat([torch.ones(n_old, dtype=torch.bool), torch.zeros(len(fresh), dtype=torch.bool)])
+        append_rows(self.optimizer, self.model.surfels,
+                    {k: v.detach().to(self.device) for k, v in fresh.tensors().items()})
+        self.frozen = torch.cat([torch.ones(n_old, dtype=torch.bool, device=self.device),
+                                 torch.zeros(len(fresh), dtype=torch.bool, device=self.device)])
+        self.any_frozen = n_old > 0
         self.log(f"joint_optimization off: froze {n_old} background surfels, added {len(fresh)} new ones")
 
     # -- evaluation --------------------------------------------------------------------------
@@ -206,12 +223,16 @@ class Trainer:
         for camera, image, mask in zip(views.cameras, views.images, views.masks, strict=True):
             color = self.model.render(camera, stage=stage, raster_settings=self.cfg.raster,
                                       backend=self.cfg.backend).color.clamp(0, 1)
-            full.append(psnr(color, image).item())
-            if mask is not None and mask.sum() > 0:
-                region.append(psnr(color, image, mask).item())
-        out = {"test_psnr": float(np.mean(full))}
-        if region:
-            out["test_psnr_transparent"] = float(np.mean(region))
+            full.append(psnr(color, image))
+            if mask is not None:  # NaN marks a view without transparent pixels
+                has_region = mask.sum() > 0
+                region.append(torch.where(has_region, psnr(color, image, mask), torch.full_like(full[-1], math.nan)))
+        # one transfer from the device for all views
+        full_values = torch.stack(full).tolist()
+        region_values = [v for v in (torch.stack(region).tolist() if region else []) if not math.isnan(v)]
+        out = {"test_psnr": float(np.mean(full_values))}
+        if region_values:
+            out["test_psnr_transparent"] = float(np.mean(region_values))
         return out
 
     # -- checkpoints ---------------------------------------------------------------------------
@@ -250,10 +271,12 @@ class Trainer:
         self.optimizer = build_optimizer(self.model, self.model.surfels, self.cfg.lr, self.extent)
         self.optimizer.load_state_dict(state["optimizer"])
         self.density.load_state_dict(state["density"])
-        self.frozen = state["frozen"]
+        self.frozen = state["frozen"].to(self.device)
+        self.any_frozen = bool(self.frozen.any())
         self.order = list(state["order"])
-        self.rng.set_state(state["rng"])
-        torch.set_rng_state(state["torch_rng"])
+        # generator states are CPU byte tensors (the checkpoint was read onto self.device)
+        self.rng.set_state(state["rng"].cpu())
+        torch.set_rng_state(state["torch_rng"].cpu())
         self.iteration = int(state["iteration"])
         self.elapsed = float(state["elapsed"])
 
@@ -274,21 +297,27 @@ class Trainer:
         self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
                  f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
         self.log(f"perceptual loss: {self.perceptual_note}")
+        backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
+        self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
         total = cfg.schedule.iterations
         bar = _progress(total, self.iteration, self.progress)
         with open(log_path, "a") as log_file:
             while self.iteration < total:
                 start = time.perf_counter()
                 step = self.step()
-                self.elapsed += time.perf_counter() - start
-                bar.update(1)
-                bar.set_postfix(loss=f"{step.loss:.4f}", psnr=f"{step.psnr:.2f}", surfels=len(self.model.surfels))
                 last = step.iteration == total
                 evaluate_now = cfg.schedule.eval_every > 0 and (step.iteration % cfg.schedule.eval_every == 0 or last)
-                if step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now:
-                    record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4), "loss": step.loss,
-                              "psnr": step.psnr, "surfels": len(self.model.surfels), "stage": step.stage,
-                              **{f"loss_{k}": v for k, v in step.terms.items()}}
+                logging = step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now
+                # the loop reads the device only on logging steps; that read waits for the queued work,
+                # so the seconds logged there include it
+                numbers = step.numbers() if logging else None
+                self.elapsed += time.perf_counter() - start
+                bar.update(1)
+                if numbers is not None:
+                    bar.set_postfix(loss=f"{numbers['loss']:.4f}", psnr=f"{numbers['psnr']:.2f}",
+                                    surfels=len(self.model.surfels))
+                    record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4), **numbers,
+                              "surfels": len(self.model.surfels), "stage": step.stage}
                     if evaluate_now:
                         record.update(self.evaluate())
                     log_file.write(json.dumps(record) + "\n")

@@ -1,5 +1,6 @@
 # Training, rendering, metrics and the report: each rule calls one `rtsplat <stage>` CLI; what
 # the arguments are is decided in rtsplat/config.py (train_json, section_json, render_edit_args).
+# The torch device of train and render is in their --config-json (train.device, render.device).
 import shlex
 from pathlib import Path
 
