@@ -49,7 +49,7 @@ class EnvironmentMap(nn.Module):
         return u, v
 
     @staticmethod
-    def _sample_level(level: Tensor, u: Tensor, v: Tensor) -> Tensor:
+    def sample_level(level: Tensor, u: Tensor, v: Tensor) -> Tensor:
         """Bilinear sample [M,C] of one level; longitude wraps around, colatitude clamps at the poles.
 
         Texel (i, j) has its centre at (u, v) = ((j + 0.5) / W, (i + 0.5) / H). Written as four
@@ -91,5 +91,5 @@ class EnvironmentMap(nn.Module):
                 lo_i + 1 == i, frac, torch.zeros_like(frac)
             )
             if bool((w > 0).any()):
-                out = out + w * self._sample_level(tex, u, v)
+                out = out + w * self.sample_level(tex, u, v)
         return out

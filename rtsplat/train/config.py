@@ -53,11 +53,17 @@ class Schedule:
     specular_from: int = 600  # stage 3 (full model) from here; stage 2 in between (no specular)
     separate_background_until: int = 1000  # joint_optimization off: background-only phase length
     densify_from: int = 500
-    densify_until: int = 15000
+    # last iteration (exclusive) of density control and resets; None: half the run, the 2DGS ratio (15000
+    # of 30000), so that the second half refines a fixed set of surfels
+    densify_until: int | None = None
     densify_every: int = 100
     reset_every: int = 1500  # alternating occupancy / opacity resets
+    sh_degree_every: int = 1000  # one more SH degree every N iterations (3DGS), up to model.sh_degree
     log_every: int = 10
     checkpoint_every: int = 500
+    def densify_stop(self) -> int:
+        return self.iterations // 2 if self.densify_until is None else self.densify_until
+
     # test-view PSNR (entire / transparent) every N iterations into the log, for accuracy-against-
     # time curves; 0: only at the end. Evaluation time is not counted in the log's "seconds".
     eval_every: int = 0
@@ -80,6 +86,7 @@ class LearningRates:
     material: float = 2e-3
     env_map: float = 2e-3
     mlp: float = 5e-4
+    background: float = 1e-2
 
     def scaled(self, factor: float) -> LearningRates:
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -126,7 +133,13 @@ class ModelSettings:
     roughness_init: float = 0.1
     reflectance_init: float = 0.5
     shade_alpha_threshold: float = 0.05
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # radiance where the volume transmittance is left (rtsplat/model/background.py), the same for every
+    # method: "learned" (a direction-indexed RGB map), "black", "white", or "random" (a random colour per
+    # training step, black when evaluating and rendering; for views whose empty pixels carry no colour)
+    background: Literal["learned", "black", "white", "random"] = "learned"
+    background_height: int = 256  # finest level; 0.7 degrees per texel, about a pixel of the demo views
+    background_width: int = 512
+    background_levels: int = 5
 
 
 @dataclass
@@ -163,6 +176,10 @@ class TrainConfig:
                 "train.schedule: need 0 <= volume_until <= specular_from "
                 f"(got {s.volume_until}, {s.specular_from})"
             )
+        if s.densify_until is not None and (isinstance(s.densify_until, bool) or not isinstance(s.densify_until, int)
+                                            or s.densify_until < 0):
+            raise ConfigError(f"train.schedule.densify_until must be an iteration >= 0 or null (half the run), "
+                              f"got {s.densify_until!r}")
         if self.train_downsample < 1:
             raise ConfigError(f"train.train_downsample must be >= 1, got {self.train_downsample}")
         if self.gating.k < 0:
@@ -172,6 +189,12 @@ class TrainConfig:
                 raise ConfigError(f"train.effects.{name} must be auto, on or off")
         if self.gating.mode not in ("weighted_std", "variance"):
             raise ConfigError("train.gating.mode must be 'weighted_std' or 'variance'")
+        m = self.model
+        if m.background not in ("learned", "black", "white", "random"):
+            raise ConfigError(f"train.model.background must be learned, black, white or random, got {m.background!r}")
+        if m.background_height < 2 or m.background_width < 2 or m.background_levels < 1:
+            raise ConfigError("train.model: background_height, background_width >= 2 and background_levels >= 1 "
+                              "required")
         if self.model.env_levels < 1 or self.model.env_height < 2 or self.model.env_width < 2:
             raise ConfigError("train.model: env_levels >= 1 and env_height/env_width >= 2 required")
         return self
@@ -196,6 +219,8 @@ def _build(cls, data: dict[str, Any], where: str):
             if not isinstance(value, bool):
                 raise ConfigError(f"{where}.{name} must be true or false, got {value!r}")
             values[name] = value
+        elif value is None and default is None:
+            values[name] = None
         elif isinstance(default, (int, float)) and not isinstance(default, bool):
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ConfigError(f"{where}.{name} must be a number, got {value!r}")
@@ -210,7 +235,8 @@ def _build(cls, data: dict[str, Any], where: str):
 # Every setting counted in iterations, by section (log_every stays: it is a logging rate).
 ITERATION_COUNTS = {
     "schedule": ("iterations", "volume_until", "specular_from", "separate_background_until", "densify_from",
-                 "densify_until", "densify_every", "reset_every", "checkpoint_every", "eval_every"),
+                 "densify_until", "densify_every", "reset_every", "sh_degree_every", "checkpoint_every",
+                 "eval_every"),
     "lr": ("position_max_steps",),
     "losses": ("perceptual_from", "normal_from"),
 }
@@ -228,6 +254,7 @@ def scale_budget(cfg: TrainConfig, factor: float) -> TrainConfig:
         changes = {}
         for name in names:
             value = getattr(current, name)
-            changes[name] = max(int(round(value * factor)), 1) if value > 0 else value
+            if value is not None:
+                changes[name] = max(int(round(value * factor)), 1) if value > 0 else value
         sections[section] = dataclasses.replace(current, **changes)
     return dataclasses.replace(cfg, **sections)

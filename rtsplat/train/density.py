@@ -2,7 +2,8 @@
 
 * statistics: per surfel, the accumulated norm of the 2DGS densification signal over the views
   where it was visible, the largest screen radius, and whether it was seen since the last reset;
-* every ``densify_every`` iterations in [densify_from, densify_until): clone small surfels whose
+* every ``densify_every`` iterations in [densify_from, densify_until) (default: the first half of the
+  run, as 2DGS): clone small surfels whose
   mean gradient exceeds the threshold, split large ones in two (scale / 1.6, samples drawn in the
   surfel's tangent plane), then prune: occupancy below 0.05 (never opacity: a clear window has
   low opacity) among surfels seen since the last reset, and over-large surfels;
@@ -11,7 +12,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import torch
 from torch import Tensor
@@ -27,11 +28,16 @@ from rtsplat.train.optim import append_rows, keep_rows, reset_rows
 class DensityEvents:
     cloned: int = 0
     split: int = 0
-    pruned: int = 0
+    pruned: int = 0  # all pruned surfels (split parents are not counted)
+    pruned_occupancy: int = 0  # ... of which for their low occupancy
+    pruned_size: int = 0  # ... of which for their world or screen size
     reset: str = ""
 
     def any(self) -> bool:
         return bool(self.cloned or self.split or self.pruned or self.reset)
+
+    def to_dict(self) -> dict[str, int | str]:
+        return {k: v for k, v in asdict(self).items() if v}
 
 
 @dataclass
@@ -87,9 +93,10 @@ class DensityControl:
         self._ensure(n, surfels.means.device)
         frozen = torch.zeros(n, dtype=torch.bool) if frozen is None else frozen
         events = DensityEvents()
-        if s.densify_from <= iteration < s.densify_until and iteration % s.densify_every == 0:
+        stop = s.densify_stop()
+        if s.densify_from <= iteration < stop and iteration % s.densify_every == 0:
             frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events)
-        if s.reset_every > 0 and iteration % s.reset_every == 0 and iteration < s.densify_until:
+        if s.reset_every > 0 and iteration % s.reset_every == 0 and iteration < stop:
             self._reset(surfels, optimizer, events)
         return events, frozen
 
@@ -146,6 +153,9 @@ class DensityControl:
         keep = ~remove
         if not keep.any():  # never prune the scene away entirely: drop only the split parents
             keep = ~torch.cat([split, torch.zeros(n_added, dtype=torch.bool)])
+        parents = torch.cat([split, torch.zeros(n_added, dtype=torch.bool)])
+        events.pruned_occupancy = int((low_occupancy & ~keep & ~parents).sum())
+        events.pruned_size = int((too_big & ~low_occupancy & ~keep & ~parents).sum())
         keep_rows(optimizer, surfels, keep)
         events.pruned = int((~keep).sum()) - events.split
         self.seen_since_reset = seen[keep]
