@@ -111,7 +111,16 @@ class Losses:
 class Densification:
     grad_threshold: float = 2e-4
     percent_dense: float = 0.01  # clone if max scale <= percent_dense * extent, else split
+    # "halves": a split surfel becomes two surfels that tile it along its longer tangent axis (centres at
+    # +-0.6 x that scale, that scale x 0.6, the other kept), which changes the image 3x less than
+    # "random" (3DGS/2DGS: two surfels at N(0, scale) offsets, both scales / split_factor)
+    split_mode: Literal["halves", "random"] = "halves"
     split_factor: float = 1.6
+    # a clone and its original share what the original covered: occupancy 1 - sqrt(1 - occupancy) and
+    # occupancy x opacity likewise, so two coincident copies cover what one did at its centre (the
+    # opacity correction of Rota Bulo et al. 2024); 3DGS keeps both at the original's values, which
+    # doubles their coverage
+    clone_preserves_coverage: bool = True
     prune_occupancy: float = 0.05
     max_screen_size: float = 0.0  # prune surfels larger than this many pixels (0: off)
     max_world_scale: float = 0.1  # prune surfels larger than this fraction of the scene extent
@@ -187,6 +196,8 @@ class TrainConfig:
         for name in ("transmission", "specular"):
             if getattr(self.effects, name) not in ("auto", "on", "off"):
                 raise ConfigError(f"train.effects.{name} must be auto, on or off")
+        if self.densify.split_mode not in ("halves", "random"):
+            raise ConfigError(f"train.densify.split_mode must be halves or random, got {self.densify.split_mode!r}")
         if self.gating.mode not in ("weighted_std", "variance"):
             raise ConfigError("train.gating.mode must be 'weighted_std' or 'variance'")
         m = self.model
