@@ -56,7 +56,10 @@ class Schedule:
         1000, help="ablations.joint_optimization off: length of the background-only phase", minimum=0
     )
     densify_from: int = setting(500, help="densification starts after this iteration", minimum=0)
-    densify_until: int = setting(15000, help="densification stops at this iteration", minimum=0)
+    densify_until: int | None = setting(
+        None, help="density control and resets stop at this iteration (exclusive); null: half the run, the 2DGS "
+        "ratio (15000 of 30000), so that the second half refines a fixed set of surfels", minimum=0
+    )
     densify_every: int = setting(100, help="densify every N iterations", minimum=1)
     reset_every: int = setting(1500, help="alternating occupancy / opacity resets every N iterations (0: never)",
                                minimum=0)
@@ -70,6 +73,10 @@ class Schedule:
         0, help="test-view PSNR (entire / transparent) every N iterations into the log, for accuracy-against-time "
         "curves; 0: only at the end. Evaluation time is not counted in the log's seconds", minimum=0
     )
+
+    def densify_stop(self) -> int:
+        """The iteration at which density control and resets stop (exclusive)."""
+        return self.iterations // 2 if self.densify_until is None else self.densify_until
 
 
 @dataclass
@@ -93,6 +100,7 @@ class LearningRates:
     material: float = setting(2e-3, help="material features", minimum=0.0)
     env_map: float = setting(2e-3, help="environment feature map", minimum=0.0)
     mlp: float = setting(5e-4, help="specular network", minimum=0.0)
+    background: float = setting(1e-2, help="learned background map (model.background: learned)", minimum=0.0)
 
     def scaled(self, factor: float) -> LearningRates:
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -124,8 +132,18 @@ class Densification:
     percent_dense: float = setting(
         0.01, help="clone if max scale <= percent_dense * extent, else split", minimum=0.0
     )
-    split_factor: float = setting(1.6, help="a split surfel's children get its scale divided by this",
-                                  exclusiveMinimum=0.0)
+    split_mode: Literal["halves", "random"] = setting(
+        "halves", help="halves: a split surfel becomes two surfels that tile it along its longer tangent axis "
+        "(centres at +-0.6 x that scale, that scale x 0.6, the other kept), which changes the image far less than "
+        "random (3DGS/2DGS: two surfels at N(0, scale) offsets, both scales / split_factor)"
+    )
+    split_factor: float = setting(1.6, help="split_mode random: the children get the parent's scales divided by "
+                                  "this", exclusiveMinimum=0.0)
+    clone_preserves_coverage: bool = setting(
+        True, help="a clone and its original share what the original covered (occupancy 1 - sqrt(1 - occupancy), "
+        "occupancy x opacity likewise), so two coincident copies cover what one did at its centre; false: both keep "
+        "the original's values (3DGS), which doubles their coverage"
+    )
     prune_occupancy: float = setting(0.05, help="prune surfels with occupancy below this", minimum=0.0, maximum=1.0)
     max_screen_size: float = setting(0.0, help="prune surfels larger than this many pixels (0: off)", minimum=0.0)
     max_world_scale: float = setting(
@@ -205,6 +223,7 @@ def scale_budget(cfg: TrainConfig, factor: float) -> TrainConfig:
         changes = {}
         for name in names:
             value = getattr(current, name)
-            changes[name] = max(int(round(value * factor)), 1) if value > 0 else value
+            if value is not None:  # None: a count that follows the run's length (densify_until)
+                changes[name] = max(int(round(value * factor)), 1) if value > 0 else value
         sections[section] = dataclasses.replace(current, **changes)
     return dataclasses.replace(cfg, **sections)

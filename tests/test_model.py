@@ -291,3 +291,56 @@ def test_checkpoint_reads_version_1_files_and_names_unreadable_ones(tmp_path):
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match="bad.pt: cannot read checkpoint"):
         read_checkpoint(tmp_path / "bad.pt")
+
+
+def _plain_model(background: str, seed: int = 0) -> RTModel:
+    g = torch.Generator().manual_seed(seed)
+    xyz = torch.rand(40, 3, generator=g) * 0.4 - 0.2  # a small cluster: most pixels see past it
+    surfels = init_from_points(xyz, torch.rand(40, 3, generator=g), occupancy=0.6, generator=g)
+    settings = ModelSettings(env_height=16, env_width=32, env_levels=3, mlp_width=32, background=background,
+                             background_height=16, background_width=32, background_levels=3)
+    return RTModel(surfels, effects=ActiveEffects(transmission=False, specular=False), settings=settings)
+
+
+@pytest.mark.parametrize("mode,value", [("black", 0.0), ("white", 1.0)])
+def test_constant_backgrounds_fill_the_transmittance_left(mode, value):
+    result = _render(_plain_model(mode))
+    out = result.raster
+    assert (out.volume_alpha < 1e-3).sum() > 50  # the view sees past the surfels
+    torch.testing.assert_close(result.color, out.color + (1 - out.volume_alpha) * value)
+
+
+def test_learned_background_is_indexed_by_the_ray_direction_and_trained_by_the_image_loss():
+    model = _plain_model("learned")
+    assert model.background_map is not None
+    finest = model.background_map.maps[0]
+    rows = finest.shape[2]
+    with torch.no_grad():  # upper hemisphere (rows of colatitude < 90 degrees, z > 0) red, lower blue
+        finest[0, :, : rows // 2] = torch.tensor([4.0, -4.0, -4.0])[:, None, None]
+        finest[0, :, rows // 2 :] = torch.tensor([-4.0, -4.0, 4.0])[:, None, None]
+    camera = small_camera(24, 18, torch.float32, eye=(0.3, -3.0, 0.0))
+    result = model.render(camera, stage="full", backend="reference")
+    rays = rtmodel.pixel_rays(camera)
+    empty = result.raster.volume_alpha[..., 0] < 1e-4
+    up, down = empty & (rays[..., 2] > 0.1), empty & (rays[..., 2] < -0.1)
+    assert up.sum() > 5 and down.sum() > 5
+    red, blue = torch.sigmoid(torch.tensor(4.0)), torch.sigmoid(torch.tensor(-4.0))
+    torch.testing.assert_close(result.color[up], torch.stack([red, blue, blue]).expand(int(up.sum()), 3), atol=1e-4,
+                               rtol=0)
+    torch.testing.assert_close(result.color[down], torch.stack([blue, blue, red]).expand(int(down.sum()), 3),
+                               atol=1e-4, rtol=0)
+    # partly covered pixels see the background through what is left of the transmittance
+    out = result.raster
+    torch.testing.assert_close(result.color, out.color + (1 - out.volume_alpha) * model.background_radiance(camera))
+    result.color.sum().backward()
+    for level in model.background_map.maps:
+        assert level.grad is not None and level.grad.abs().sum() > 0
+
+
+def test_a_background_colour_given_to_render_replaces_the_model_background():
+    model = _plain_model("random")
+    assert model.background_map is None
+    colour = torch.tensor([0.2, 0.7, 0.4])
+    result = _render(model, background=colour)
+    out = result.raster
+    torch.testing.assert_close(result.color, out.color + (1 - out.volume_alpha) * colour)

@@ -72,12 +72,24 @@ def test_run_directory_contents_and_ply_export(glass_scene, tmp_path):
     summary = trainer.train()
     for name in ("config.json", "effects.json", "train_log.jsonl", "model.pt", "point_cloud.ply", "summary.json"):
         assert (run / name).is_file(), name
-    assert [r["iteration"] for r in read_log(run)] == [5, 8, 10, 12]
-    # test-view PSNR at the evaluation steps (for accuracy-against-time curves), final = summary
-    assert ["test_psnr" in r for r in read_log(run)] == [False, True, False, True]
-    assert read_log(run)[-1]["test_psnr"] == pytest.approx(summary["test_psnr"])
+    log = read_log(run)
+    # every log_every steps, every density operation (densify_from 4, every 2) and every evaluation
+    iterations = [r["iteration"] for r in log]
+    assert iterations == sorted(iterations) and {0, 5, 8, 10, 12} <= set(iterations)
+    for r in log:
+        if r["iteration"] not in (0, 5, 8, 10, 12):
+            assert r["iteration"] in (4, 6) and set(r["density"]) <= {"cloned", "split", "pruned", "pruned_occupancy",
+                                                                        "pruned_size", "reset"}
+    # test-view PSNR of the initialisation and at the evaluation steps (accuracy-against-time curves)
+    assert [r["iteration"] for r in log if "test_psnr" in r] == [0, 8, 12]
+    assert log[-1]["test_psnr"] == pytest.approx(summary["test_psnr"])
+    # the summary names the best evaluation and how far the final one is from it
+    evaluated = [(r["test_psnr"], r["iteration"]) for r in log if "test_psnr" in r]
+    assert summary["best_test_psnr"] == pytest.approx(max(p for p, _ in evaluated))
+    assert (summary["best_test_psnr"], summary["best_test_psnr_iteration"]) in evaluated
+    assert summary["final_minus_best_test_psnr"] == pytest.approx(summary["test_psnr"] - summary["best_test_psnr"])
     assert "test_psnr_transparent" in read_log(run)[-1]
-    assert all(r["seconds"] > 0 for r in read_log(run))
+    assert log[0]["seconds"] == 0 and all(r["seconds"] > 0 for r in log[1:])
     ply = read_surfel_ply(run / "point_cloud.ply")
     n = summary["surfels"]
     assert len(ply["x"]) == n == len(trainer.model.surfels)

@@ -162,7 +162,8 @@ def _train_config(backend: str) -> dict:
     return {
         "backend": backend, "device": "cpu", "effects": {"transmission": "on", "specular": "on"},
         "schedule": {"iterations": ITERATIONS, "volume_until": 0, "specular_from": 0, "densify_from": 0,
-                     "densify_every": ITERATIONS - 1, "reset_every": 0, "log_every": 1, "checkpoint_every": 0},
+                     "densify_every": ITERATIONS - 1, "densify_until": ITERATIONS, "reset_every": 0, "log_every": 1,
+                     "checkpoint_every": 0},
         "densify": {"grad_threshold": 0.0},  # every surfel is cloned or split, at iteration ITERATIONS - 1
         # occupancy 0.9: the wall's surface alpha passes the shading threshold, so the specular branch
         # and the surface G-buffers receive gradients from the first iterations

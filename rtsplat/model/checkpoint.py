@@ -104,6 +104,7 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Che
         model, training = state["model"], state["training"]
     else:
         raise CheckpointError(f"not an rtsplat checkpoint (version {CHECKPOINT_VERSION}); delete it", path=path)
+    model = {**model, "settings": _background_as_mode(dict(model.get("settings", {})))}
     try:
         return Checkpoint(
             effects=ActiveEffects(**model["effects"]),
@@ -115,3 +116,14 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Che
     except (ConfigError, KeyError, TypeError) as exc:
         raise CheckpointError(f"the model description does not fit this version of rtsplat ({exc})", path=path,
                               fix="retrain with this version, or use the version that wrote it") from exc
+
+
+def _background_as_mode(settings: dict) -> dict:
+    """Models written before the background became a mode stored a constant RGB colour; black and
+    white map to their modes (other colours are left for the schema to refuse)."""
+    colour = settings.get("background")
+    if isinstance(colour, (list, tuple)) and len(colour) == 3 and len(set(map(float, colour))) == 1:
+        mode = {0.0: "black", 1.0: "white"}.get(float(colour[0]))
+        if mode is not None:
+            settings["background"] = mode
+    return settings

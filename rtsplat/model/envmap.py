@@ -66,6 +66,18 @@ class EnvironmentMap(nn.Module):
         return torch.cat(rows), layout
 
     @staticmethod
+    def sample_level(level: Tensor, u: Tensor, v: Tensor) -> Tensor:
+        """Bilinear sample [M,C] of one map ``level`` [1,C,H,W] at (u, v) [M]: the taps of
+        :meth:`_bilinear_taps` (longitude wraps around, colatitude clamps at the poles)."""
+        _, C, H, W = level.shape
+        table = level[0].permute(1, 2, 0).reshape(H * W, C)
+        rows, weights = EnvironmentMap._bilinear_taps(
+            u, v, torch.zeros_like(u, dtype=torch.long), torch.full_like(u, H), torch.full_like(u, W)
+        )
+        taps = table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, C)
+        return (taps * weights[:, :, None].to(table.dtype)).sum(1)
+
+    @staticmethod
     def _bilinear_taps(u: Tensor, v: Tensor, offset: Tensor, H: Tensor, W: Tensor) -> tuple[Tensor, Tensor]:
         """Table rows [M,4] and weights [M,4] of the bilinear sample at (u, v) in the level of
         ``offset``/``H``/``W`` (per sample). Texel (i, j) has its centre at (u, v) = ((j + 0.5) / W,

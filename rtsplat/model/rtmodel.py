@@ -2,7 +2,8 @@
 
     C = C_spec + beta * (tau * C_trans + (1 - tau) * C_scatter)   (:mod:`rtsplat.model.composite`)
 
-* ``C_trans``: volume colour of the forward pass (SH colours, weights occupancy x opacity);
+* ``C_trans``: volume colour of the forward pass (SH colours, weights occupancy x opacity) plus the
+  background ``B(d)`` where the volume transmittance is left (:mod:`rtsplat.model.background`);
 * G-buffers from the surface pass (weights occupancy): normal, roughness, material feature,
   reflectance, tau, C_scatter, region-of-interest membership and the blended opacity;
 * ``C_spec``, ``beta``: specular network fed with the environment feature at the reflected
@@ -23,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rtsplat.camera import PIXEL_CENTER_OFFSET, Camera
+from rtsplat.model.background import BackgroundMap
 from rtsplat.model.composite import (
     reflection_layer,
     region_blend,
@@ -77,7 +79,8 @@ class RTModel(nn.Module):
         self.specular_net = SpecularNetwork(s.env_channels, 4, s.mlp_width) if effects.specular else None
         self.register_buffer("roi_center", torch.as_tensor(roi_center, dtype=torch.float32).reshape(3))
         self.register_buffer("roi_radius", torch.as_tensor(float(roi_radius), dtype=torch.float32))
-        self.register_buffer("background", torch.as_tensor(s.background, dtype=torch.float32).reshape(3))
+        self.background_map = (BackgroundMap(s.background_height, s.background_width, s.background_levels)
+                               if s.background == "learned" else None)
 
     @property
     def uses_opacity(self) -> bool:
@@ -106,11 +109,15 @@ class RTModel(nn.Module):
     def render(
         self, camera: Camera, *, stage: str = "full", gating: Gating | None = None,
         raster_settings: RasterSettings | None = None, backend: str = "auto", sh_degree: int | None = None,
+        background: Tensor | None = None,
     ) -> RenderResult:
+        """``background``: an RGB colour [3] that replaces the model's background for this render (the
+        trainer's random background)."""
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         out = rasterize(self.rasterizer_surfels(camera, sh_degree), camera, raster_settings, backend=backend)
-        c_trans = out.color + (1.0 - out.volume_alpha) * self.background
+        far = self.background_radiance(camera) if background is None else background.to(out.color)
+        c_trans = out.color + (1.0 - out.volume_alpha) * far
         alpha = out.alpha
         alpha_safe = alpha.clamp_min(1e-6)
         g = {name: out.features[..., sl] for name, sl in GBUFFER.items()}
@@ -152,6 +159,13 @@ class RTModel(nn.Module):
         layers["transmission"] = transmission_layer(beta, direct, c_trans, roi, shade)
         layers["reflection"] = reflection_layer(spec, roi, shade)
         return RenderResult(color, out, layers)
+
+    def background_radiance(self, camera: Camera) -> Tensor:
+        """``B(d)`` for every pixel ray [H,W,3] (learned), or a constant colour [3] (black, white, random)."""
+        if self.background_map is not None:
+            return self.background_map(pixel_rays(camera))
+        value = 1.0 if self.settings.background == "white" else 0.0
+        return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
                   every_pixel: bool | None = None):

@@ -58,6 +58,11 @@ class ModelSettings:
     shade_alpha_threshold: float = setting(
         0.05, help="deferred shading only where the surface alpha exceeds this", minimum=0.0, maximum=1.0
     )
-    background: tuple[float, float, float] = setting(
-        (0.0, 0.0, 0.0), help="background colour behind the volume (RGB in [0, 1])"
+    background: Literal["learned", "black", "white", "random"] = setting(
+        "learned", help="radiance where the volume transmittance is left (rtsplat/model/background.py), the same "
+        "for every method: learned (a direction-indexed RGB map), black, white, or random (a random colour per "
+        "training step, black when evaluating and rendering; for views whose empty pixels carry no colour)"
     )
+    background_height: int = setting(256, help="learned background map height (finest level)", minimum=2)
+    background_width: int = setting(512, help="learned background map width (finest level)", minimum=2)
+    background_levels: int = setting(5, help="mip levels of the learned background map", minimum=1)

@@ -2,17 +2,21 @@
 
 * statistics: per surfel, the accumulated norm of the 2DGS densification signal over the views
   where it was visible, the largest screen radius, and whether it was seen since the last reset;
-* every ``densify_every`` iterations in [densify_from, densify_until): clone small surfels whose
-  mean gradient exceeds the threshold, split large ones in two (scale / 1.6, samples drawn in the
-  surfel's tangent plane), then prune: occupancy below 0.05 (never opacity: a clear window has
-  low opacity) among surfels seen since the last reset, and over-large surfels;
+* every ``densify_every`` iterations in [densify_from, densify_until) (default: the first half of the
+  run, as 2DGS): clone small surfels whose mean gradient exceeds the threshold (the clone and its
+  original share the original's coverage), split large ones in two (two halves along the longer
+  tangent axis, or the 2DGS random split), then prune: occupancy below 0.05 (never opacity: a clear window has
+  low opacity) among surfels seen since the last reset, and, once the first reset has happened (as
+  2DGS, whose size pruning starts after its first opacity reset), over-large surfels: before that,
+  large surfels are the floor, walls and backdrop that the initial points describe coarsely, and
+  deleting them leaves holes that the remaining steps cannot fill;
 * every ``reset_every`` iterations, alternately clamp occupancy then opacity to <= 0.01.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import torch
 from torch import Tensor
@@ -28,11 +32,16 @@ from rtsplat.train_config import Densification, Schedule
 class DensityEvents:
     cloned: int = 0
     split: int = 0
-    pruned: int = 0
+    pruned: int = 0  # all pruned surfels (split parents are not counted)
+    pruned_occupancy: int = 0  # ... of which for their low occupancy
+    pruned_size: int = 0  # ... of which for their world or screen size
     reset: str = ""
 
     def any(self) -> bool:
         return bool(self.cloned or self.split or self.pruned or self.reset)
+
+    def to_dict(self) -> dict[str, int | str]:
+        return {k: v for k, v in asdict(self).items() if v}
 
 
 @dataclass
@@ -90,9 +99,10 @@ class DensityControl:
         self._ensure(n, device)
         frozen = torch.zeros(n, dtype=torch.bool, device=device) if frozen is None else frozen
         events = DensityEvents()
-        if s.densify_from <= iteration < s.densify_until and iteration % s.densify_every == 0:
+        stop = s.densify_stop()
+        if s.densify_from <= iteration < stop and iteration % s.densify_every == 0:
             frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events)
-        if s.reset_every > 0 and iteration % s.reset_every == 0 and iteration < s.densify_until:
+        if s.reset_every > 0 and iteration % s.reset_every == 0 and iteration < stop:
             self._reset(surfels, optimizer, events)
         return events, frozen
 
@@ -112,25 +122,28 @@ class DensityControl:
             allowed[order[: room // 2]] = True
             clone &= allowed
             split &= allowed
+        # occupancy pruning judges every surfel, clones and children included, by the occupancy it had
+        # before this step (a clone's shared coverage is no reason to prune it)
+        low_before = surfels.occupancy.detach() < c.prune_occupancy
+        low_rows = [low_before]
         new_rows = {name: [] for name in PARAMETERS}
         tensors = surfels.tensors()
         if clone.any():
+            if c.clone_preserves_coverage:
+                _share_coverage(surfels, clone)
             for name in PARAMETERS:
                 new_rows[name].append(tensors[name].detach()[clone])
+            low_rows.append(low_before[clone])
         if split.any():
             idx = torch.nonzero(split).flatten()
-            rot = quat_to_rotmat(surfels.quats.detach()[idx])
-            scales = surfels.scales.detach()[idx]
-            for _ in range(2):
-                # drawn from the CPU generator (the run's seed), then moved to the surfels' device
-                local = torch.randn(idx.shape[0], 2, generator=generator).to(device) * scales
-                offset = (rot[:, :, :2] @ local[:, :, None])[..., 0]
+            for offset, log_scales in _split_children(surfels, idx, c, generator):
+                low_rows.append(low_before[idx])
                 for name in PARAMETERS:
                     value = tensors[name].detach()[idx]
                     if name == "means":
                         value = value + offset
                     elif name == "log_scales":
-                        value = value - math.log(c.split_factor)
+                        value = log_scales
                     new_rows[name].append(value)
         added = {name: torch.cat(v) if v else tensors[name].detach()[:0] for name, v in new_rows.items()}
         n_added = added["means"].shape[0]
@@ -144,14 +157,19 @@ class DensityControl:
         max_radius = grown(self.max_radius, 0)
         remove = torch.cat([split, no_rows])
 
-        low_occupancy = (surfels.occupancy.detach() < c.prune_occupancy) & seen
-        too_big = surfels.scales.detach().amax(-1) > c.max_world_scale * self.extent
-        if c.max_screen_size > 0:
-            too_big |= max_radius > c.max_screen_size
+        low_occupancy = torch.cat(low_rows) & seen
+        too_big = torch.zeros_like(seen)
+        if self.resets_done > 0:  # 2DGS: size pruning only once the first reset has happened
+            too_big = surfels.scales.detach().amax(-1) > c.max_world_scale * self.extent
+            if c.max_screen_size > 0:
+                too_big |= max_radius > c.max_screen_size
         remove |= (low_occupancy | too_big) & ~frozen
         keep = ~remove
         if not keep.any():  # never prune the scene away entirely: drop only the split parents
             keep = ~torch.cat([split, no_rows])
+        parents = torch.cat([split, no_rows])
+        events.pruned_occupancy = int((low_occupancy & ~keep & ~parents).sum())
+        events.pruned_size = int((too_big & ~low_occupancy & ~keep & ~parents).sum())
         keep_rows(optimizer, surfels, keep)
         events.pruned = int((~keep).sum()) - events.split
         self.seen_since_reset = seen[keep]
@@ -169,3 +187,43 @@ class DensityControl:
         self.resets_done += 1
         self.seen_since_reset = torch.zeros(len(surfels), dtype=torch.bool, device=surfels.means.device)
         events.reset = "occupancy" if name == "occupancy_logit" else "opacity"
+
+
+HALF_OFFSET = 0.6  # children centres at +-0.6 x the longer scale (see Densification.split_mode)
+HALF_SCALE = 0.6  # children's longer scale, as a fraction of the parent's
+
+
+def _split_children(surfels: SurfelParameters, idx: Tensor, c: Densification,
+                    generator: torch.Generator) -> list[tuple[Tensor, Tensor]]:
+    """(centre offset [M,3], log scales [M,2]) of the two children of each surfel in ``idx``."""
+    rot = quat_to_rotmat(surfels.quats.detach()[idx])
+    scales = surfels.scales.detach()[idx]
+    log_scales = surfels.log_scales.detach()[idx]
+    if c.split_mode == "random":
+        children = []
+        for _ in range(2):
+            # drawn from the CPU generator (the run's seed), then moved to the surfels' device
+            local = torch.randn(idx.shape[0], 2, generator=generator).to(scales.device) * scales
+            offset = (rot[:, :, :2] @ local[:, :, None])[..., 0]
+            children.append((offset, log_scales - math.log(c.split_factor)))
+        return children
+    longer = scales.argmax(-1)
+    rows = torch.arange(idx.shape[0], device=scales.device)
+    axis = rot[rows, :, longer]  # the tangent direction of the longer scale [M,3]
+    offset = HALF_OFFSET * scales[rows, longer][:, None] * axis
+    child_scales = log_scales.clone()
+    child_scales[rows, longer] += math.log(HALF_SCALE)
+    return [(offset, child_scales), (-offset, child_scales)]
+
+
+def _share_coverage(surfels: SurfelParameters, rows: Tensor) -> None:
+    """Give the surfels of ``rows`` the occupancy and opacity with which two coincident copies cover
+    what one covered at its centre, in both compositing weight sets: 1 - (1 - o')^2 = o for
+    o = occupancy and for o = occupancy x opacity (away from the centre, where the kernel is < 1, the
+    pair covers somewhat more). Changes values in place (Adam moments stay)."""
+    occupancy = surfels.occupancy.detach()[rows]
+    effective = occupancy * surfels.opacity.detach()[rows]
+    occupancy_new = 1 - torch.sqrt(1 - occupancy)
+    opacity_new = ((1 - torch.sqrt(1 - effective)) / occupancy_new.clamp_min(1e-12)).clamp(1e-6, 1 - 1e-6)
+    surfels.occupancy_logit.data[rows] = torch.logit(occupancy_new.clamp(1e-6, 1 - 1e-6))
+    surfels.opacity_logit.data[rows] = torch.logit(opacity_new)

@@ -43,6 +43,9 @@ def build_optimizer(model: nn.Module, surfels: SurfelParameters, lr: LearningRat
     net = getattr(model, "specular_net", None)
     if net is not None:
         groups.append({"name": "mlp", "params": list(net.parameters()), "lr": lr.mlp})
+    background = getattr(model, "background_map", None)
+    if background is not None:
+        groups.append({"name": "background", "params": list(background.parameters()), "lr": lr.background})
     # fused: one kernel per step over all parameters (matters for the 8M-value environment map on
     # a CPU); same update rule as the default implementation
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)

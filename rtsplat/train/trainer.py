@@ -53,6 +53,7 @@ class StepResult:
     psnr: Tensor
     terms: dict[str, Tensor]
     stage: str
+    density: dict[str, int | str]
 
     def numbers(self) -> dict[str, float]:
         """loss, psnr and ``loss_<term>`` as floats (one transfer from the device)."""
@@ -153,8 +154,9 @@ class Trainer:
         background_phase = self._background_phase()
         stage = "volume" if background_phase else stage_at(it, cfg)
         sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
+        background = torch.rand(3, generator=self.rng) if cfg.model.background == "random" else None
         result = self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
-                                   backend=cfg.backend, sh_degree=sh_degree)
+                                   backend=cfg.backend, sh_degree=sh_degree, background=background)
         weight = (1.0 - mask) if (background_phase and mask is not None) else None
         terms = {"image": losses.image_loss(result.color, target, cfg.losses.ssim_weight, weight)}
         L = cfg.losses
@@ -179,10 +181,11 @@ class Trainer:
         trainable = (~self.frozen).float()
         self.density.observe(result.raster, trainable)
         self._optimizer_step()
-        _, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
+        events, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
         with torch.no_grad():
             value = psnr(result.color.detach().clamp(0, 1), target)
-        return StepResult(it, loss.detach(), value, {k: v.detach() for k, v in terms.items()}, stage)
+        return StepResult(it, loss.detach(), value, {k: v.detach() for k, v in terms.items()}, stage,
+                          events.to_dict() if events.any() else {})
 
     def _optimizer_step(self) -> None:
         frozen = self.frozen
@@ -302,12 +305,15 @@ class Trainer:
         total = cfg.schedule.iterations
         bar = _progress(total, self.iteration, self.progress)
         with open(log_path, "a") as log_file:
+            if cfg.schedule.eval_every > 0 and self.iteration == 0:  # the initialisation, for comparison
+                log_file.write(json.dumps({"iteration": 0, "seconds": 0.0, "surfels": len(self.model.surfels),
+                                           **self.evaluate()}) + "\n")
             while self.iteration < total:
                 start = time.perf_counter()
                 step = self.step()
                 last = step.iteration == total
                 evaluate_now = cfg.schedule.eval_every > 0 and (step.iteration % cfg.schedule.eval_every == 0 or last)
-                logging = step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now
+                logging = step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now or bool(step.density)
                 # the loop reads the device only on logging steps; that read waits for the queued work,
                 # so the seconds logged there include it
                 numbers = step.numbers() if logging else None
@@ -318,6 +324,8 @@ class Trainer:
                                     surfels=len(self.model.surfels))
                     record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4), **numbers,
                               "surfels": len(self.model.surfels), "stage": step.stage}
+                    if step.density:
+                        record["density"] = step.density
                     if evaluate_now:
                         record.update(self.evaluate())
                     log_file.write(json.dumps(record) + "\n")
@@ -333,10 +341,29 @@ class Trainer:
         write_surfel_ply(self.out / "point_cloud.ply", self.model.surfels, self.model.uses_opacity)
         summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
-                   "surfels": len(self.model.surfels), "effects": self.effects.to_dict(), **metrics}
+                   "surfels": len(self.model.surfels), "effects": self.effects.to_dict(), **metrics,
+                   **best_test_psnr(self.out / "train_log.jsonl", self.iteration, metrics)}
         _write_json(self.out / "summary.json", summary)
         self.log(f"done: {json.dumps(summary)}")
         return summary
+
+
+def best_test_psnr(log_path: Path, iteration: int, final: dict[str, float]) -> dict:
+    """The best entire-image test PSNR among the log's evaluations (iteration 0 is the initialisation)
+    and the final one, with the iteration it was seen at and the final's distance to it."""
+    seen = [(final["test_psnr"], iteration)] if "test_psnr" in final else []
+    if log_path.exists():
+        for line in log_path.read_text().splitlines():
+            record = json.loads(line) if line.strip() else {}
+            if "test_psnr" in record:
+                seen.append((record["test_psnr"], record["iteration"]))
+    if not seen:
+        return {}
+    best, at = max(seen, key=lambda pair: (pair[0], -pair[1]))
+    out = {"best_test_psnr": best, "best_test_psnr_iteration": at}
+    if "test_psnr" in final:
+        out["final_minus_best_test_psnr"] = final["test_psnr"] - best
+    return out
 
 
 def _truncate_log(path: Path, iteration: int) -> None:
