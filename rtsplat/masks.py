@@ -24,7 +24,7 @@ import numpy as np
 
 from rtsplat.config import MasksConfig, OnnxSegmenterConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import atomic_dir, write_json_atomic
+from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.images import (
     IMAGE_EXTENSIONS,
     list_images,
@@ -34,6 +34,7 @@ from rtsplat.io.images import (
     validate_image_set,
     write_mask,
 )
+from rtsplat.io.outputs import check_output_dir, output_dir
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
@@ -334,6 +335,7 @@ def make_masks(
     """Ingest or segment the masks of ``<scene_dir>/images`` into ``out_dir`` (atomically)."""
     cfg = cfg or MasksConfig()
     scene_dir = Path(scene_dir)
+    check_output_dir(out_dir, "masks", inputs=[scene_dir])
     images = [h.path for h in validate_image_set(scene_dir / "images", decode=False)]
     mask_dir = scene_dir / cfg.dir
     source = cfg.source
@@ -345,7 +347,7 @@ def make_masks(
             path=mask_dir,
             fix="put <image stem>.png masks there, set masks.dir, or masks.source: auto",
         )
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "masks", inputs=[scene_dir]) as tmp:
         kind = ""
         if source == "ingest":
             coverage = ingest_masks(images, mask_dir, tmp, cfg, progress)

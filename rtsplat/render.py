@@ -33,7 +33,8 @@ from torch import Tensor
 
 from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import atomic_dir, write_json_atomic
+from rtsplat.io.atomic import write_json_atomic
+from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.model.composite import compose_layers, scatter_layer
 
 LAYER_DIRS = ("color", "reflection", "transmission", "scatter", "normal", "depth")
@@ -126,6 +127,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
     from rtsplat.scene import PreparedScene
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
+    check_output_dir(out_dir, "render", inputs=[run_dir, data_dir])
     model_path = run_dir / "model.pt"
     if not model_path.is_file():
         raise PipelineError("no trained model here", path=model_path,
@@ -153,7 +155,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
             render(camera)
         seconds = time.perf_counter() - start
 
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "render", inputs=[run_dir, data_dir]) as tmp:
         for layer in LAYER_DIRS:
             (tmp / layer).mkdir()
         with torch.inference_mode():

@@ -62,7 +62,7 @@ def test_no_masks_means_no_transparency(tmp_path):
     make_corner_scene(d, n_views=2, width=40, height=30)
     s = make_masks(d, tmp_path / "out", progress=False)
     assert not s.has_masks and s.source == "none"
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["summary.json"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [".rtsplat-output", "summary.json"]
 
 
 @pytest.mark.parametrize("problem", ["size", "extra", "missing"])
