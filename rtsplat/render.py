@@ -124,10 +124,12 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
 
     from rtsplat.io.images import write_png
     from rtsplat.model.checkpoint import read_checkpoint
+    from rtsplat.raster import check_backend_name
     from rtsplat.scene import PreparedScene
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     check_output_dir(out_dir, "render", inputs=[run_dir, data_dir])
+    check_backend_name(backend, "--backend")
     model_path = run_dir / "model.pt"
     if not model_path.is_file():
         raise PipelineError("no trained model here", path=model_path,
