@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from fixtures_pipeline import make_corner_scene  # noqa: E402
 
 from rtsplat.cli import main as cli_main  # noqa: E402
-from rtsplat.config import SfmConfig  # noqa: E402
+from rtsplat.config import MasksConfig, SfmConfig  # noqa: E402
 from rtsplat.errors import PipelineError  # noqa: E402
 from rtsplat.io.colmap import load_model, write_model  # noqa: E402
 from rtsplat.io.outputs import mark_output  # noqa: E402
@@ -154,7 +154,8 @@ def test_feature_masks_are_applied(tmp_path):
 
     for p in (tmp_path / "s" / "transparent_masks").iterdir():
         write_mask(p, np.ones((90, 120), bool))
-    make_masks(tmp_path / "s", tmp_path / "masks", progress=False)
+    # all-white masks would be read as inverted under polarity auto
+    make_masks(tmp_path / "s", tmp_path / "masks", MasksConfig(polarity="white"), progress=False)
     with pytest.raises(PipelineError, match="registered no images|only 0 of 6"):
         run_sfm(
             tmp_path / "s", tmp_path / "sfm", SfmConfig(use_masks=True), masks_dir=tmp_path / "masks", progress=False
