@@ -306,3 +306,17 @@ def test_bad_input_is_refused_and_changes_nothing(name, base, tmp_path, capsys):
     for text in case.expect:
         assert text.replace("{R}", str(root)) in err, f"{text!r} not in the message:\n{err}"
     assert tree_state(root) == before
+
+
+def test_a_stage_replaces_its_own_output_and_fills_an_empty_folder(base, tmp_path):
+    """The other side of the output checks: re-running a stage over its own output replaces it, and an
+    existing empty folder is accepted; both end up marked as that stage's."""
+    scene = tmp_path / "scene"
+    shutil.copytree(base / "scene", scene)
+    out = tmp_path / "masks"
+    out.mkdir()
+    assert main(["masks", "--scene-dir", str(scene), "--out", str(out)]) == 0
+    (out / "stale.txt").write_text("from an earlier run")
+    assert main(["masks", "--scene-dir", str(scene), "--out", str(out)]) == 0
+    assert not (out / "stale.txt").exists()
+    assert (out / ".rtsplat-output").is_file() and (out / "view_000.png").is_file()
