@@ -139,6 +139,12 @@ class MasksConfig:
         0.5, help="binarisation threshold (of the mask value or segmenter probability)", minimum=0.0, maximum=1.0
     )
     allow_missing: bool = _f(False, help="ingest: an image without a mask gets an empty mask instead of an error")
+    polarity: Literal["auto", "white", "black"] = _f(
+        "auto", help="ingest: the mask colour of the see-through surface; auto: white, unless the masks cover more "
+        "than max_coverage of the images on average (then they are read as inverted)"
+    )
+    max_coverage: float = _f(0.5, help="ingest with polarity auto: a larger mean coverage means inverted masks",
+                             exclusiveMinimum=0.0, maximum=1.0)
     onnx: OnnxSegmenterConfig = _f(help="the ONNX segmenter", factory=OnnxSegmenterConfig)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from rtsplat.config import MasksConfig, OnnxSegmenterConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import atomic_dir, write_json_atomic
+from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.images import (
     IMAGE_EXTENSIONS,
     list_images,
@@ -34,6 +34,7 @@ from rtsplat.io.images import (
     validate_image_set,
     write_mask,
 )
+from rtsplat.io.outputs import check_output_dir, output_dir
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
@@ -47,6 +48,9 @@ class MasksSummary:
     mean_coverage: float = 0.0
     coverage: dict[str, float] = field(default_factory=dict)
     model_kind: str = ""
+    polarity: str = "white"  # ingest: the mask colour read as see-through
+    polarity_reason: str = ""
+    mask_kinds: dict[str, int] = field(default_factory=dict)  # ingest: how many masks of each kind
 
 
 # ----------------------------------------------------------------------------------------------
@@ -279,8 +283,44 @@ def _find_mask(mask_dir: Path, stem: str) -> Path | None:
     return None
 
 
+MIDTONE_LIMIT = 0.25  # a colour mask with more pixels strictly between dark and bright is refused as a photo
+
+
+def interpret_mask(pixels: np.ndarray, threshold: float, path: Path) -> tuple[np.ndarray, str]:
+    """A mask file's pixels (float [H, W, C] in the file's range scaled to [0, 1]) as (bool [H, W], kind):
+
+    - ``label map``: the values 0 and 1 stored as integers (1/255 or 1/65535 once scaled): 1 is the surface;
+    - ``alpha``: a flat colour with the mask in the alpha channel;
+    - ``colour``: a coloured mask (e.g. green on black): the brightest colour channel against ``threshold``;
+    - ``grey``: the first channel against ``threshold``.
+
+    A colour image that is mostly mid-tones (a photo saved as a mask) raises :class:`PipelineError`.
+    """
+    colour = pixels[..., :3] if pixels.shape[2] >= 3 else pixels[..., :1]
+    values = np.unique(colour)
+    if len(values) == 2 and values[0] == 0 and values[1] <= 1 / 255 + 1e-6:
+        return colour.max(-1) > 0, "label map"
+    channel, kind = pixels[..., 0], "grey"
+    if pixels.shape[2] in (2, 4) and float(channel.max(initial=0.0)) == float(channel.min(initial=0.0)):
+        channel, kind = pixels[..., -1], "alpha"
+    elif pixels.shape[2] >= 3 and np.abs(colour - colour[..., :1]).max(initial=0.0) > 1 / 255:
+        channel, kind = colour.max(-1), "colour"
+    midtones = float(((channel > 0.1) & (channel < 0.9)).mean())
+    if kind == "colour" and midtones > MIDTONE_LIMIT:
+        raise PipelineError(
+            f"this does not look like a mask: {100 * midtones:.0f}% of its pixels are neither dark nor bright "
+            f"({kind} image)", path=path,
+            fix="save masks as black and white (white = see-through surface), a 0/1 label map, or one colour on black",
+        )
+    return channel >= threshold, kind
+
+
 def ingest_masks(images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig, progress: bool) -> dict:
+    """Masks of ``images`` read from ``mask_dir`` and written to ``out`` as they are (white = the value
+    :func:`interpret_mask` finds); per-image coverage, and how many masks of each kind under ``"kinds"``."""
     from tqdm import tqdm
+
+    from rtsplat.io.images import read_raw_pixels
 
     stems = {p.stem for p in images}
     extra = [p for p in list_images(mask_dir) if p.stem not in stems]
@@ -290,7 +330,7 @@ def ingest_masks(images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig
             path=extra[0],
             fix="name each mask after its image (<image stem>.png) or remove masks of deleted images",
         )
-    coverage = {}
+    coverage, kinds = {}, {}
     for img in tqdm(images, desc="masks", unit="img", disable=not progress):
         header = read_header(img)
         mpath = _find_mask(mask_dir, img.stem)
@@ -303,7 +343,8 @@ def ingest_masks(images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig
                 )
             mask = np.zeros((header.height, header.width), bool)
         else:
-            mask = read_mask(mpath, cfg.threshold)
+            mask, kind = interpret_mask(read_raw_pixels(mpath), cfg.threshold, mpath)
+            kinds[kind] = kinds.get(kind, 0) + 1
             if mask.shape != (header.height, header.width):
                 raise PipelineError(
                     f"mask is {mask.shape[1]}x{mask.shape[0]} but image {img.name} is {header.width}x{header.height}",
@@ -312,7 +353,19 @@ def ingest_masks(images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig
                 )
         write_mask(out / f"{img.stem}.png", mask)
         coverage[img.stem] = float(mask.mean())
-    return coverage
+    return coverage, kinds
+
+
+def decide_polarity(coverage: dict[str, float], cfg: MasksConfig) -> tuple[str, str]:
+    """(the mask colour of the see-through surface, why) for ingested masks of these coverages."""
+    mean = float(np.mean(list(coverage.values()))) if coverage else 0.0
+    if cfg.polarity != "auto":
+        return cfg.polarity, f"masks.polarity: {cfg.polarity}"
+    if mean > cfg.max_coverage:
+        return "black", (f"white covers {100 * mean:.1f}% of the images on average (more than masks.max_coverage "
+                         f"{100 * cfg.max_coverage:g}%): read as inverted masks (black = see-through); "
+                         "set masks.polarity: white to keep them as they are")
+    return "white", f"white covers {100 * mean:.1f}% of the images on average: white = see-through"
 
 
 def segment_masks(images: list[Path], out: Path, cfg: MasksConfig, progress: bool) -> tuple[dict, str]:
@@ -334,6 +387,7 @@ def make_masks(
     """Ingest or segment the masks of ``<scene_dir>/images`` into ``out_dir`` (atomically)."""
     cfg = cfg or MasksConfig()
     scene_dir = Path(scene_dir)
+    check_output_dir(out_dir, "masks", inputs=[scene_dir])
     images = [h.path for h in validate_image_set(scene_dir / "images", decode=False)]
     mask_dir = scene_dir / cfg.dir
     source = cfg.source
@@ -345,10 +399,15 @@ def make_masks(
             path=mask_dir,
             fix="put <image stem>.png masks there, set masks.dir, or masks.source: auto",
         )
-    with atomic_dir(out_dir) as tmp:
-        kind = ""
+    with output_dir(out_dir, "masks", inputs=[scene_dir]) as tmp:
+        kind, polarity, reason, kinds = "", "white", "", {}
         if source == "ingest":
-            coverage = ingest_masks(images, mask_dir, tmp, cfg, progress)
+            coverage, kinds = ingest_masks(images, mask_dir, tmp, cfg, progress)
+            polarity, reason = decide_polarity(coverage, cfg)
+            if polarity == "black":
+                for stem in coverage:
+                    write_mask(tmp / f"{stem}.png", ~read_mask(tmp / f"{stem}.png"))
+                    coverage[stem] = 1.0 - coverage[stem]
         elif source == "onnx":
             coverage, kind = segment_masks(images, tmp, cfg, progress)
         else:
@@ -360,6 +419,9 @@ def make_masks(
             mean_coverage=float(np.mean(list(coverage.values()))) if coverage else 0.0,
             coverage=coverage,
             model_kind=kind,
+            polarity=polarity,
+            polarity_reason=reason,
+            mask_kinds=kinds,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
     return summary
@@ -379,6 +441,9 @@ def run(args: argparse.Namespace) -> int:
         how = "ingested" if s.source == "ingest" else f"segmented with ONNX ({s.model_kind})"
         cover = f"{100 * s.mean_coverage:.2f}%"
         print(f"masks {args.scene_dir}: {s.num_images} masks {how}, mean coverage {cover}")
+        if s.source == "ingest":
+            kinds = ", ".join(f"{n} {kind}" for kind, n in s.mask_kinds.items())
+            print(f"masks {args.scene_dir}: mask files: {kinds or 'none'}; {s.polarity_reason}")
     else:
         print(f"masks {args.scene_dir}: no masks (the scene is trained without transparency)")
     return 0

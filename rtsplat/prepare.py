@@ -25,7 +25,6 @@ import numpy as np
 from rtsplat import __version__
 from rtsplat.config import PrepareConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import atomic_dir
 from rtsplat.io.colmap import ColmapModel, ColmapView, load_model
 from rtsplat.io.images import (
     area_downsample,
@@ -36,6 +35,7 @@ from rtsplat.io.images import (
     write_mask,
     write_png,
 )
+from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.io.ply import write_points_ply
 from rtsplat.scene import GT_LAYERS_DIR, IMAGES_DIR, MASKS_DIR, POINTS_FILE, CameraRecord, PreparedScene, Roi
 
@@ -152,6 +152,8 @@ def prepare_scene(
 
     cfg = cfg or PrepareConfig()
     scene_dir = Path(scene_dir)
+    inputs = [scene_dir, sfm_dir, masks_dir]
+    check_output_dir(out_dir, "prepare", inputs=inputs)
     sfm = load_stage_summary(sfm_dir, "sfm")
     model = load_model(sfm["model_dir"])
     image_dir = Path(sfm["image_dir"])
@@ -205,7 +207,7 @@ def prepare_scene(
     layer_source = scene_dir / "layers" / "linear"
     gt_layer_views = 0
     out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "prepare", inputs=inputs) as tmp:
         (tmp / IMAGES_DIR).mkdir()
         if has_masks:
             (tmp / MASKS_DIR).mkdir()

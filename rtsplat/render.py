@@ -34,7 +34,8 @@ from torch import Tensor
 from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import atomic_dir, write_json_atomic
+from rtsplat.io.atomic import write_json_atomic
+from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.model.composite import compose_layers, scatter_layer
 
 LAYER_DIRS = ("color", "reflection", "transmission", "scatter", "normal", "depth")
@@ -125,10 +126,13 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
 
     from rtsplat.io.images import write_png
     from rtsplat.model.checkpoint import read_checkpoint
+    from rtsplat.raster import check_backend_name
     from rtsplat.scene import PreparedScene
 
     device = resolve_device(device)
     run_dir, out_dir = Path(run_dir), Path(out_dir)
+    check_output_dir(out_dir, "render", inputs=[run_dir, data_dir])
+    check_backend_name(backend, "--backend")
     model_path = run_dir / "model.pt"
     if not model_path.is_file():
         raise PipelineError("no trained model here", path=model_path,
@@ -158,7 +162,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
         _wait_for(device)  # the renders are queued on a GPU: time them to the end
         seconds = time.perf_counter() - start
 
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "render", inputs=[run_dir, data_dir]) as tmp:
         for layer in LAYER_DIRS:
             (tmp / layer).mkdir()
         with torch.inference_mode():

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import atomic_dir
+from rtsplat.io.outputs import check_output_dir, output_dir
 
 ROLES = ("main", "baseline", "ablation", "repeat")
 
@@ -316,8 +316,9 @@ def build_report(results: str | Path, out: str | Path, *, roles: Roles | None = 
     every method is a baseline). ``config_file``: one path or a list of the config files of the run
     (printed in the Reproduce section, later ones layered over earlier)."""
     results, out = Path(results), Path(out)
+    check_output_dir(out, "report", containers=[results])
     scenes = collect(results)
-    with atomic_dir(out) as tmp:
+    with output_dir(out, "report", containers=[results]) as tmp:
         _write(results, scenes, tmp, roles or Roles(), config_file, commands)
     return out / "index.html"
 

@@ -17,9 +17,10 @@ import dataclasses
 import difflib
 import functools
 import json
+import math
 import types
 import typing
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import field
 from typing import Any, Literal
 
@@ -172,10 +173,28 @@ def _validator(cls: type):
 def check(cls: type, data: Any, *, source: str = "config", root: str = "") -> None:
     """Raise :class:`ConfigError` listing every problem of ``data`` (a dict tree) as a ``cls``;
     keys in the messages are prefixed with ``root`` (e.g. ``train``)."""
-    errors = sorted(_validator(cls).iter_errors(plain(data)), key=lambda e: list(map(str, e.absolute_path)))
-    if errors:
-        prefix = tuple(root.split(".")) if root else ()
-        raise ConfigError("\n".join(error_message(e, source, prefix) for e in errors))
+    prefix = tuple(root.split(".")) if root else ()
+    data = plain(data)
+    non_finite = dict(_non_finite(data, ()))
+    lines = [f"{source}: config key '{_key([*prefix, *path])}' is {value!r}. Fix: use a finite number"
+             for path, value in non_finite.items()]
+    errors = sorted((e for e in _validator(cls).iter_errors(data) if tuple(e.absolute_path) not in non_finite),
+                    key=lambda e: list(map(str, e.absolute_path)))
+    lines += [error_message(e, source, prefix) for e in errors]
+    if lines:
+        raise ConfigError("\n".join(lines))
+
+
+def _non_finite(data: Any, path: tuple) -> Iterator[tuple[tuple, float]]:
+    """(key path, value) of every NaN or infinite number in a JSON tree: no setting takes one."""
+    if isinstance(data, float) and not math.isfinite(data):
+        yield path, data
+    elif isinstance(data, dict):
+        for key, value in data.items():
+            yield from _non_finite(value, (*path, key))
+    elif isinstance(data, list):
+        for i, value in enumerate(data):
+            yield from _non_finite(value, (*path, i))
 
 
 # ----------------------------------------------------------------------------------------------

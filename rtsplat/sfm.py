@@ -42,9 +42,10 @@ import numpy as np
 
 from rtsplat.config import SfmConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import atomic_dir, write_json_atomic
+from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.colmap import is_model_dir, load_model
 from rtsplat.io.images import list_images, read_mask, validate_image_set, write_mask
+from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.pose_eval import compare_poses
 from rtsplat.sfm_attempts import AttemptResult, AttemptRunner, better, describe, first_settings, next_attempt
 
@@ -202,13 +203,14 @@ def run_sfm(
     scene_dir = Path(scene_dir)
     images_dir = scene_dir / "images"
     out_dir = Path(out_dir)
+    check_output_dir(out_dir, "sfm", inputs=[scene_dir, masks_dir])
     headers = validate_image_set(images_dir, decode=True, progress=progress)
     names = [h.path.name for h in headers]
     given = scene_dir / "sparse" / "0"
     attempts: list[AttemptResult] = []
     chosen, choice, pose_errors, reference_dir = None, "", None, None
     matcher = ""
-    with atomic_dir(out_dir) as tmp:
+    with output_dir(out_dir, "sfm", inputs=[scene_dir, masks_dir]) as tmp:
         model_dir = tmp / "sparse" / "0"
         if cfg.use_dataset_model and is_model_dir(given):
             model = load_model(given)  # validates

@@ -21,7 +21,7 @@ from rtsplat import schema
 from rtsplat.devices import DEVICE_PATTERN
 from rtsplat.errors import ConfigError
 from rtsplat.model.settings import Ablations, Gating, ModelSettings
-from rtsplat.raster import RasterSettings
+from rtsplat.raster import RasterSettings, check_backend_name
 from rtsplat.schema import setting
 
 __all__ = ["Ablations", "Densification", "Effects", "Gating", "ITERATION_COUNTS", "LearningRates", "Losses",
@@ -191,6 +191,7 @@ class TrainConfig:
     def validate(self, source: str = "config") -> TrainConfig:
         """The schema's checks on the current values, and the ones between keys."""
         schema.check(TrainConfig, self.to_dict(), source=source, root="train")
+        check_backend_name(self.backend, "train.backend")
         s = self.schedule
         if not s.volume_until <= s.specular_from:
             raise ConfigError(

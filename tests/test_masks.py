@@ -62,7 +62,7 @@ def test_no_masks_means_no_transparency(tmp_path):
     make_corner_scene(d, n_views=2, width=40, height=30)
     s = make_masks(d, tmp_path / "out", progress=False)
     assert not s.has_masks and s.source == "none"
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["summary.json"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [".rtsplat-output", "summary.json"]
 
 
 @pytest.mark.parametrize("problem", ["size", "extra", "missing"])
@@ -309,3 +309,69 @@ def test_segment_stage_writes_masks(onnx_models, tmp_path):
     gt = _expected()
     assert (m & gt).sum() / (m | gt).sum() > 0.9
     assert s.mean_coverage == pytest.approx(m.mean())
+
+
+def _scene_with_masks(tmp_path, masks: dict[str, np.ndarray]) -> Path:
+    """A 2-view 40x30 scene whose transparent_masks/<stem>.png are the given uint8 arrays."""
+    import cv2
+
+    d = tmp_path / "s"
+    make_corner_scene(d, n_views=2, width=40, height=30)
+    (d / "transparent_masks").mkdir()
+    for stem, data in masks.items():
+        cv2.imwrite(str(d / "transparent_masks" / f"{stem}.png"), data)
+    return d
+
+
+def _window(value, channels: int = 1) -> np.ndarray:
+    """A 30x40 uint8 mask: ``value`` (a number or a BGR triple) on a 10x12 window, 0 elsewhere."""
+    out = np.zeros((30, 40, channels) if channels > 1 else (30, 40), np.uint8)
+    out[5:15, 8:20] = value
+    return out
+
+
+WINDOW = _window(1).astype(bool)
+
+
+@pytest.mark.parametrize("kind, data", [
+    ("label map", _window(1)),
+    ("colour", _window((0, 255, 0), 3)),  # green on black (BGR)
+    ("colour", _window((40, 30, 200), 3)),  # red-ish on black
+    ("grey", _window(255)),
+])
+def test_ingest_recognises_label_maps_and_colour_masks(tmp_path, kind, data):
+    d = _scene_with_masks(tmp_path, {"view_000": data, "view_001": data})
+    s = make_masks(d, tmp_path / "out", progress=False)
+    assert s.mask_kinds == {kind: 2} and s.polarity == "white"
+    for stem in ("view_000", "view_001"):
+        assert np.array_equal(read_mask(tmp_path / "out" / f"{stem}.png"), WINDOW)
+    assert s.mean_coverage == pytest.approx(WINDOW.mean())
+
+
+def test_inverted_masks_are_read_inverted_and_the_decision_recorded(tmp_path, capsys):
+    inverted = np.where(WINDOW, 0, 255).astype(np.uint8)
+    d = _scene_with_masks(tmp_path, {"view_000": inverted, "view_001": inverted})
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out
+    assert "inverted" in printed and "masks.polarity: white" in printed
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["polarity"] == "black" and "inverted" in summary["polarity_reason"]
+    assert summary["mean_coverage"] == pytest.approx(WINDOW.mean())
+    assert np.array_equal(read_mask(tmp_path / "out" / "view_000.png"), WINDOW)
+    # the user's own choice wins
+    s = make_masks(d, tmp_path / "kept", MasksConfig(polarity="white"), progress=False)
+    assert s.polarity == "white" and s.mean_coverage == pytest.approx(1 - WINDOW.mean())
+    assert np.array_equal(read_mask(tmp_path / "kept" / "view_000.png"), ~WINDOW)
+
+
+def test_a_photo_as_a_mask_is_refused(tmp_path):
+    import cv2
+
+    d = _scene_with_masks(tmp_path, {})
+    photo = cv2.imread(str(d / "images" / "view_000.png"))
+    for stem in ("view_000", "view_001"):
+        cv2.imwrite(str(d / "transparent_masks" / f"{stem}.png"), photo)
+    with pytest.raises(PipelineError, match="does not look like a mask") as err:
+        make_masks(d, tmp_path / "out", progress=False)
+    assert "view_000.png" in str(err.value)
+    assert not (tmp_path / "out").exists()

@@ -172,3 +172,37 @@ def test_property_extreme_mixtures_stay_finite(seed, scale, occupancy, opacity, 
                          occupancy=occupancy, opacity=opacity)
     merged = Surfels(*[torch.cat([getattr(base, f), getattr(extreme, f)]) for f in SURFEL_FIELDS])
     render_and_check(merged, camera)
+
+
+NOTHING_VISIBLE = {
+    # name: (surfel centres, normal, scale) for the camera at CAMERA_EYE looking along +y
+    "all behind the camera": ([[0.0, -4.0, 0.0], [0.5, -3.5, 0.2]], (0.0, 1.0, 0.0), 1.0),
+    "at the camera centre": ([[0.0, -3.0, 0.0]], (0.0, 1.0, 0.0), 0.5),
+    "inside the near plane": ([[0.0, -2.9, 0.0], [0.05, -2.85, 0.0]], (0.0, 1.0, 0.0), 0.01),
+    "camera inside the surfel": ([[0.0, -3.0, 0.0]], (0.0, 0.0, 1.0), 2.0),
+}
+
+
+@pytest.mark.parametrize("case", sorted(NOTHING_VISIBLE))
+def test_nothing_visible_gives_zeros_that_backpropagate(case):
+    """Every surfel culled: both backends return zero images whose backward pass runs and gives zero
+    gradients (the training loss stays differentiable on such a view)."""
+    means, normal, scale = NOTHING_VISIBLE[case]
+    camera = small_camera(32, 24, torch.float32, eye=CAMERA_EYE)
+    base = surfels_at(means, normal, scale)
+    grads = {}
+    for backend in ("reference", "cpu"):
+        surfels = with_grad(base)
+        out = rasterize(surfels, camera, backend=backend)
+        assert not out.visible.any()
+        for name in IMAGE_OUTPUTS:
+            assert getattr(out, name).abs().max() == 0, f"{backend}: {name} is not zero"
+        loss = sum(getattr(out, name).sum() for name in IMAGE_OUTPUTS)
+        loss.backward()  # must not raise
+        grads[backend] = {name: getattr(surfels, name).grad for name in SURFEL_FIELDS}
+        for name, grad in grads[backend].items():
+            assert grad is None or (grad == 0).all(), f"{backend}: gradient of {name} is not zero"
+    for name in SURFEL_FIELDS:  # the same (zero) gradients from both
+        ref, cpu = grads["reference"][name], grads["cpu"][name]
+        assert ref is not None and ref.shape == getattr(base, name).shape
+        assert cpu is None or torch.equal(ref.abs(), cpu.abs())

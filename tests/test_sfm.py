@@ -17,9 +17,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 from fixtures_pipeline import make_corner_scene  # noqa: E402
 
 from rtsplat.cli import main as cli_main  # noqa: E402
-from rtsplat.config import SfmConfig  # noqa: E402
+from rtsplat.config import MasksConfig, SfmConfig  # noqa: E402
 from rtsplat.errors import PipelineError  # noqa: E402
 from rtsplat.io.colmap import load_model, write_model  # noqa: E402
+from rtsplat.io.outputs import mark_output  # noqa: E402
 from rtsplat.sfm import run_sfm  # noqa: E402
 
 
@@ -52,6 +53,7 @@ def test_model_registering_too_few_images_fails_clearly(tmp_path):
     v = views[:2]
     write_model(tmp_path / "s" / "sparse" / "0", [(x.name, x.K, x.world_to_camera, 80, 60) for x in v])
     (tmp_path / "sfm").mkdir()
+    mark_output(tmp_path / "sfm", "sfm")  # an earlier output of the stage
     (tmp_path / "sfm" / "keep.txt").write_text("earlier result")
     with pytest.raises(PipelineError) as err:
         run_sfm(tmp_path / "s", tmp_path / "sfm", progress=False)
@@ -152,7 +154,8 @@ def test_feature_masks_are_applied(tmp_path):
 
     for p in (tmp_path / "s" / "transparent_masks").iterdir():
         write_mask(p, np.ones((90, 120), bool))
-    make_masks(tmp_path / "s", tmp_path / "masks", progress=False)
+    # all-white masks would be read as inverted under polarity auto
+    make_masks(tmp_path / "s", tmp_path / "masks", MasksConfig(polarity="white"), progress=False)
     with pytest.raises(PipelineError, match="registered no images|only 0 of 6"):
         run_sfm(
             tmp_path / "s", tmp_path / "sfm", SfmConfig(use_masks=True), masks_dir=tmp_path / "masks", progress=False
@@ -260,6 +263,7 @@ def test_failure_lists_unregistered_images_and_attempts(tmp_path):
     for i in range(3):
         write_png(tmp_path / "s" / "images" / f"noise_{i}.png", rng.random((120, 160, 3)).astype(np.float32))
     (tmp_path / "sfm").mkdir()
+    mark_output(tmp_path / "sfm", "sfm")  # an earlier output of the stage
     (tmp_path / "sfm" / "keep.txt").write_text("earlier result")
     cfg = SfmConfig(
         use_dataset_model=False, camera_model="PINHOLE", num_threads=2, max_attempts=2, min_registered_fraction=0.9
@@ -271,7 +275,7 @@ def test_failure_lists_unregistered_images_and_attempts(tmp_path):
     for i in range(3):
         assert f"noise_{i}.png" in msg
     assert "attempts:" in msg and "1. configured:" in msg and "2. " in msg
-    assert sorted(p.name for p in (tmp_path / "sfm").iterdir()) == ["keep.txt"]
+    assert sorted(p.name for p in (tmp_path / "sfm").iterdir()) == [".rtsplat-output", "keep.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "sfm"]
 
 

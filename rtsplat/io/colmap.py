@@ -75,15 +75,23 @@ def load_model(path: str | Path) -> ColmapModel:
             path=path,
             fix="point at the folder that holds cameras.bin, images.bin and points3D.bin (usually sparse/0)",
         )
+    if all((path / f"{n}.bin").is_file() for n in MODEL_FILES):
+        check_binary_model(path)  # before pycolmap: it trusts the counts a truncated file declares
     try:
         rec = pycolmap.Reconstruction(str(path))
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on corrupt files
         raise PipelineError(
             f"cannot read the COLMAP model ({exc})", path=path, fix="re-run SfM or restore the model files"
         ) from exc
+    for camera_id, cam in rec.cameras.items():
+        _check_camera(path, camera_id, int(cam.width), int(cam.height), np.asarray(cam.params, dtype=np.float64),
+                      list(cam.focal_length_idxs()), list(cam.principal_point_idxs()))
     views = []
     for image_id in sorted(rec.reg_image_ids()):
         image = rec.image(image_id)
+        if image.camera_id not in rec.cameras:
+            raise PipelineError(f"image {image.name!r} refers to camera {image.camera_id}, which is not in the model",
+                                path=path / "images.bin", fix=_REDO)
         cam = rec.camera(image.camera_id)
         w2c = np.eye(4)
         w2c[:3, :4] = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
@@ -102,7 +110,112 @@ def load_model(path: str | Path) -> ColmapModel:
     xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
     err = np.array([p.error for p in pts], dtype=np.float64)
+    for view in views:
+        if not np.isfinite(view.world_to_camera).all():
+            raise PipelineError(f"the pose of image {view.name!r} is not finite", path=path, fix=_REDO)
+    if not np.isfinite(xyz).all():
+        bad = int((~np.isfinite(xyz).all(1)).sum())
+        raise PipelineError(f"{bad} 3D point(s) have a non-finite position", path=path, fix=_REDO)
     return ColmapModel(sorted(views, key=lambda v: v.name), xyz, rgb, err)
+
+
+_REDO = "re-run 'rtsplat sfm' (or COLMAP) or restore the model files"
+
+
+def _check_camera(path: Path, camera_id: int, width: int, height: int, params: np.ndarray, focal_idx: list[int],
+                  principal_idx: list[int]) -> None:
+    """A camera with a positive size, finite parameters, positive focal lengths and its principal point
+    inside the image; else a :class:`PipelineError` naming it."""
+    where = f"camera {camera_id}"
+    if width <= 0 or height <= 0:
+        raise PipelineError(f"{where} has the size {width}x{height}", path=path, fix=_REDO)
+    if not np.isfinite(params).all():
+        raise PipelineError(f"{where} has non-finite parameters {params.tolist()}", path=path, fix=_REDO)
+    focal = params[focal_idx]
+    if (focal <= 0).any():
+        raise PipelineError(f"{where} has a focal length <= 0 ({focal.tolist()} px)", path=path, fix=_REDO)
+    if len(principal_idx) == 2:
+        cx, cy = params[principal_idx]
+        if not (0 <= cx <= width and 0 <= cy <= height):
+            raise PipelineError(f"{where}'s principal point ({cx:g}, {cy:g}) lies outside its {width}x{height} "
+                                "image", path=path, fix=_REDO)
+
+
+class _Reader:
+    """Sequential little-endian reads of one binary model file, with a clear error at its end."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.data = path.read_bytes()
+        self.pos = 0
+
+    def truncated(self, what: str) -> PipelineError:
+        return PipelineError(f"the file is truncated or corrupt ({len(self.data)} bytes; it ends inside {what})",
+                             path=self.path, fix=_REDO)
+
+    def read(self, fmt: str, what: str) -> tuple:
+        size = struct.calcsize(fmt)
+        if self.pos + size > len(self.data):
+            raise self.truncated(what)
+        values = struct.unpack_from(fmt, self.data, self.pos)
+        self.pos += size
+        return values
+
+    def skip(self, size: int, what: str) -> None:
+        if self.pos + size > len(self.data):
+            raise self.truncated(what)
+        self.pos += size
+
+    def count(self, record_size: int, what: str) -> int:
+        """The leading record count, checked against the file size (records take >= ``record_size``)."""
+        if not self.data:
+            raise PipelineError("the file is empty (0 bytes)", path=self.path, fix=_REDO)
+        (n,) = self.read("<Q", "its record count")
+        if n * record_size > len(self.data) - self.pos:
+            raise PipelineError(f"the file declares {n} {what} but holds only {len(self.data)} bytes "
+                                "(truncated or corrupt)", path=self.path, fix=_REDO)
+        return n
+
+
+def _param_count(model_id: int, path: Path, camera_id: int) -> int:
+    import pycolmap
+
+    try:
+        return len(pycolmap.Camera.create_from_model_id(1, model_id, 1.0, 1, 1).params)
+    except ValueError:
+        raise PipelineError(f"camera {camera_id} has the unknown camera model id {model_id}", path=path,
+                            fix=_REDO) from None
+
+
+def check_binary_model(path: str | Path) -> None:
+    """Walk ``cameras.bin``, ``images.bin`` and ``points3D.bin`` of ``path``: a :class:`PipelineError`
+    naming the file when one is empty, truncated or declares more records than it holds, or an image
+    refers to a camera the model lacks. Cheap next to reading the model (2D points and tracks are
+    skipped, not decoded)."""
+    path = Path(path)
+    cams = _Reader(path / "cameras.bin")
+    camera_ids = set()
+    for _ in range(cams.count(24, "cameras")):
+        camera_id, model_id, _w, _h = cams.read("<iiQQ", "a camera")
+        cams.skip(8 * _param_count(model_id, cams.path, camera_id), f"the parameters of camera {camera_id}")
+        camera_ids.add(camera_id)
+    images = _Reader(path / "images.bin")
+    for _ in range(images.count(73, "images")):
+        image_id, *_pose, camera_id = images.read("<i7di", "an image")
+        end = images.data.find(b"\x00", images.pos)
+        if end < 0:
+            raise images.truncated(f"the name of image {image_id}")
+        name = images.data[images.pos:end].decode("utf-8", "replace")
+        images.pos = end + 1
+        if camera_id not in camera_ids:
+            raise PipelineError(f"image {name!r} refers to camera {camera_id}, which cameras.bin does not hold",
+                                path=images.path, fix=_REDO)
+        (n2d,) = images.read("<Q", f"the 2D point count of image {name!r}")
+        images.skip(24 * n2d, f"the 2D points of image {name!r}")
+    points = _Reader(path / "points3D.bin")
+    for _ in range(points.count(51, "3D points")):
+        point_id, *_xyz_rgb_err, track = points.read("<Q3d3BdQ", "a 3D point")
+        points.skip(8 * track, f"the track of 3D point {point_id}")
 
 
 def write_model(

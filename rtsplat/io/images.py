@@ -150,6 +150,12 @@ def read_image(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(np.clip(rgb, 0.0, 1.0), dtype=np.float32)
 
 
+def read_raw_pixels(path: str | Path) -> np.ndarray:
+    """Pixels ``float32 [H, W, C]`` of an integer or float file, integers scaled to [0, 1] by their type's
+    maximum, no colour conversion (what masks are read as)."""
+    return _read_raw(Path(path))[0]
+
+
 def read_mask(path: str | Path, threshold: float = 0.5) -> np.ndarray:
     """Binary mask ``bool [H, W]``: the first channel (or the alpha of a grey+alpha file) >= threshold.
 

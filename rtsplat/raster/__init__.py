@@ -21,10 +21,11 @@ from collections.abc import Callable
 from torch import Tensor
 
 from rtsplat.camera import Camera
+from rtsplat.errors import ConfigError
 from rtsplat.raster.types import RasterOutput, RasterSettings, Surfels
 
 __all__ = [
-    "Surfels", "RasterSettings", "RasterOutput", "rasterize", "available_backends", "BACKENDS",
+    "Surfels", "RasterSettings", "RasterOutput", "rasterize", "available_backends", "BACKENDS", "check_backend_name",
     "register_backend",
 ]
 
@@ -35,6 +36,15 @@ BACKENDS: dict[str, str] = {
     "cpu": "rtsplat.raster.cpu:rasterize_cpu",
     "triton": "rtsplat.raster.gpu:rasterize_triton",
 }
+
+
+def check_backend_name(name: str, key: str = "backend") -> str:
+    """``name`` when it is 'auto' or a registered backend, else a :class:`ConfigError` naming ``key`` and
+    listing the backends."""
+    if name != "auto" and name not in BACKENDS:
+        raise ConfigError(f"{key} is {name!r}: not a rasterizer backend",
+                          fix=f"use one of {', '.join(['auto', *sorted(BACKENDS)])}")
+    return name
 
 
 def register_backend(name: str, target: str) -> None:

@@ -164,6 +164,19 @@ def _safe_divide(num: Tensor, den: Tensor) -> Tensor:
     return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
 
 
+def _zero_through(surfels: Surfels, screen_probe: Tensor | None) -> Tensor:
+    """A scalar 0 that depends on every surfel tensor needing a gradient (each gets a zero gradient):
+    when every surfel is culled the image still backpropagates. Sums of empty slices, so non-finite
+    parameters give 0, not NaN."""
+    tensors = [surfels.means, surfels.quats, surfels.scales, surfels.occupancy, surfels.opacity,
+               surfels.features, surfels.colors, screen_probe]
+    zero = torch.zeros((), device=surfels.device, dtype=surfels.dtype)
+    for t in tensors:
+        if t is not None and t.requires_grad:
+            zero = zero + t[:0].sum()
+    return zero
+
+
 def rasterize_reference(
     surfels: Surfels, camera: Camera, settings: RasterSettings, screen_probe: Tensor | None = None
 ) -> RasterOutput:
@@ -193,6 +206,8 @@ def rasterize_reference(
         .permute(0, 2, 1, 3, 4)
         .reshape(bins.tiles_y * ts, bins.tiles_x * ts, n_channels)[:H, :W]
     )
+    if torch.is_grad_enabled() and not image.requires_grad:
+        image = image + _zero_through(surfels, screen_probe)
     features, normal, alpha, depth_sum, depth_median, distortion, color, volume_alpha, volume_depth_sum = (
         image.split([F, 3, 1, 1, 1, 1, 3, 1, 1], dim=-1)
     )

@@ -18,6 +18,7 @@ from pathlib import Path
 from rtsplat.config import PipelineConfig, add_config_arguments, load_config, trainer_options
 from rtsplat.devices import resolve_device
 from rtsplat.errors import ConfigError
+from rtsplat.io.outputs import check_output_dir, mark_output
 from rtsplat.train_config import TrainConfig
 
 PIPELINE_KEYS = frozenset(f.name for f in dataclasses.fields(PipelineConfig))
@@ -87,7 +88,10 @@ def run(args: argparse.Namespace) -> int:
         cfg.seed = args.seed
     cfg.validate(source="rtsplat train")
     resolve_device(cfg.device, key="--device" if args.device is not None else "train.device")
+    check_output_dir(args.out, "train", inputs=[args.data])
     scene = PreparedScene.load(args.data)
+    args.out.mkdir(parents=True, exist_ok=True)
+    mark_output(args.out, "train")
     trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=lambda msg: print(msg, file=sys.stderr))
     trainer.train(resume=not args.no_resume)
     return 0

@@ -1,0 +1,116 @@
+"""Output folders a stage may replace: only ones it wrote itself, never its inputs or a dataset.
+
+Every stage output folder holds a marker file, :data:`MARKER`, naming the stage that wrote it. Before a
+stage touches anything, :func:`check_output_dir` refuses an ``--out`` that
+
+- is, contains or lies inside one of the stage's inputs,
+- is or lies inside a dataset folder (a folder with ``images/`` or ``sparse/`` that no stage wrote)
+  or inside another stage's output,
+- already exists with content but without this stage's marker (a folder of the user's, or another
+  stage's output).
+
+:func:`output_dir` is :func:`rtsplat.io.atomic.atomic_dir` with that check and the marker.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import atomic_dir, write_json_atomic
+
+MARKER = ".rtsplat-output"
+DATASET_PARTS = ("images", "sparse")
+
+
+def output_stage(folder: str | Path) -> str | None:
+    """The stage named by ``folder``'s marker, None when it has none (or an unreadable one)."""
+    path = Path(folder) / MARKER
+    if not path.is_file():
+        return None
+    try:
+        stage = json.loads(path.read_text()).get("stage")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return stage if isinstance(stage, str) else None
+
+
+def is_dataset_dir(folder: str | Path) -> bool:
+    """Whether ``folder`` looks like a dataset scene (``images/`` or ``sparse/`` inside) no stage wrote."""
+    folder = Path(folder)
+    return output_stage(folder) is None and any((folder / part).is_dir() for part in DATASET_PARTS)
+
+
+def _resolved(path: str | Path) -> Path:
+    return Path(path).expanduser().resolve()
+
+
+def check_output_dir(out: str | Path, stage: str, inputs: Iterable[str | Path | None] = (),
+                     containers: Iterable[str | Path | None] = ()) -> None:
+    """Raise :class:`PipelineError` unless ``stage`` may write (and replace) the folder ``out``.
+
+    ``inputs``: folders or files the stage reads (None entries are skipped); ``out`` may be none of
+    them, contain none and lie inside none. ``containers``: inputs inside which ``out`` may lie (the
+    report's results tree), though it may still be neither one of them nor contain one.
+    """
+    target = _resolved(out)
+    fix = "pass an --out of its own, e.g. a new folder under results/"
+    for kind, paths in (("input", inputs), ("container", containers)):
+        for given in paths:
+            if given is None:
+                continue
+            inp = _resolved(given)
+            if target == inp:
+                raise PipelineError(f"the output folder is the {stage} input {given}; writing it would "
+                                    "replace that input", path=out, fix=fix)
+            if target in inp.parents:
+                raise PipelineError(f"the output folder contains the {stage} input {given}; writing it would "
+                                    "delete that input", path=out, fix=fix)
+            if kind == "input" and inp in target.parents:
+                raise PipelineError(f"the output folder lies inside the {stage} input {given}", path=out, fix=fix)
+    for folder in target.parents:
+        if is_dataset_dir(folder):
+            raise PipelineError(f"the output folder lies inside the dataset folder {folder}", path=out,
+                                fix=fix + "; dataset folders are never written")
+        other = output_stage(folder)
+        if other is not None:
+            raise PipelineError(f"the output folder lies inside the output of 'rtsplat {other}' ({folder}), "
+                                "which would delete it when it runs again", path=out, fix=fix)
+    if not target.exists():
+        return
+    if not target.is_dir():
+        raise PipelineError("the output exists and is not a folder", path=out,
+                            fix="pass the path of a folder (it is created), or remove that file yourself")
+    found = output_stage(target)
+    if found == stage:
+        return
+    if found is not None:
+        raise PipelineError(f"the output folder was written by 'rtsplat {found}', not 'rtsplat {stage}'",
+                            path=out, fix=fix)
+    if is_dataset_dir(target):
+        raise PipelineError("the output folder is a dataset folder (it has images/ or sparse/); "
+                            f"'rtsplat {stage}' never replaces it", path=out, fix=fix)
+    if any(target.iterdir()):
+        raise PipelineError(f"the output folder exists, is not empty and was not written by 'rtsplat {stage}' "
+                            f"(it has no {MARKER} file)", path=out,
+                            fix=fix + ", or delete that folder yourself if you no longer need it")
+
+
+def mark_output(folder: str | Path, stage: str) -> None:
+    """Write the marker that says ``stage`` wrote ``folder`` (and may replace it)."""
+    write_json_atomic(Path(folder) / MARKER, {"stage": stage})
+
+
+@contextmanager
+def output_dir(out: str | Path, stage: str, inputs: Iterable[str | Path | None] = (),
+               containers: Iterable[str | Path | None] = ()) -> Iterator[Path]:
+    """:func:`rtsplat.io.atomic.atomic_dir` for the output of ``stage``: checked with
+    :func:`check_output_dir` before anything is written, marked as ``stage``'s output."""
+    inputs, containers = list(inputs), list(containers)
+    check_output_dir(out, stage, inputs, containers)
+    with atomic_dir(out) as tmp:
+        mark_output(tmp, stage)
+        yield tmp

@@ -1,0 +1,322 @@
+"""A catalogue of bad inputs, by stage: each case runs ``rtsplat <stage>`` in-process on a copy of a
+tiny scene and its stage outputs, and checks the exit status 1, that the message names the file or
+key at fault, and that no file or folder under the copy changed (inputs and earlier outputs intact,
+nothing partial left behind)."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+import struct
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fixtures_pipeline import make_corner_scene  # noqa: E402
+
+from rtsplat.cli import main  # noqa: E402
+from rtsplat.io.outputs import mark_output  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    """``scene/`` (4 views of 40x30, sparse/0, transparent_masks) and its stage outputs under ``res/``:
+    masks, sfm, prepared and a run folder marked as the train stage's."""
+    root = tmp_path_factory.mktemp("bad_inputs")
+    make_corner_scene(root / "scene", n_views=4, width=40, height=30, with_model=True, with_masks=True)
+    assert main(["masks", "--scene-dir", str(root / "scene"), "--out", str(root / "res/masks")]) == 0
+    assert main(["sfm", "--scene-dir", str(root / "scene"), "--out", str(root / "res/sfm")]) == 0
+    assert main(["prepare", "--scene-dir", str(root / "scene"), "--sfm", str(root / "res/sfm"), "--masks",
+                 str(root / "res/masks"), "--out", str(root / "res/prepared")]) == 0
+    (root / "res/run").mkdir()
+    mark_output(root / "res/run", "train")
+    (root / "res/run/model.pt").write_bytes(b"a trained model")
+    (root / "user").mkdir()
+    (root / "user/notes.txt").write_text("the user's own file")
+    (root / "a_file").write_text("not a folder")
+    make_corner_scene(root / "other_scene", n_views=2, width=40, height=30)
+    return root
+
+
+def tree_state(root: Path) -> dict[str, str]:
+    """Every file (by content hash) and folder under ``root``."""
+    state = {}
+    for path in sorted(root.rglob("*")):
+        rel = str(path.relative_to(root))
+        state[rel] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else "<dir>"
+    return state
+
+
+@dataclass
+class Case:
+    argv: list[str]  # "{R}" stands for the copy's root
+    expect: list[str]  # each appears in the error message ("{R}" substituted)
+    setup: Callable[[Path], None] | None = None
+    marks: list = field(default_factory=list)
+
+
+def patch(rel: str, offset: int, fmt: str, *values) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        data = bytearray((root / rel).read_bytes())
+        struct.pack_into(fmt, data, offset, *values)
+        (root / rel).write_bytes(bytes(data))
+    return apply
+
+
+def truncate(rel: str, keep: float | int) -> Callable[[Path], None]:
+    """Keep the first ``keep`` bytes (an int) or that fraction of the file (a float)."""
+    def apply(root: Path) -> None:
+        data = (root / rel).read_bytes()
+        (root / rel).write_bytes(data[: keep if isinstance(keep, int) else int(len(data) * keep)])
+    return apply
+
+
+def write(rel: str, text: str) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+    return apply
+
+
+SFM = ["sfm", "--scene-dir", "{R}/scene", "--out"]
+MASKS = ["masks", "--scene-dir", "{R}/scene", "--out"]
+PREPARE = ["prepare", "--scene-dir", "{R}/scene", "--sfm", "{R}/res/sfm", "--masks", "{R}/res/masks", "--out"]
+TRAIN = ["train", "--data", "{R}/res/prepared", "--quiet", "--out"]
+RENDER = ["render", "--run", "{R}/res/run", "--data", "{R}/res/prepared", "--quiet", "--out"]
+REPORT = ["report", "--results", "{R}/res", "--out"]
+MODEL = "scene/sparse/0"
+# offsets in the binary files the fixture writes: cameras.bin holds one PINHOLE camera
+# (count u64, id i32, model i32, width u64, height u64, fx fy cx cy f64), images.bin starts with
+# (count u64, id i32, qvec, tvec f64 x 7, camera id i32), points3D.bin with (count u64, id u64, xyz f64 x 3)
+CAM_FX, CAM_CX, CAM_MODEL, IMAGE_CAMERA, POINT_X = 32, 48, 12, 68, 16
+
+OUTPUT_CASES = {
+    # sfm
+    "sfm out is the scene": Case([*SFM, "{R}/scene"], ["{R}/scene", "is the sfm input"]),
+    "sfm out is the scene's sparse/0": Case([*SFM, "{R}/scene/sparse/0"], ["{R}/scene/sparse/0", "inside"]),
+    "sfm out contains the scene": Case([*SFM, "{R}"], ["contains the sfm input"]),
+    "sfm out is the masks output": Case([*SFM, "{R}/res/masks"], ["{R}/res/masks", "'rtsplat masks'"]),
+    "sfm out inside the prepared output": Case([*SFM, "{R}/res/prepared/sfm"], ["'rtsplat prepare'"]),
+    "sfm out is a user folder": Case([*SFM, "{R}/user"], ["{R}/user", ".rtsplat-output"]),
+    "sfm out is a file": Case([*SFM, "{R}/a_file"], ["{R}/a_file", "not a folder"]),
+    "sfm out is another dataset": Case([*SFM, "{R}/other_scene"], ["{R}/other_scene", "dataset folder"]),
+    "sfm masks input inside out": Case([*SFM, "{R}/res", "--masks", "{R}/res/masks"], ["contains the sfm input"]),
+    # masks
+    "masks out is the scene's masks": Case([*MASKS, "{R}/scene/transparent_masks"],
+                                           ["{R}/scene/transparent_masks", "inside the masks input"]),
+    "masks out is the scene": Case([*MASKS, "{R}/scene"], ["is the masks input"]),
+    "masks out is the sfm output": Case([*MASKS, "{R}/res/sfm"], ["'rtsplat sfm'"]),
+    "masks out inside another dataset": Case([*MASKS, "{R}/other_scene/masks"], ["dataset folder {R}/other_scene"]),
+    "masks out is a user folder": Case([*MASKS, "{R}/user"], [".rtsplat-output"]),
+    "masks out is the results root": Case([*MASKS, "{R}/res"], ["{R}/res", "not empty"]),
+    # prepare
+    "prepare out is the scene": Case([*PREPARE, "{R}/scene"], ["{R}/scene", "is the prepare input"]),
+    "prepare out is the sfm output": Case([*PREPARE, "{R}/res/sfm"], ["is the prepare input {R}/res/sfm"]),
+    "prepare out is the masks output": Case([*PREPARE, "{R}/res/masks"], ["is the prepare input {R}/res/masks"]),
+    "prepare out inside the sfm output": Case([*PREPARE, "{R}/res/sfm/prepared"], ["inside the prepare input"]),
+    "prepare out contains its inputs": Case([*PREPARE, "{R}/res"], ["contains the prepare input"]),
+    "prepare out inside the scene": Case([*PREPARE, "{R}/scene/prepared"], ["inside the prepare input"]),
+    "prepare out is the run": Case([*PREPARE, "{R}/res/run"], ["'rtsplat train'"]),
+    # train
+    "train out is the prepared scene": Case([*TRAIN, "{R}/res/prepared"], ["is the train input"]),
+    "train out inside the prepared scene": Case([*TRAIN, "{R}/res/prepared/run"], ["inside the train input"]),
+    "train out is the dataset": Case([*TRAIN, "{R}/scene"], ["{R}/scene", "dataset folder"]),
+    "train out is the sfm output": Case([*TRAIN, "{R}/res/sfm"], ["'rtsplat sfm'"]),
+    "train out is a user folder": Case([*TRAIN, "{R}/user"], [".rtsplat-output"]),
+    # render
+    "render out is the run": Case([*RENDER, "{R}/res/run"], ["{R}/res/run", "is the render input"]),
+    "render out is the prepared scene": Case([*RENDER, "{R}/res/prepared"], ["is the render input"]),
+    "render out inside the run": Case([*RENDER, "{R}/res/run/renders"], ["inside the render input"]),
+    "render out contains the run": Case([*RENDER, "{R}/res"], ["contains the render input"]),
+    "render out inside the dataset": Case([*RENDER, "{R}/scene/renders"], ["dataset folder {R}/scene"]),
+    # report
+    "report out is the results": Case([*REPORT, "{R}/res"], ["is the report input"]),
+    "report out contains the results": Case(["report", "--results", "{R}/res/sfm", "--out", "{R}/res"],
+                                            ["contains the report input"]),
+    "report out inside the dataset": Case([*REPORT, "{R}/scene/report"], ["dataset folder {R}/scene"]),
+    "report out is the masks output": Case([*REPORT, "{R}/res/masks"], ["'rtsplat masks'"]),
+}
+
+MODEL_CASES = {
+    "empty cameras.bin": Case([*SFM, "{R}/res/new"], [f"{MODEL}/cameras.bin", "empty"],
+                              write(f"{MODEL}/cameras.bin", "")),
+    "empty images.bin": Case([*SFM, "{R}/res/new"], [f"{MODEL}/images.bin", "empty"],
+                             write(f"{MODEL}/images.bin", "")),
+    "empty points3D.bin": Case([*SFM, "{R}/res/new"], [f"{MODEL}/points3D.bin", "empty"],
+                               write(f"{MODEL}/points3D.bin", "")),
+    "truncated cameras.bin": Case([*SFM, "{R}/res/new"], [f"{MODEL}/cameras.bin", "truncated"],
+                                  truncate(f"{MODEL}/cameras.bin", 0.7)),
+    "truncated images.bin": Case([*SFM, "{R}/res/new"], [f"{MODEL}/images.bin", "truncated"],
+                                 truncate(f"{MODEL}/images.bin", 0.5)),
+    "truncated points3D.bin": Case([*SFM, "{R}/res/new"], [f"{MODEL}/points3D.bin", "truncated"],
+                                   truncate(f"{MODEL}/points3D.bin", 0.5)),
+    "points3D.bin with a count and nothing else": Case([*SFM, "{R}/res/new"], [f"{MODEL}/points3D.bin", "declares"],
+                                                       truncate(f"{MODEL}/points3D.bin", 8)),
+    "huge declared point count": Case([*SFM, "{R}/res/new"], [f"{MODEL}/points3D.bin", "declares 1000000000000"],
+                                      patch(f"{MODEL}/points3D.bin", 0, "<Q", 10**12)),
+    "unknown camera model id": Case([*SFM, "{R}/res/new"], [f"{MODEL}/cameras.bin", "unknown camera model id 999"],
+                                    patch(f"{MODEL}/cameras.bin", CAM_MODEL, "<i", 999)),
+    "image with an unknown camera": Case([*SFM, "{R}/res/new"], [f"{MODEL}/images.bin", "refers to camera 7"],
+                                         patch(f"{MODEL}/images.bin", IMAGE_CAMERA, "<i", 7)),
+    "negative focal length": Case([*SFM, "{R}/res/new"], [MODEL, "camera 1", "focal length"],
+                                  patch(f"{MODEL}/cameras.bin", CAM_FX, "<d", -50.0)),
+    "zero focal length": Case([*SFM, "{R}/res/new"], [MODEL, "focal length"],
+                              patch(f"{MODEL}/cameras.bin", CAM_FX, "<d", 0.0)),
+    "NaN focal length": Case([*SFM, "{R}/res/new"], [MODEL, "camera 1", "non-finite"],
+                             patch(f"{MODEL}/cameras.bin", CAM_FX, "<d", float("nan"))),
+    "principal point outside the image": Case([*SFM, "{R}/res/new"], [MODEL, "principal point"],
+                                              patch(f"{MODEL}/cameras.bin", CAM_CX, "<d", 5000.0)),
+    "negative principal point": Case([*SFM, "{R}/res/new"], [MODEL, "principal point"],
+                                     patch(f"{MODEL}/cameras.bin", CAM_CX, "<d", -3.0)),
+    "NaN 3D point": Case([*SFM, "{R}/res/new"], [MODEL, "non-finite position"],
+                         patch(f"{MODEL}/points3D.bin", POINT_X, "<d", float("nan"))),
+    "infinite 3D point": Case([*SFM, "{R}/res/new"], [MODEL, "non-finite position"],
+                              patch(f"{MODEL}/points3D.bin", POINT_X, "<d", float("inf"))),
+    "NaN pose": Case([*SFM, "{R}/res/new"], [MODEL, "pose", "not finite"],
+                     patch(f"{MODEL}/images.bin", IMAGE_CAMERA - 8, "<d", float("nan"))),
+    "prepare: truncated sfm points3D.bin": Case([*PREPARE, "{R}/res/new"],
+                                                ["res/sfm/sparse/0/points3D.bin", "truncated"],
+                                                truncate("res/sfm/sparse/0/points3D.bin", 0.5)),
+    "prepare: empty sfm cameras.bin": Case([*PREPARE, "{R}/res/new"], ["res/sfm/sparse/0/cameras.bin", "empty"],
+                                           write("res/sfm/sparse/0/cameras.bin", "")),
+}
+
+TRAIN_NEW = [*TRAIN, "{R}/res/new_run"]
+
+
+def train_yaml(text: str) -> Callable[[Path], None]:
+    return write("train.yaml", "train:\n" + text)
+
+
+CONFIG_CASES = {
+    "iterations NaN": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "nan"],
+                           train_yaml("  schedule: {iterations: .nan}\n")),
+    "iterations infinite": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "inf"],
+                                train_yaml("  schedule: {iterations: .inf}\n")),
+    "iterations 10.5": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "integer"],
+                            train_yaml("  schedule: {iterations: 10.5}\n")),
+    "iterations 0": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "minimum"],
+                         train_yaml("  schedule: {iterations: 0}\n")),
+    "iterations a word": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "ten"],
+                              train_yaml("  schedule: {iterations: ten}\n")),
+    "lr infinite": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.lr.occupancy", "inf"],
+                        train_yaml("  lr: {occupancy: .inf}\n")),
+    "lr NaN": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.lr.opacity", "nan"],
+                   train_yaml("  lr: {opacity: .nan}\n")),
+    "lr negative": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.lr.scaling", "minimum"],
+                        train_yaml("  lr: {scaling: -0.001}\n")),
+    "position lr zero": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.lr.position_init"],
+                             train_yaml("  lr: {position_init: 0}\n")),
+    "lr -inf in JSON": Case([*TRAIN_NEW, "--config-json", '{"lr": {"mlp": -Infinity}}'], ["train.lr.mlp", "-inf"]),
+    "unknown lr key": Case([*TRAIN_NEW, "--config-json", '{"lr": {"means": 0.1}}'],
+                           ["train.lr.means", "position_init"]),
+    "negative seed": Case([*TRAIN_NEW, "--config-json", '{"seed": -1}'], ["train.seed"]),
+    "bogus backend in config": Case([*TRAIN_NEW, "--config-json", '{"backend": "bogus"}'],
+                                    ["train.backend", "bogus", "reference", "cpu"]),
+    "bogus --backend": Case([*TRAIN_NEW, "--backend", "bogus"], ["train.backend", "bogus", "reference"]),
+    "--iterations 0": Case([*TRAIN_NEW, "--iterations", "0"], ["train.schedule.iterations"]),
+    "--config-json not JSON": Case([*TRAIN_NEW, "--config-json", "{lr"], ["--config-json", "JSON"]),
+    "--config missing": Case([*TRAIN_NEW, "--config", "{R}/nowhere.yaml"], ["{R}/nowhere.yaml"]),
+    "volume_until after specular_from": Case(
+        [*TRAIN_NEW, "--config-json", '{"schedule": {"volume_until": 50, "specular_from": 10}}'],
+        ["volume_until", "specular_from"]),
+    "render --backend bogus": Case([*RENDER, "{R}/res/new", "--backend", "bogus"],
+                                   ["--backend", "bogus", "reference", "cpu"]),
+    "ROI NaN centre": Case([*PREPARE, "{R}/res/new", "--config-json",
+                            '{"roi": {"center": [NaN, 0, 0], "radius": 1.0}}'], ["roi.center", "nan"]),
+    "ROI infinite radius": Case([*PREPARE, "{R}/res/new", "--config-json",
+                                 '{"roi": {"center": [0, 0, 0], "radius": Infinity}}'], ["roi.radius", "inf"]),
+    "ROI negative radius": Case([*PREPARE, "{R}/res/new", "--config-json",
+                                 '{"roi": {"center": [0, 0, 0], "radius": -1}}'], ["roi.radius"]),
+    "ROI centre of 2 numbers": Case([*PREPARE, "{R}/res/new", "--config-json",
+                                     '{"roi": {"center": [0, 0], "radius": 1}}'], ["roi.center"]),
+    "prepare downsample 0": Case([*PREPARE, "{R}/res/new", "--downsample", "0"], ["downsample"]),
+    "prepare test_every 1": Case([*PREPARE, "{R}/res/new", "--config-json", '{"test_every": 1}'], ["test_every"]),
+    "masks threshold NaN": Case([*MASKS, "{R}/res/new", "--config-json", '{"threshold": NaN}'], ["threshold", "nan"]),
+}
+
+EXISTING_CASES = {
+    "sfm without images": Case([*SFM, "{R}/res/new"], ["{R}/scene/images"],
+                               lambda root: shutil.rmtree(root / "scene/images")),
+    "sfm with a corrupt image": Case([*SFM, "{R}/res/new"], ["view_001.png"],
+                                     write("scene/images/view_001.png", "not a png")),
+    "sfm model lists a missing image": Case([*SFM, "{R}/res/new"], ["view_002.png"],
+                                            lambda root: (root / "scene/images/view_002.png").unlink()),
+    "masks ingest without the mask folder": Case([*MASKS, "{R}/res/new", "--source", "ingest"],
+                                                 ["{R}/scene/transparent_masks"],
+                                                 lambda root: shutil.rmtree(root / "scene/transparent_masks")),
+    "masks ingest with a mask missing": Case([*MASKS, "{R}/res/new"], ["view_003"],
+                                             lambda root: (root / "scene/transparent_masks/view_003.png").unlink()),
+    "masks: a photo as a mask": Case([*MASKS, "{R}/res/new"], ["view_001.png", "does not look like a mask"],
+                                     lambda root: shutil.copy(root / "scene/images/view_001.png",
+                                                              root / "scene/transparent_masks/view_001.png")),
+    "masks: a mask of the wrong size": Case([*MASKS, "{R}/res/new"], ["view_002.png", "30x20"],
+                                            lambda root: _crop(root / "scene/transparent_masks/view_002.png")),
+    "masks: a mask without an image": Case([*MASKS, "{R}/res/new"], ["extra.png", "no matching image"],
+                                           lambda root: shutil.copy(root / "scene/transparent_masks/view_000.png",
+                                                                    root / "scene/transparent_masks/extra.png")),
+    "masks: unknown polarity": Case([*MASKS, "{R}/res/new", "--config-json", '{"polarity": "inverted"}'],
+                                    ["polarity", "white"]),
+    "masks: max_coverage 0": Case([*MASKS, "{R}/res/new", "--config-json", '{"max_coverage": 0}'],
+                                  ["max_coverage"]),
+    "prepare sfm folder without summary": Case([*PREPARE, "{R}/res/new"], ["{R}/res/sfm"],
+                                               lambda root: (root / "res/sfm/summary.json").unlink()),
+    "prepare image of the wrong size": Case([*PREPARE, "{R}/res/new"], ["view_000.png", "30x20", "40x30"],
+                                            lambda root: _crop(root / "scene/images/view_000.png")),
+    "train data not prepared": Case(["train", "--data", "{R}/scene", "--out", "{R}/res/new_run", "--quiet"],
+                                    ["{R}/scene"]),
+    "render run without a model": Case([*RENDER, "{R}/res/new"], ["{R}/res/run/model.pt"],
+                                       lambda root: (root / "res/run/model.pt").unlink()),
+    "report of a missing results folder": Case(["report", "--results", "{R}/nowhere", "--out", "{R}/res/report"],
+                                               ["{R}/nowhere"]),
+}
+
+
+def _crop(path: Path) -> None:
+    from rtsplat.io.images import read_image, write_png
+
+    write_png(path, read_image(path)[:20, :30])
+
+
+CASES = {
+    **{f"output: {k}": v for k, v in OUTPUT_CASES.items()},
+    **{f"model: {k}": v for k, v in MODEL_CASES.items()},
+    **{f"config: {k}": v for k, v in CONFIG_CASES.items()},
+    **{f"existing: {k}": v for k, v in EXISTING_CASES.items()},
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_input_is_refused_and_changes_nothing(name, base, tmp_path, capsys):
+    case = CASES[name]
+    root = tmp_path / "copy"
+    shutil.copytree(base, root, symlinks=True)
+    for summary in (root / "res").rglob("*.json"):  # stage summaries record absolute paths
+        summary.write_text(summary.read_text().replace(str(base), str(root)))
+    if case.setup is not None:
+        case.setup(root)
+    before = tree_state(root)
+    argv = [a.replace("{R}", str(root)) for a in case.argv]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    for text in case.expect:
+        assert text.replace("{R}", str(root)) in err, f"{text!r} not in the message:\n{err}"
+    assert tree_state(root) == before
+
+
+def test_a_stage_replaces_its_own_output_and_fills_an_empty_folder(base, tmp_path):
+    """The other side of the output checks: re-running a stage over its own output replaces it, and an
+    existing empty folder is accepted; both end up marked as that stage's."""
+    scene = tmp_path / "scene"
+    shutil.copytree(base / "scene", scene)
+    out = tmp_path / "masks"
+    out.mkdir()
+    assert main(["masks", "--scene-dir", str(scene), "--out", str(out)]) == 0
+    (out / "stale.txt").write_text("from an earlier run")
+    assert main(["masks", "--scene-dir", str(scene), "--out", str(out)]) == 0
+    assert not (out / "stale.txt").exists()
+    assert (out / ".rtsplat-output").is_file() and (out / "view_000.png").is_file()
