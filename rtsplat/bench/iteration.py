@@ -86,14 +86,18 @@ def _instrument(sections: _Sections) -> None:
     import torch
 
     import rtsplat.raster.cpu as cpu
+    import rtsplat.raster.reference as reference
     from rtsplat.model import envmap, specular
     from rtsplat.model.rtmodel import RTModel
     from rtsplat.train import losses
     from rtsplat.train.density import DensityControl
     from rtsplat.train.trainer import Trainer
 
-    cpu.project_surfels = sections.wrap("projection", cpu.project_surfels)
-    cpu.bin_tiles = sections.wrap("binning", cpu.bin_tiles)
+    # projection and binning are looked up where the cpu backend's frame calls them (older checkouts
+    # called them from rtsplat.raster.cpu itself)
+    frame = cpu if hasattr(cpu, "project_surfels") else reference
+    frame.project_surfels = sections.wrap("projection", frame.project_surfels)
+    frame.bin_tiles = sections.wrap("binning", frame.bin_tiles)
     composite = cpu._Composite
     composite.forward = staticmethod(sections.wrap("raster fwd", composite.forward))
     composite.backward = staticmethod(sections.wrap("raster bwd", composite.backward))

@@ -53,9 +53,8 @@ import torch
 from torch import Tensor
 
 from rtsplat.camera import Camera
-from rtsplat.raster.binning import TileBins, bin_tiles
-from rtsplat.raster.projection import project_surfels
-from rtsplat.raster.reference import EDGE_ON_RATIO, _safe_divide, rasterize_reference
+from rtsplat.raster.binning import TileBins
+from rtsplat.raster.reference import EDGE_ON_RATIO, rasterize_reference, rasterize_tiled
 from rtsplat.raster.types import RasterOutput, RasterSettings, Surfels
 
 __all__ = ["rasterize_cpu", "cache_dir", "kernels_available"]
@@ -291,42 +290,4 @@ def rasterize_cpu(
         raise ValueError(f"the 'cpu' rasterizer backend needs CPU tensors, got {surfels.device}")
     if _load_kernels() is None:
         return rasterize_reference(surfels, camera, settings, screen_probe)
-    n = len(surfels)
-    device, dtype = surfels.device, surfels.dtype
-    if screen_probe is None and torch.is_grad_enabled():
-        screen_probe = torch.zeros(n, 2, device=device, dtype=dtype, requires_grad=True)
-    proj = project_surfels(surfels, camera, settings, screen_probe)
-    W, H = int(camera.width), int(camera.height)
-    bins = bin_tiles(proj.bbox_min, proj.bbox_max, proj.depths, proj.valid, W, H, settings.tile_size)
-    F = surfels.features.shape[1]
-    feats = torch.cat([surfels.features, proj.normals], -1)
-    image, visible = _Composite.apply(
-        proj.ray_transform,
-        proj.centers,
-        surfels.occupancy,
-        surfels.opacity,
-        feats,
-        surfels.colors,
-        bins,
-        (W, H, settings),
-    )
-    features, normal, alpha, depth_sum, depth_median, distortion, color, volume_alpha, volume_depth_sum = image.split(
-        [F, 3, 1, 1, 1, 1, 3, 1, 1], dim=-1
-    )
-    return RasterOutput(
-        features=features,
-        normal=normal,
-        depth=_safe_divide(depth_sum, alpha),
-        depth_median=depth_median,
-        alpha=alpha,
-        distortion=distortion,
-        color=color,
-        volume_alpha=volume_alpha,
-        volume_depth=_safe_divide(volume_depth_sum, volume_alpha),
-        means2d=proj.centers,
-        radii=proj.radii,
-        visible=visible,
-        screen_probe=screen_probe,
-        width=W,
-        height=H,
-    )
+    return rasterize_tiled(_Composite.apply, surfels, camera, settings, screen_probe)

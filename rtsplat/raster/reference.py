@@ -208,8 +208,16 @@ def rasterize_reference(
     )
     if torch.is_grad_enabled() and not image.requires_grad:
         image = image + _zero_through(surfels, screen_probe)
-    features, normal, alpha, depth_sum, depth_median, distortion, color, volume_alpha, volume_depth_sum = (
-        image.split([F, 3, 1, 1, 1, 1, 3, 1, 1], dim=-1)
+    return split_image(image, F, proj, visible, screen_probe)
+
+
+def split_image(image: Tensor, num_features: int, proj: Projection, visible: Tensor,
+                screen_probe: Tensor | None) -> RasterOutput:
+    """The :class:`RasterOutput` of a composited image [H,W,C] whose channels are, in order: the
+    G-buffer (``num_features``), normal 3, alpha, depth sum, median depth, distortion, colour 3,
+    volume alpha, volume depth sum. Every backend composites into this layout."""
+    features, normal, alpha, depth_sum, depth_median, distortion, color, volume_alpha, volume_depth_sum = image.split(
+        [num_features, 3, 1, 1, 1, 1, 3, 1, 1], dim=-1
     )
     return RasterOutput(
         features=features,
@@ -225,6 +233,24 @@ def rasterize_reference(
         radii=proj.radii,
         visible=visible,
         screen_probe=screen_probe,
-        width=W,
-        height=H,
+        width=image.shape[1],
+        height=image.shape[0],
     )
+
+
+def rasterize_tiled(composite, surfels: Surfels, camera: Camera, settings: RasterSettings,
+                    screen_probe: Tensor | None) -> RasterOutput:
+    """The frame the fast backends share: the screen probe, projection and tile binning (torch, on the
+    surfels' device), then ``composite`` (an autograd Function's ``apply`` taking the ray transforms,
+    centres, occupancy, opacity, G-buffer features with the normals appended, colours, the bins and
+    ``(W, H, settings)``, returning the image in :func:`split_image`'s layout and the visibility)."""
+    n = len(surfels)
+    if screen_probe is None and torch.is_grad_enabled():
+        screen_probe = torch.zeros(n, 2, device=surfels.device, dtype=surfels.dtype, requires_grad=True)
+    proj = project_surfels(surfels, camera, settings, screen_probe)
+    W, H = int(camera.width), int(camera.height)
+    bins = bin_tiles(proj.bbox_min, proj.bbox_max, proj.depths, proj.valid, W, H, settings.tile_size)
+    feats = torch.cat([surfels.features, proj.normals], -1)
+    image, visible = composite(proj.ray_transform, proj.centers, surfels.occupancy, surfels.opacity, feats,
+                               surfels.colors, bins, (W, H, settings))
+    return split_image(image, surfels.features.shape[1], proj, visible, screen_probe)
