@@ -70,13 +70,17 @@ class Camera:
         )
 
     def scaled(self, factor: float) -> Camera:
-        """The same camera with the image downsampled by ``factor`` (e.g. 2 halves the size).
+        """The camera of the image area-downsampled by ``factor`` (e.g. 2 halves the size; see
+        :func:`rtsplat.io.images.area_downsample`, which crops the right/bottom edge to a multiple of
+        the factor, so the size is rounded down).
 
         With the corner-at-(0,0) pixel convention the scaling of K is exact: fx, fy, cx, cy / factor.
         """
+        if factor == 1:
+            return self
         K = self.K.clone()
         K[:2] = K[:2] / factor
-        return Camera(K, self.world_to_camera, round(self.width / factor), round(self.height / factor))
+        return Camera(K, self.world_to_camera, int(self.width // factor), int(self.height // factor))
 
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """World points [N, 3] -> (pixel coordinates [N, 2], camera depth z [N])."""

@@ -320,7 +320,7 @@ def test_learned_background_is_indexed_by_the_ray_direction_and_trained_by_the_i
         finest[0, :, rows // 2 :] = torch.tensor([-4.0, -4.0, 4.0])[:, None, None]
     camera = small_camera(24, 18, torch.float32, eye=(0.3, -3.0, 0.0))
     result = model.render(camera, stage="full", backend="reference")
-    rays = rtmodel.pixel_rays(camera)
+    rays = rtmodel.image_ray_directions(camera)
     empty = result.raster.volume_alpha[..., 0] < 1e-4
     up, down = empty & (rays[..., 2] > 0.1), empty & (rays[..., 2] < -0.1)
     assert up.sum() > 5 and down.sum() > 5

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from rtsplat.camera import PIXEL_CENTER_OFFSET, Camera
+from rtsplat.camera import PIXEL_CENTER_OFFSET, Camera, pixel_rays
 from rtsplat.model.background import BackgroundMap
 from rtsplat.model.composite import (
     reflection_layer,
@@ -163,7 +163,7 @@ class RTModel(nn.Module):
     def background_radiance(self, camera: Camera) -> Tensor:
         """``B(d)`` for every pixel ray [H,W,3] (learned), or a constant colour [3] (black, white, random)."""
         if self.background_map is not None:
-            return self.background_map(pixel_rays(camera))
+            return self.background_map(image_ray_directions(camera))
         value = 1.0 if self.settings.background == "white" else 0.0
         return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
@@ -182,7 +182,7 @@ class RTModel(nn.Module):
         if idx is not None and idx.numel() == 0:
             return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
         rows = (lambda t: t) if idx is None else (lambda t: t[idx])  # noqa: E731
-        incident = rows(pixel_rays(camera).reshape(-1, 3))
+        incident = rows(image_ray_directions(camera).reshape(-1, 3))
         n = rows(normal.reshape(-1, 3))
         reflected = F.normalize(incident - 2.0 * (incident * n).sum(-1, keepdim=True) * n, dim=-1)
         rough = rows((g["roughness"] / alpha_safe).reshape(-1)).clamp(0, 1)
@@ -199,12 +199,11 @@ class RTModel(nn.Module):
         return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
 
 
-def pixel_rays(camera: Camera) -> Tensor:
-    """Unit world-space directions [H,W,3] from the camera centre through each pixel centre."""
+def image_ray_directions(camera: Camera) -> Tensor:
+    """Unit world-space directions [H,W,3] from the camera centre through each pixel centre
+    (:func:`rtsplat.camera.pixel_rays` on the image's pixel grid)."""
     dtype, device = camera.K.dtype, camera.K.device
     ys = torch.arange(camera.height, dtype=dtype, device=device) + PIXEL_CENTER_OFFSET
     xs = torch.arange(camera.width, dtype=dtype, device=device) + PIXEL_CENTER_OFFSET
     yy, xx = torch.meshgrid(ys, xs, indexing="ij")
-    pix = torch.stack([xx, yy, torch.ones_like(xx)], -1)
-    cam_dirs = pix @ torch.linalg.inv_ex(camera.K).inverse.T  # inv_ex: no error check, no read of the device
-    return F.normalize(cam_dirs @ camera.rotation, dim=-1)  # R^T d, row-vector form
+    return pixel_rays(camera, xx, yy)[1]

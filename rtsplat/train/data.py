@@ -30,15 +30,6 @@ class ViewSet:
         return float(sum(m.sum() for m in masks) / sum(m.numel() for m in masks))
 
 
-def downsample_camera(camera: Camera, factor: int) -> Camera:
-    """The camera of an image area-downsampled by ``factor`` (see :func:`rtsplat.io.images.area_downsample`)."""
-    if factor == 1:
-        return camera
-    K = camera.K.clone()
-    K[:2] /= factor
-    return Camera(K, camera.world_to_camera, camera.width // factor, camera.height // factor)
-
-
 def load_views(scene: PreparedScene, split: str, device: str | torch.device = "cpu", downsample: int = 1) -> ViewSet:
     """The views of ``split``; ``downsample`` > 1 box-filters images and masks by that factor and scales
     the cameras to match (the trainer's resolution knob: train smaller, evaluate at the prepared size)."""
@@ -48,7 +39,7 @@ def load_views(scene: PreparedScene, split: str, device: str | torch.device = "c
     names, cameras, images, masks = [], [], [], []
     for rec in records:
         names.append(rec.name)
-        cameras.append(downsample_camera(rec.to_camera(device=device), downsample))
+        cameras.append(rec.to_camera(device=device).scaled(downsample))
         image = area_downsample(scene.load_image(rec.name), downsample)
         images.append(torch.from_numpy(np.ascontiguousarray(image)).to(device))
         mask = scene.load_mask(rec.name)
