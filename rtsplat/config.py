@@ -163,7 +163,16 @@ class PrepareConfig:
     """Downsampling, region of interest and train/test split."""
 
     downsample: int = _f(1, help="integer image downsample factor (area filter)", minimum=1)
-    roi: RoiConfig | None = _f(None, help="region of interest; estimated from the SfM points when not given")
+    roi: RoiConfig | None = _f(
+        None, help="region of interest; when not given: around the transparent masks' visual hull, else from the SfM points"
+    )
+    roi_from_masks: bool = _f(
+        True, help="on a scene with transparent masks, the ROI is the sphere around the masks' visual hull"
+    )
+    roi_mask_agreement: float = _f(
+        0.9, help="mask ROI: fraction of the views seeing a point that must see it inside the mask",
+        exclusiveMinimum=0.0, maximum=1.0,
+    )
     roi_percentile: float = _f(
         95.0, help="estimated ROI: radius covers this percentile of the SfM points", exclusiveMinimum=0.0, maximum=100.0
     )

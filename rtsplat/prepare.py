@@ -7,8 +7,10 @@ Steps (function API :func:`prepare_scene`):
 2. downsample images by an integer factor with an area (box) filter, or take ``images_<factor>/``
    when the dataset has it, and scale the intrinsics exactly (see :func:`rtsplat.io.images.area_downsample`);
 3. downsample the transparent masks the same way and binarise them;
-4. define the spherical region of interest: from the config, or estimated from the SfM points and
-   the point the cameras look at (:func:`estimate_roi`); saved with its source;
+4. define the spherical region of interest: from the config; on a scene with transparent masks, the
+   sphere around the masks' visual hull (:func:`roi_from_masks`, the see-through object and what it
+   encloses); otherwise estimated from the SfM points and the point the cameras look at
+   (:func:`estimate_roi`); saved with its source;
 5. split train/test: every ``test_every``-th image of the name-sorted list is a test view;
 6. write ``prepared/`` atomically (see :mod:`rtsplat.scene` for the format).
 """
@@ -98,6 +100,53 @@ def estimate_roi(model: ColmapModel, percentile: float = 95.0) -> Roi:
     if not radius > 0:
         radius = 1.0
     return Roi(center=[float(x) for x in center], radius=radius, source="estimated")
+
+
+def roi_from_masks(
+    views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    bound: Roi,
+    agreement: float = 0.9,
+    grid: int = 96,
+    min_seen: float = 0.25,
+) -> Roi | None:
+    """Sphere around the visual hull of the transparent masks, or None when the masks carve nothing.
+
+    ``views``: (K [3,3], world_to_camera [4,4], mask [H,W] bool) per view. Grid points inside
+    ``bound`` (``grid`` per axis) belong to the hull when at least ``min_seen`` of the views have them
+    in frame and, of those, at least ``agreement`` see them inside the mask (the margin forgives a few
+    wrong masks). The largest connected part of the hull is kept, so a stray point far away (seen
+    through the glass from the few views that agree) cannot inflate the sphere. The sphere is centred
+    on the part's bounding box and reaches 10% and one grid step beyond its farthest point: the
+    agreement rule erodes the hull at the silhouettes, where one view's mask edge decides.
+    """
+    from scipy import ndimage
+
+    center = np.asarray(bound.center, dtype=np.float64)
+    axis = np.linspace(-bound.radius, bound.radius, grid)
+    step = float(axis[1] - axis[0])
+    points = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + center
+    inside_mask = np.zeros(len(points))
+    in_frame = np.zeros(len(points))
+    for K, world_to_camera, mask in views:
+        cam = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+        z = cam[:, 2]
+        front = z > 1e-6
+        uv = cam[:, :2] / np.where(front, z, 1.0)[:, None] * np.diag(K)[:2] + K[:2, 2]
+        u = np.floor(uv[:, 0]).astype(np.int64)
+        v = np.floor(uv[:, 1]).astype(np.int64)
+        h, w = mask.shape
+        visible = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        in_frame += visible
+        inside_mask[visible] += mask[v[visible], u[visible]]
+    hull = (in_frame >= min_seen * len(views)) & (inside_mask >= agreement * np.maximum(in_frame, 1))
+    labels, count = ndimage.label(hull.reshape(grid, grid, grid))
+    if count == 0:
+        return None
+    sizes = np.bincount(labels.ravel())[1:]
+    part = points[(labels == 1 + int(np.argmax(sizes))).ravel()]
+    mid = 0.5 * (part.min(0) + part.max(0))
+    radius = 1.1 * float(np.linalg.norm(part - mid, axis=1).max()) + step
+    return Roi(center=[float(x) for x in mid], radius=radius, source="masks")
 
 
 def undistort_mask(mask: np.ndarray, distorted: ColmapView, size: tuple[int, int]) -> np.ndarray:
@@ -204,6 +253,7 @@ def prepare_scene(
 
     cameras: list[CameraRecord] = []
     coverage: list[float] = []
+    mask_views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     layer_source = scene_dir / "layers" / "linear"
     gt_layer_views = 0
     out_dir = Path(out_dir)
@@ -272,6 +322,7 @@ def prepare_scene(
                     small = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
                 write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
                 coverage.append(float(small.mean()))
+                mask_views.append((K, view.world_to_camera, small))
             cameras.append(
                 CameraRecord(
                     name=stem,
@@ -288,6 +339,8 @@ def prepare_scene(
 
             shutil.rmtree(tmp / MASKS_DIR)
             has_masks = False
+        if has_masks and cfg.roi is None and cfg.roi_from_masks:
+            roi = roi_from_masks(mask_views, roi, cfg.roi_mask_agreement) or roi
         write_points_ply(tmp / POINTS_FILE, model.xyz, model.rgb)
         versions = {"rtsplat": __version__, "scene_format": "1"}
         scene = PreparedScene(

@@ -15,7 +15,7 @@ On disk::
       "format": 1,
       "cameras": [{"name": "IMG_0001", "image": "IMG_0001.JPG", "split": "train" | "test",
                    "width": W, "height": H, "K": 3x3, "world_to_camera": 4x4}, ...],
-      "roi": {"center": [x, y, z], "radius": r, "source": "config" | "estimated"},
+      "roi": {"center": [x, y, z], "radius": r, "source": "config" | "masks" | "estimated"},
       "downsample": 4,
       "source": "/path/to/dataset/scene",
       "has_transparency": true,
@@ -82,7 +82,7 @@ class CameraRecord:
 class Roi:
     center: list[float]
     radius: float
-    source: Literal["config", "estimated"]
+    source: Literal["config", "masks", "estimated"]
 
 
 @dataclass
@@ -227,8 +227,8 @@ class PreparedScene:
                 raise bad(f"camera {c.name}: world_to_camera is not a rigid transform")
         if len(self.roi.center) != 3 or not float(self.roi.radius) > 0:
             raise bad("roi must have a 3D center and a positive radius")
-        if self.roi.source not in ("config", "estimated"):
-            raise bad(f"roi.source must be 'config' or 'estimated', got {self.roi.source!r}")
+        if self.roi.source not in ("config", "masks", "estimated"):
+            raise bad(f"roi.source must be 'config', 'masks' or 'estimated', got {self.roi.source!r}")
         if check_files:
             self._check_files(bad)
 

@@ -78,9 +78,16 @@ def test_split_roi_and_points(base, tmp_path):
     scene = PreparedScene.load(tmp_path / "p")
     assert [c.name for c in scene.test_cameras] == ["view_000", "view_008"]  # every 8th, name order
     assert len(scene.train_cameras) == 8
-    assert scene.roi.source == "estimated"
-    assert np.allclose(scene.roi.center, [0.6, 0.6, 0.6], atol=1e-6)  # where the fixture cameras look
-    assert 1.0 < scene.roi.radius < 2.5  # covers the corner's points
+    # with masks: the sphere around their visual hull holds the window's corners
+    assert scene.roi.source == "masks"
+    corners = np.array([[0, y, z] for y in WINDOW[:2] for z in WINDOW[2:]], float)
+    assert (np.linalg.norm(corners - scene.roi.center, axis=1) < scene.roi.radius).all()
+    # without the masks' hull: estimated from the SfM points around where the cameras look
+    prepare_scene(root / "scene", sfm, tmp_path / "p1", PrepareConfig(roi_from_masks=False), masks, progress=False)
+    estimated = PreparedScene.load(tmp_path / "p1").roi
+    assert estimated.source == "estimated"
+    assert np.allclose(estimated.center, [0.6, 0.6, 0.6], atol=1e-6)  # where the fixture cameras look
+    assert 1.0 < estimated.radius < 2.5  # covers the corner's points
     xyz, rgb = scene.load_points()
     assert xyz.shape == (500, 3) and rgb.dtype == np.uint8
     # ROI from the config
@@ -242,3 +249,55 @@ def test_empty_masks_mean_no_transparency(tmp_path):
     assert not s.has_transparency
     scene = PreparedScene.load(tmp_path / "p")
     assert not scene.has_transparency and not (tmp_path / "p" / "masks").exists()
+
+
+def _ball_views(center, radius, n_views=24, size=(64, 48), stray_views=()):
+    """Cameras on two rings around the origin and the masks of a ball (pixels whose ray hits it);
+    ``stray_views`` also mark a wrong blob in the top-left corner."""
+    from rtsplat.camera import look_at
+
+    w, h = size
+    K = np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]])
+    views = []
+    for i in range(n_views):
+        angle = 2 * np.pi * i / n_views
+        eye = np.array([4 * np.cos(angle), 4 * np.sin(angle), 1.0 + (i % 2)])
+        w2c = look_at(eye, (0.0, 0.0, 0.3), dtype=torch_float64()).numpy()
+        xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+        rays = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+        rays = rays @ w2c[:3, :3]  # camera to world directions
+        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+        to_center = np.asarray(center) - eye
+        along = rays @ to_center
+        miss = np.linalg.norm(to_center) ** 2 - along**2
+        mask = (along > 0) & (miss <= radius**2)
+        if i in stray_views:
+            mask[:10, :10] = True
+        views.append((K, w2c, mask))
+    return views
+
+
+def torch_float64():
+    import torch
+
+    return torch.float64
+
+
+def test_roi_from_masks_wraps_the_visual_hull():
+    from rtsplat.prepare import roi_from_masks
+    from rtsplat.scene import Roi
+
+    center, radius = np.array([0.3, -0.2, 0.5]), 0.4
+    bound = Roi([0.0, 0.0, 0.0], 3.0, "estimated")
+    step = 2 * bound.radius / 95
+    roi = roi_from_masks(_ball_views(center, radius), bound)
+    assert roi is not None and roi.source == "masks"
+    # the sphere contains the ball and is not much larger than it (hull: a little larger than the ball)
+    assert np.linalg.norm(np.array(roi.center) - center) + radius <= roi.radius
+    assert roi.radius <= 1.1 * (radius + 0.15) + step + 0.1
+    # two views with a wrong blob in their masks do not move the sphere
+    strayed = roi_from_masks(_ball_views(center, radius, stray_views=(3, 11)), bound)
+    assert np.allclose(strayed.center, roi.center) and strayed.radius == pytest.approx(roi.radius)
+    # masks that mark nothing carve nothing
+    empty = [(K, w2c, np.zeros_like(m)) for K, w2c, m in _ball_views(center, radius)]
+    assert roi_from_masks(empty, bound) is None
