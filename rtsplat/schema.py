@@ -236,3 +236,18 @@ def from_dict(cls: type, data: dict[str, Any] | None, *, source: str = "config",
     data = {} if data is None else data
     check(cls, data, source=source, root=root)
     return build(cls, data)
+
+
+# ----------------------------------------------------------------------------------------------
+# comparison
+
+
+def differences(old: Any, new: Any, path: tuple = ()) -> Iterator[tuple[str, Any, Any]]:
+    """(dotted key, old value, new value) of every leaf where two config trees differ; a key that
+    one tree lacks has the value ``"<absent>"`` there. Trees are compared as JSON data (:func:`plain`)."""
+    old, new = plain(old), plain(new)
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in [*old, *(k for k in new if k not in old)]:
+            yield from differences(old.get(key, "<absent>"), new.get(key, "<absent>"), (*path, key))
+    elif old != new:
+        yield _key(path), old, new

@@ -25,7 +25,7 @@ from rtsplat.raster import RasterSettings, check_backend_name
 from rtsplat.schema import setting
 
 __all__ = ["Ablations", "Densification", "Effects", "Gating", "ITERATION_COUNTS", "LearningRates", "Losses",
-           "ModelSettings", "Schedule", "TrainConfig", "scale_budget"]
+           "ModelSettings", "RESUME_MAY_CHANGE", "Schedule", "TrainConfig", "resume_differences", "scale_budget"]
 
 
 @dataclass
@@ -199,6 +199,23 @@ class TrainConfig:
                 f"(got {s.volume_until}, {s.specular_from})"
             )
         return self
+
+
+# Settings a resumed run may change without --resume-with-new-config: the run's length (to train
+# longer or stop sooner; with schedule.densify_until null, density control follows the new length),
+# how often it logs, evaluates and writes checkpoints, and where it runs (device, rasterizer backend).
+RESUME_MAY_CHANGE = frozenset({
+    "schedule.iterations", "schedule.log_every", "schedule.eval_every", "schedule.checkpoint_every",
+    "device", "backend",
+})
+
+
+def resume_differences(checkpoint_config: dict[str, Any], cfg: TrainConfig) -> list[str]:
+    """``key: old -> new`` for each setting that differs between a checkpoint's config and ``cfg``,
+    leaving out :data:`RESUME_MAY_CHANGE`."""
+    return [f"train.{key}: {old!r} -> {new!r}"
+            for key, old, new in schema.differences(checkpoint_config, cfg.to_dict())
+            if key not in RESUME_MAY_CHANGE]
 
 
 # Every setting counted in iterations, by section (log_every stays: it is a logging rate).

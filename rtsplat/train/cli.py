@@ -35,6 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", help="override device: auto (the GPU when torch sees one), cpu, cuda, cuda:N")
     parser.add_argument("--seed", type=int, help="random seed")
     parser.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in --out")
+    parser.add_argument("--resume-with-new-config", action="store_true",
+                        help="resume from --out's checkpoint even though this config differs from the one it was "
+                        "written with (without it that is an error naming the keys; schedule.iterations, the "
+                        "log/eval/checkpoint cadence, device and backend may always change)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -93,5 +97,5 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     mark_output(args.out, "train")
     trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=lambda msg: print(msg, file=sys.stderr))
-    trainer.train(resume=not args.no_resume)
+    trainer.train(resume=not args.no_resume, new_config=args.resume_with_new_config)
     return 0

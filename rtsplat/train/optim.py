@@ -19,6 +19,17 @@ LR_OF = {
 }
 
 
+# the learning rates of the groups besides the surfels' (build_optimizer)
+LR_OF_MODULE = {"env_map": "env_map", "mlp": "mlp", "background": "background"}
+
+
+def learning_rate_key(group: str) -> str:
+    """The config key (``lr.<name>``) of a parameter group's learning rate."""
+    if group == "means":
+        return "lr.position_init"
+    return "lr." + {**LR_OF, **LR_OF_MODULE}[group]
+
+
 def surfel_learning_rate(name: str, lr: LearningRates, extent: float) -> float:
     value = getattr(lr, LR_OF[name])
     if name == "means":

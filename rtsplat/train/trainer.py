@@ -1,12 +1,13 @@
-"""The training loop, kept small: data, model, losses, density control, checkpoints and logging
-each live in their own module; this file only sequences them.
+"""The training loop, kept small: data, model, losses, density control, the divergence watch,
+checkpoints and logging each live in their own module; this file only sequences them.
 
 Run directory layout::
 
     <out>/config.json        resolved TrainConfig
     <out>/effects.json       which branches run and why (effects: auto)
     <out>/train_log.jsonl    one JSON line per logging step: losses, PSNR, surfels, seconds
-    <out>/checkpoints/last.pt  resumable state (rtsplat.model.checkpoint, written atomically)
+    <out>/checkpoints/last.pt  resumable state (rtsplat.model.checkpoint, written atomically; never
+                             a diverged one, and resuming needs the same config, see load_checkpoint)
     <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
     <out>/summary.json       written last: a run without it is not finished
 """
@@ -38,9 +39,10 @@ from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
+from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import decide_effects
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
-from rtsplat.train_config import TrainConfig
+from rtsplat.train_config import TrainConfig, resume_differences
 
 
 @dataclass
@@ -110,6 +112,9 @@ class Trainer:
         self.iteration = 0
         self.elapsed = 0.0
         self.order: list[int] = []
+        self.watch = DivergenceWatch(self.device)
+        # the iteration of the checkpoint at checkpoint_path this run wrote or resumed from
+        self.checkpoint_iteration: int | None = None
         self.perceptual, why = load_lpips(cfg.losses.lpips_weights, self.device)
         self.perceptual_note = why
 
@@ -180,14 +185,16 @@ class Trainer:
         loss.backward()
         trainable = (~self.frozen).float()
         self.density.observe(result.raster, trainable)
-        self._optimizer_step()
+        gradients = self._optimizer_step()
         events, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
+        self.watch.record(it, loss, gradients, self.optimizer)
         with torch.no_grad():
             value = psnr(result.color.detach().clamp(0, 1), target)
         return StepResult(it, loss.detach(), value, {k: v.detach() for k, v in terms.items()}, stage,
                           events.to_dict() if events.any() else {})
 
-    def _optimizer_step(self) -> None:
+    def _optimizer_step(self) -> Tensor:
+        """Adam on the unfrozen rows; returns the gradients' group sums for the divergence watch."""
         frozen = self.frozen
         saved = {}
         if self.any_frozen:
@@ -196,12 +203,14 @@ class Trainer:
                 if p.grad is not None:
                     p.grad[frozen] = 0
                 saved[name] = p.detach()[frozen].clone()
+        gradients = self.watch.gradients(self.optimizer)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         if saved:
             with torch.no_grad():
                 for name, value in saved.items():
                     getattr(self.model.surfels, name)[frozen] = value
+        return gradients
 
     def _freeze_background(self) -> None:
         """joint_optimization off: freeze what was learnt on the background pixels and start fresh
@@ -258,9 +267,25 @@ class Trainer:
         }
 
     def save_checkpoint(self, path: Path | None = None) -> Path:
-        return write_checkpoint(path or self.checkpoint_path, self.model, self.cfg.raster, self.training_state())
+        """Write the state (``checkpoints/last.pt`` by default); a diverged state is never written."""
+        self.stop_if_diverged()
+        path = path or self.checkpoint_path
+        written = write_checkpoint(path, self.model, self.cfg.raster, self.training_state())
+        if path == self.checkpoint_path:
+            self.checkpoint_iteration = self.iteration
+        return written
 
-    def load_checkpoint(self, path: Path) -> None:
+    def stop_if_diverged(self) -> None:
+        """Raise :class:`~rtsplat.train.divergence.TrainingDiverged` if a loss, gradient or parameter
+        went non-finite so far."""
+        divergence = self.watch.check()
+        if divergence is not None:
+            raise diverged_error(divergence, self.iteration, self.checkpoint_path, self.checkpoint_iteration)
+
+    def load_checkpoint(self, path: Path, new_config: bool = False) -> None:
+        """Resume from ``path``. A config that differs from the checkpoint's (beyond
+        :data:`rtsplat.train_config.RESUME_MAY_CHANGE`) is an error naming the keys, unless
+        ``new_config`` (``--resume-with-new-config``), which logs them and trains on with this config."""
         checkpoint = read_checkpoint(path, self.device)
         if not checkpoint.training:
             raise CheckpointError("has no training state to resume from; delete it to start over", path=path)
@@ -270,6 +295,16 @@ class Trainer:
                 "use a new --out directory or delete the checkpoint", path=path,
             )
         state = checkpoint.training
+        changed = resume_differences(state.get("config", {}), self.cfg)
+        if changed and not new_config:
+            raise CheckpointError(
+                "was written with a different config than this run's:\n    " + "\n    ".join(changed),
+                path=path, fix="pass --resume-with-new-config to resume with this config (Trainer.train("
+                "new_config=True)), restore the checkpoint's config (its run's config.json), or use a new --out "
+                "directory or --no-resume to start over",
+            )
+        if changed:
+            self.log("resuming with a changed config: " + "; ".join(changed))
         self.model = checkpoint.build_model(self.device, ablations=self.cfg.ablations, settings=self.cfg.model)
         self.optimizer = build_optimizer(self.model, self.model.surfels, self.cfg.lr, self.extent)
         self.optimizer.load_state_dict(state["optimizer"])
@@ -282,14 +317,19 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"].cpu())
         self.iteration = int(state["iteration"])
         self.elapsed = float(state["elapsed"])
+        self.checkpoint_iteration = self.iteration
 
     # -- the loop ------------------------------------------------------------------------------
-    def train(self, resume: bool = True) -> dict:
+    def train(self, resume: bool = True, new_config: bool = False) -> dict:
+        """Train to ``schedule.iterations``, resuming from ``checkpoints/last.pt`` when ``resume``
+        (``new_config``: even if the config differs, see :meth:`load_checkpoint`). A loss, gradient or
+        parameter that goes non-finite stops the run with
+        :class:`~rtsplat.train.divergence.TrainingDiverged` before anything of that state is written."""
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
         log_path = self.out / "train_log.jsonl"
         if resume and self.checkpoint_path.exists():
-            self.load_checkpoint(self.checkpoint_path)
+            self.load_checkpoint(self.checkpoint_path, new_config)
             self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
             _truncate_log(log_path, self.iteration)
         else:
@@ -303,6 +343,9 @@ class Trainer:
         backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
         self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
         total = cfg.schedule.iterations
+        # reading the divergence record waits for the device: on a CPU that costs nothing, elsewhere it
+        # is read where the loop reads the device anyway (logging steps) and before every write
+        watch_every_step = self.device.type == "cpu"
         bar = _progress(total, self.iteration, self.progress)
         with open(log_path, "a") as log_file:
             if cfg.schedule.eval_every > 0 and self.iteration == 0:  # the initialisation, for comparison
@@ -310,13 +353,19 @@ class Trainer:
                                            **self.evaluate()}) + "\n")
             while self.iteration < total:
                 start = time.perf_counter()
-                step = self.step()
+                try:
+                    step = self.step()
+                except Exception:  # a diverged state can break the step itself: name the divergence
+                    self.stop_if_diverged()
+                    raise
                 last = step.iteration == total
                 evaluate_now = cfg.schedule.eval_every > 0 and (step.iteration % cfg.schedule.eval_every == 0 or last)
                 logging = step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now or bool(step.density)
                 # the loop reads the device only on logging steps; that read waits for the queued work,
                 # so the seconds logged there include it
                 numbers = step.numbers() if logging else None
+                if logging or watch_every_step:
+                    self.stop_if_diverged()
                 self.elapsed += time.perf_counter() - start
                 bar.update(1)
                 if numbers is not None:
