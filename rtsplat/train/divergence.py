@@ -67,7 +67,8 @@ class Divergence:
                     "input data (the prepared images, masks or points)")
         keys = sorted({learning_rate_key(name) for name in groups})
         step = "gradient" if self.gradients else "update"
-        return f"the {step} of {', '.join(groups)} blew up: a learning rate too high for it ({', '.join(keys)})"
+        names = ", ".join(f"train.{key}" for key in keys)
+        return f"the {step} of {', '.join(groups)} blew up: a learning rate too high for it ({names})"
 
     def fix(self) -> str:
         groups = self.gradients or self.parameters
