@@ -174,6 +174,10 @@ class PrepareConfig:
         0.9, help="mask ROI: fraction of the views seeing a point that must see it inside the mask",
         exclusiveMinimum=0.0, maximum=1.0,
     )
+    transparent_surface: bool = _f(
+        True, help="on a scene with transparent masks, write the camera-facing surface of the masks' visual hull "
+        "(transparent_surface.npz), where training seeds surfels for the see-through surface",
+    )
     roi_percentile: float = _f(
         95.0, help="estimated ROI: radius covers this percentile of the SfM points", exclusiveMinimum=0.0, maximum=100.0
     )

@@ -292,3 +292,28 @@ def test_train_cli_reads_a_method_of_the_pipeline_config_like_the_workflow(tmp_p
         read("--config-json", '{"schedule": {"iteratons": 3}}')
     with pytest.raises(ConfigError, match="--scene"):
         read("--config", str(tmp_path / "tree.yaml"), "--scene", "sedan")
+
+
+def test_surfels_start_on_the_transparent_surface_only_with_transmission(tmp_path):
+    from rtsplat.raster.projection import quat_to_rotmat
+
+    scene = write_scene(tmp_path / "scene", views=5, width=32, height=24)
+    xyz = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.1, 0.1, 0.0], [0.05, 0.05, 0.0]])
+    normal = np.tile([[0.0, 0.6, 0.8]], (5, 1))
+    np.savez(tmp_path / "scene" / "transparent_surface.npz", xyz=xyz, normal=normal)
+    n_points = scene.load_points()[0].shape[0]
+    rt = Trainer(scene, config(4), tmp_path / "rt", progress=False, log=lambda m: None)
+    surfels = rt.model.surfels
+    assert len(surfels) == n_points + 5
+    seeds = slice(n_points, None)
+    assert torch.allclose(surfels.means[seeds].detach(), torch.as_tensor(xyz, dtype=torch.float32))
+    R = quat_to_rotmat(surfels.quats[seeds].detach())
+    assert torch.allclose(R[:, :, 2], torch.tensor([0.0, 0.6, 0.8]).expand(5, 3), atol=1e-6)
+    assert torch.allclose(surfels.opacity[seeds], torch.tensor(0.1)) and (surfels.transmissivity[seeds] > 0.85).all()
+    rt.train()  # the seeded model trains
+    plain = Trainer(scene, config(4, effects={"transmission": "off"}), tmp_path / "2dgs", progress=False,
+                    log=lambda m: None)
+    assert len(plain.model.surfels) == n_points
+    off = Trainer(scene, config(4, seed_transparent_surface=False), tmp_path / "off", progress=False,
+                  log=lambda m: None)
+    assert len(off.model.surfels) == n_points

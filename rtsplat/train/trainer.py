@@ -30,7 +30,13 @@ from rtsplat.io.atomic import write_text_atomic
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
 from rtsplat.model.rtmodel import RTModel
-from rtsplat.model.surfels import PARAMETERS, SurfelParameters, init_from_points
+from rtsplat.model.surfels import (
+    PARAMETERS,
+    SurfelParameters,
+    concat_surfels,
+    init_from_points,
+    quats_with_normal,
+)
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
 from rtsplat.raster import default_backend
@@ -116,11 +122,28 @@ class Trainer:
     # -- construction ------------------------------------------------------------------------
     def _init_surfels(self) -> SurfelParameters:
         m = self.cfg.model
-        return init_from_points(
+        surfels = init_from_points(
             *self.points, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
             transmissivity=m.transmissivity_init, roughness=m.roughness_init, reflectance=m.reflectance_init,
             generator=self.rng,
         )
+        surface = self.scene.load_transparent_surface() if self.cfg.seed_transparent_surface else None
+        if surface is None or not self.effects.transmission or len(surface[0]) < 4:
+            return surfels
+        return concat_surfels([surfels, self._transparent_surface_surfels(*surface)])
+
+    def _transparent_surface_surfels(self, xyz: np.ndarray, normal: np.ndarray) -> SurfelParameters:
+        """Surfels where the see-through surface is (prepare's points on the masks' visual hull), which
+        SfM points miss: oriented along the hull's normals and clear (low opacity, high transmissivity,
+        no colour of their own), so that they start as glass that reflects and lets the scene through."""
+        m = self.cfg.model
+        xyz_t = torch.as_tensor(xyz, dtype=torch.float32)
+        seeds = init_from_points(
+            xyz_t, torch.zeros_like(xyz_t), sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=0.1,
+            transmissivity=0.9, roughness=m.roughness_init, reflectance=m.reflectance_init, generator=self.rng,
+        )
+        seeds.quats.data.copy_(quats_with_normal(torch.as_tensor(normal, dtype=torch.float32)))
+        return seeds
 
     def _new_model(self, surfels: SurfelParameters) -> RTModel:
         roi = self.scene.roi
