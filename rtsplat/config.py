@@ -164,7 +164,8 @@ class PrepareConfig:
 
     downsample: int = _f(1, help="integer image downsample factor (area filter)", minimum=1)
     roi: RoiConfig | None = _f(
-        None, help="region of interest; when not given: around the transparent masks' visual hull, else from the SfM points"
+        None,
+        help="region of interest; when not given: around the transparent masks' visual hull, else from the SfM points",
     )
     roi_from_masks: bool = _f(
         True, help="on a scene with transparent masks, the ROI is the sphere around the masks' visual hull"
