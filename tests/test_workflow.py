@@ -97,6 +97,13 @@ def test_dry_run_builds_the_whole_dag(dataset):
     assert {k: counts[k] for k in EXPECTED} == EXPECTED
     assert "rtsplat prepare --scene-dir" in out and "rtsplat train --data" in out
     assert "--edit reflections=off" in out and "rtsplat report --results" in out
+    # the checkpoint folder lies beside the run folder that Snakemake deletes when a job fails
+    for block in (b for b in _jobs(out) if b.startswith("rule train")):
+        command = shlex.split(next(line for line in block.splitlines() if " train --data" in line).strip())
+        scene, method = re.search(r"scene=(\w+)", block).group(1), re.search(r"method=(\w+)", block).group(1)
+        results = dataset / "results" / scene
+        assert command[command.index("--out") + 1] == str(results / "runs" / method)
+        assert command[command.index("--checkpoint-dir") + 1] == str(results / "checkpoints" / method)
     # per-scene overrides reach the commands
     prep = {re.search(r"--scene-dir \S+/(\w+)", b).group(1): b for b in _jobs(out) if b.startswith("rule prepare")}
     assert '"downsample": 2' in prep["glass"] and '"downsample": 4' in prep["plain"]
