@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -317,3 +318,62 @@ def test_surfels_start_on_the_transparent_surface_only_with_transmission(tmp_pat
     off = Trainer(scene, config(4, seed_transparent_surface=False), tmp_path / "off", progress=False,
                   log=lambda m: None)
     assert len(off.model.surfels) == n_points
+
+
+def _train_cli(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "rtsplat.cli", "train", *args, "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def test_checkpoint_dir_outlives_a_deleted_run_folder_and_training_resumes_from_it(glass_scene, tmp_path):
+    """What a training job killed under Snakemake goes through: the run folder is deleted, the checkpoint
+    folder beside it is not, and the next job resumes at the checkpoint's iteration with the log kept."""
+    cfg = config(40, schedule={"checkpoint_every": 10, "densify_from": 1000, "eval_every": 0})
+    cfg_file = tmp_path / "cfg.yaml"
+    cfg_file.write_text(yaml.safe_dump({"train": cfg.to_dict() | {"raster": {}}}))
+    run, kept = tmp_path / "runs" / "rtsplat", tmp_path / "checkpoints" / "rtsplat"
+    args = ("--data", str(glass_scene.root), "--out", str(run), "--config", str(cfg_file),
+            "--checkpoint-dir", str(kept))
+    proc = _train_cli(*args)
+    deadline = time.time() + 300
+    while not (kept / "last.pt").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, f"training ended before it could be killed: {proc.stderr.read()}"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (run / "checkpoints").exists()  # the checkpoint is written to --checkpoint-dir only
+    shutil.rmtree(run)  # what Snakemake does with the output folder of a failed job
+    killed_at = read_checkpoint(kept / "last.pt").training["iteration"]
+    assert 10 <= killed_at < 40 and killed_at % 10 == 0
+
+    proc = _train_cli(*args)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    assert f"resumed from {kept / 'last.pt'} at iteration {killed_at}" in err
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["iterations"] == 40
+    logged = [r["iteration"] for r in read_log(run)]
+    # the lines up to the checkpoint come from the first job (restored from the kept copy), once each
+    assert logged == list(range(5, 41, 5))
+    assert not kept.exists()  # a finished run removes its checkpoint folder
+
+
+def test_checkpoint_dir_keeps_only_a_checkpoint_of_the_same_data_and_config(glass_scene, tmp_path):
+    from rtsplat.errors import PipelineError
+    from rtsplat.train.cli import claim_checkpoint_dir
+
+    data = Path(shutil.copytree(glass_scene.root, tmp_path / "prepared"))
+    run, kept = tmp_path / "run", tmp_path / "kept"
+    messages: list[str] = []
+    claim_checkpoint_dir(kept, run, data, config(20), messages.append)
+    (kept / "last.pt").write_bytes(b"state")
+    claim_checkpoint_dir(kept, run, data, config(20), messages.append)
+    assert (kept / "last.pt").exists() and messages == []
+    claim_checkpoint_dir(kept, run, data, config(20, seed=3), messages.append)
+    assert not (kept / "last.pt").exists() and "training starts at iteration 0" in messages[0]
+    (kept / "last.pt").write_bytes(b"state")
+    os.utime(data / "scene.json", ns=(0, 0))  # a prepared scene written again
+    claim_checkpoint_dir(kept, run, data, config(20, seed=3), messages.append)
+    assert not (kept / "last.pt").exists() and len(messages) == 2
+    with pytest.raises(PipelineError, match="--checkpoint-dir is, contains or lies inside --out"):
+        claim_checkpoint_dir(run / "checkpoints", run, data, config(20), messages.append)

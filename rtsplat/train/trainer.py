@@ -6,7 +6,8 @@ Run directory layout::
     <out>/config.json        resolved TrainConfig
     <out>/effects.json       which branches run and why (effects: auto)
     <out>/train_log.jsonl    one JSON line per logging step: losses, PSNR, surfels, seconds
-    <out>/checkpoints/last.pt  resumable state (rtsplat.model.checkpoint, written atomically)
+    <out>/checkpoints/last.pt  resumable state (rtsplat.model.checkpoint, written atomically); with a
+                             checkpoint_dir: <checkpoint_dir>/last.pt and a copy of train_log.jsonl
     <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
     <out>/summary.json       written last: a run without it is not finished
 """
@@ -84,11 +85,12 @@ def _write_json(path: Path, data) -> None:
 class Trainer:
     def __init__(
         self, scene: PreparedScene, cfg: TrainConfig, out_dir: str | Path, *, log: Callable[[str], None] = print,
-        progress: bool = True,
+        progress: bool = True, checkpoint_dir: str | Path | None = None,
     ):
         self.cfg = cfg.validate()
         self.scene = scene
         self.out = Path(out_dir)
+        self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else self.out / "checkpoints"
         self.log = log
         self.progress = progress
         self.device = resolve_device(cfg.device, key="train.device")
@@ -264,7 +266,13 @@ class Trainer:
     # -- checkpoints ---------------------------------------------------------------------------
     @property
     def checkpoint_path(self) -> Path:
-        return self.out / "checkpoints" / "last.pt"
+        return self.checkpoint_dir / "last.pt"
+
+    @property
+    def kept_log_path(self) -> Path | None:
+        """A checkpoint folder outside the run folder keeps a copy of the train log, taken with each
+        checkpoint: a resume into a run folder that was deleted restores the log from it."""
+        return None if self.checkpoint_dir == self.out / "checkpoints" else self.checkpoint_dir / "train_log.jsonl"
 
     def training_state(self) -> dict:
         """What resumes the run besides the model: iteration, config, optimizer, density, RNGs."""
@@ -314,6 +322,8 @@ class Trainer:
         if resume and self.checkpoint_path.exists():
             self.load_checkpoint(self.checkpoint_path)
             self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
+            if self.kept_log_path is not None and self.kept_log_path.exists() and not log_path.exists():
+                write_text_atomic(log_path, self.kept_log_path.read_text())
             _truncate_log(log_path, self.iteration)
         else:
             log_path.unlink(missing_ok=True)
@@ -354,6 +364,8 @@ class Trainer:
                     log_file.write(json.dumps(record) + "\n")
                     log_file.flush()
                 if cfg.schedule.checkpoint_every > 0 and step.iteration % cfg.schedule.checkpoint_every == 0:
+                    if self.kept_log_path is not None:  # before the checkpoint: never older than it
+                        write_text_atomic(self.kept_log_path, log_path.read_text())
                     self.save_checkpoint()
         bar.close()
         return self.finish()
