@@ -164,8 +164,8 @@ class PrepareConfig:
 
     downsample: int = _f(1, help="integer image downsample factor (area filter)", minimum=1)
     roi: RoiConfig | None = _f(
-        None, help="region of interest; when not given: around the transparent masks' visual hull, else from the SfM "
-        "points"
+        None,
+        help="region of interest; when not given: around the transparent masks' visual hull, else from the SfM points",
     )
     roi_from_masks: bool = _f(
         True, help="on a scene with transparent masks, the ROI is the sphere around the masks' visual hull"
@@ -173,6 +173,10 @@ class PrepareConfig:
     roi_mask_agreement: float = _f(
         0.9, help="mask ROI: fraction of the views seeing a point that must see it inside the mask",
         exclusiveMinimum=0.0, maximum=1.0,
+    )
+    transparent_surface: bool = _f(
+        True, help="on a scene with transparent masks, write the camera-facing surface of the masks' visual hull "
+        "(transparent_surface.npz), where training seeds surfels for the see-through surface",
     )
     roi_percentile: float = _f(
         95.0, help="estimated ROI: radius covers this percentile of the SfM points", exclusiveMinimum=0.0, maximum=100.0

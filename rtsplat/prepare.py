@@ -12,7 +12,10 @@ Steps (function API :func:`prepare_scene`):
    encloses); otherwise estimated from the SfM points and the point the cameras look at
    (:func:`estimate_roi`); saved with its source;
 5. split train/test: every ``test_every``-th image of the name-sorted list is a test view;
-6. write ``prepared/`` atomically (see :mod:`rtsplat.scene` for the format).
+6. on a scene with masks, the points of the masks' visual hull that face the cameras, with their
+   normals (:func:`hull_surface`, ``transparent_surface.npz``): where the see-through surface is,
+   which the SfM points miss (glass has no features of its own);
+7. write ``prepared/`` atomically (see :mod:`rtsplat.scene` for the format).
 """
 
 from __future__ import annotations
@@ -39,7 +42,16 @@ from rtsplat.io.images import (
 )
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.io.ply import write_points_ply
-from rtsplat.scene import GT_LAYERS_DIR, IMAGES_DIR, MASKS_DIR, POINTS_FILE, CameraRecord, PreparedScene, Roi
+from rtsplat.scene import (
+    GT_LAYERS_DIR,
+    IMAGES_DIR,
+    MASKS_DIR,
+    POINTS_FILE,
+    TRANSPARENT_SURFACE_FILE,
+    CameraRecord,
+    PreparedScene,
+    Roi,
+)
 
 
 @dataclass
@@ -102,31 +114,49 @@ def estimate_roi(model: ColmapModel, percentile: float = 95.0) -> Roi:
     return Roi(center=[float(x) for x in center], radius=radius, source="estimated")
 
 
-def roi_from_masks(
+@dataclass
+class MaskHull:
+    """The visual hull of the transparent masks on a regular grid (:func:`mask_hull`)."""
+
+    points: np.ndarray  # [g^3, 3] grid points, C order of ``inside``
+    inside: np.ndarray  # [g, g, g] bool: the largest connected part of the hull
+    step: float  # grid spacing
+
+
+def mask_hull(
     views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     bound: Roi,
     agreement: float = 0.9,
     grid: int = 96,
     min_seen: float = 0.25,
-) -> Roi | None:
-    """Sphere around the visual hull of the transparent masks, or None when the masks carve nothing.
+) -> MaskHull | None:
+    """The visual hull of the transparent masks inside the sphere ``bound``, or None when it is empty.
 
-    ``views``: (K [3,3], world_to_camera [4,4], mask [H,W] bool) per view. Grid points inside
-    ``bound`` (``grid`` per axis) belong to the hull when at least ``min_seen`` of the views have them
-    in frame and, of those, at least ``agreement`` see them inside the mask (the margin forgives a few
-    wrong masks). The largest connected part of the hull is kept, so a stray point far away (seen
-    through the glass from the few views that agree) cannot inflate the sphere. The sphere is centred
-    on the part's bounding box and reaches 10% and one grid step beyond its farthest point: the
-    agreement rule erodes the hull at the silhouettes, where one view's mask edge decides.
+    ``views``: (K [3,3], world_to_camera [4,4], mask [H,W] bool) per view. A grid point (``grid`` per
+    axis) belongs to the hull when at least ``min_seen`` of the views have it in frame and, of those,
+    at least ``agreement`` see it inside the mask (the margin forgives a few wrong masks). Only the
+    largest connected part is kept, so a stray point far away (seen through the glass from the few
+    views that agree) cannot count.
     """
     from scipy import ndimage
 
     center = np.asarray(bound.center, dtype=np.float64)
     axis = np.linspace(-bound.radius, bound.radius, grid)
-    step = float(axis[1] - axis[0])
     points = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + center
-    inside_mask = np.zeros(len(points))
+    in_frame, inside_mask = _mask_votes(views, points)
+    hull = (in_frame >= min_seen * len(views)) & (inside_mask >= agreement * np.maximum(in_frame, 1))
+    labels, count = ndimage.label(hull.reshape(grid, grid, grid))
+    if count == 0:
+        return None
+    sizes = np.bincount(labels.ravel())[1:]
+    return MaskHull(points=points, inside=labels == 1 + int(np.argmax(sizes)), step=float(axis[1] - axis[0]))
+
+
+def _mask_votes(views, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: how many views have it in frame (in front of the camera), and how many of those
+    see it inside their mask."""
     in_frame = np.zeros(len(points))
+    inside_mask = np.zeros(len(points))
     for K, world_to_camera, mask in views:
         cam = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
         z = cam[:, 2]
@@ -138,15 +168,57 @@ def roi_from_masks(
         visible = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         in_frame += visible
         inside_mask[visible] += mask[v[visible], u[visible]]
-    hull = (in_frame >= min_seen * len(views)) & (inside_mask >= agreement * np.maximum(in_frame, 1))
-    labels, count = ndimage.label(hull.reshape(grid, grid, grid))
-    if count == 0:
-        return None
-    sizes = np.bincount(labels.ravel())[1:]
-    part = points[(labels == 1 + int(np.argmax(sizes))).ravel()]
+    return in_frame, inside_mask
+
+
+def roi_around(hull: MaskHull) -> Roi:
+    """The sphere centred on the hull's bounding box that reaches 10% and one grid step beyond its
+    farthest point: the agreement rule erodes the hull at the silhouettes, where one view's mask
+    edge decides."""
+    part = hull.points[hull.inside.ravel()]
     mid = 0.5 * (part.min(0) + part.max(0))
-    radius = 1.1 * float(np.linalg.norm(part - mid, axis=1).max()) + step
+    radius = 1.1 * float(np.linalg.norm(part - mid, axis=1).max()) + hull.step
     return Roi(center=[float(x) for x in mid], radius=radius, source="masks")
+
+
+def roi_from_masks(
+    views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], bound: Roi, agreement: float = 0.9, grid: int = 96
+) -> Roi | None:
+    """Sphere around the visual hull of the transparent masks (:func:`mask_hull`, :func:`roi_around`),
+    or None when the masks carve nothing."""
+    hull = mask_hull(views, bound, agreement, grid)
+    return None if hull is None else roi_around(hull)
+
+
+def hull_surface(
+    hull: MaskHull, views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], min_facing: float = 0.25
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the hull's boundary that face the cameras, with their outward normals.
+
+    The boundary is the hull's grid points with a neighbour outside; the normal is the direction in
+    which the smoothed hull indicator falls. A point is kept when at least ``min_facing`` of the views
+    that have it in frame lie on the side its normal points to, so the faces no camera looks at (the
+    underside that the carving cannot close) are dropped. For a see-through object the facing
+    boundary is where its surface is: the dome of a glass case, the panes of a window.
+    """
+    from scipy import ndimage
+
+    inside = hull.inside
+    boundary = inside & ~ndimage.binary_erosion(inside)
+    smooth = ndimage.gaussian_filter(inside.astype(np.float64), 1.0)
+    gradient = np.stack(np.gradient(smooth, hull.step), -1).reshape(-1, 3)
+    idx = np.flatnonzero(boundary.ravel())
+    normals = -gradient[idx]
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    points = hull.points[idx]
+    facing = np.zeros(len(points))
+    in_frame, _ = _mask_votes(views, points)
+    for _, world_to_camera, _ in views:
+        R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
+        eye = -R.T @ t
+        facing += ((eye - points) * normals).sum(1) > 0
+    keep = (in_frame > 0) & (facing >= min_facing * len(views))
+    return points[keep], normals[keep]
 
 
 def undistort_mask(mask: np.ndarray, distorted: ColmapView, size: tuple[int, int]) -> np.ndarray:
@@ -341,6 +413,11 @@ def prepare_scene(
             has_masks = False
         if has_masks and cfg.roi is None and cfg.roi_from_masks:
             roi = roi_from_masks(mask_views, roi, cfg.roi_mask_agreement) or roi
+        if has_masks and cfg.transparent_surface:
+            hull = mask_hull(mask_views, roi, cfg.roi_mask_agreement, grid=64)
+            if hull is not None:
+                xyz, normal = hull_surface(hull, mask_views)
+                np.savez(tmp / TRANSPARENT_SURFACE_FILE, xyz=xyz.astype(np.float32), normal=normal.astype(np.float32))
         write_points_ply(tmp / POINTS_FILE, model.xyz, model.rgb)
         versions = {"rtsplat": __version__, "scene_format": "1"}
         scene = PreparedScene(

@@ -10,17 +10,25 @@ It reads what the other stages wrote under ``--results`` (the layout of ``docs/a
 
 Each method's role comes from the pipeline config (``methods.<name>.role``, see
 :func:`rtsplat.config.method_roles`), handed over as ``--roles-json``; without it every method is a
-baseline and there is no main method. The report writes, per scene: the SfM table (registered/total views,
-reprojection error and time of every attempt, and for scenes whose dataset ships reference cameras
-the rotation and centre errors after a similarity fit), the quality table (entire
+baseline and there is no main method. The report opens with a summary across scenes (the
+:func:`comparison_pairs`: the main method minus the baseline ``2dgs``, and ``<main>_<suffix>`` minus
+``2dgs_<suffix>``, PSNR on the transparent region and the entire image, beside the seed noise that
+repeats with another seed measured), then the machine and the package versions. Per scene: the SfM
+table (registered/total views, reprojection error and time of every attempt, and for scenes whose
+dataset ships reference cameras the rotation and centre errors after a similarity fit), the quality table (entire
 image / transparent region, FPS, training time), the ablation table (the ablations against the main
 method), decomposition scores when the scene has ground-truth layers, the accuracy-against-time
 plots and table with the Pareto front (every run's final test PSNR against its training time, and
-the test-PSNR curves logged during training), test-view comparisons (ground truth / main / the
-other methods except ablations), the main method's decomposition and editing images; then the
-machine, the package versions, the exact commands and the config. Noise: for every repeat (the
-same config run again, with the same seed or another one, as its ``config.json`` says) the report
-prints the measured differences to the method it repeats; otherwise it says that none were measured.
+the test-PSNR curves logged during training), one test view (the first with ground-truth layers, if
+any): ground truth / main / the other methods except ablations, each method's per-pixel error map
+(|render - ground truth| averaged over channels, viridis from 0 to :data:`ERROR_MAP_MAX`), the main
+method's decomposition, its reflection and colour - reflection next to the ground-truth layers with
+their error maps when the prepared scene has them, and the editing images. Images are nearest-neighbour
+upscaled by an integer factor until their shorter side is at least :data:`REPORT_IMAGE_MIN_SIDE` px,
+so every pixel stays visible and unblended. After the scenes, the noise: for every repeat (the same
+config run again, with the same seed or another one, as its ``config.json`` says) the report prints
+the measured differences to the method it repeats, or says that none were measured; last, the exact
+commands and the config.
 """
 
 from __future__ import annotations
@@ -28,14 +36,20 @@ from __future__ import annotations
 import argparse
 import html
 import json
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+import torch
+
 from rtsplat.errors import PipelineError
+from rtsplat.io.images import read_image, write_png
 from rtsplat.io.outputs import check_output_dir, output_dir
+from rtsplat.model.composite import transmission_with_scatter
+from rtsplat.scene import GT_LAYERS_DIR
 
 ROLES = ("main", "baseline", "ablation", "repeat")
+PLAIN_2DGS = "2dgs"  # the plain-2DGS baseline the summary compares the main method with
 
 
 @dataclass(frozen=True)
@@ -239,32 +253,127 @@ def plot_accuracy_time(scene: str, runs: dict[str, Run], out: Path) -> list[str]
     return written
 
 
-def _copy_image(src: Path, out: Path, name: str) -> str | None:
-    if not src.is_file():
-        return None
+REPORT_IMAGE_MIN_SIDE = 300  # px: images in the report are upscaled until their shorter side reaches this
+ERROR_MAP_MAX = 0.25  # |render - ground truth| (mean over channels) at the top of the error maps' colour map
+ERROR_COLOUR_MAP = "viridis"
+
+
+def upscale_factor(height: int, width: int, min_side: int = REPORT_IMAGE_MIN_SIDE) -> int:
+    """The smallest integer factor that makes the shorter side at least ``min_side`` (1 when it already is)."""
+    return max(1, -(-min_side // max(1, min(height, width))))
+
+
+def nearest_upscale(image: np.ndarray, factor: int) -> np.ndarray:
+    """Every pixel repeated ``factor`` x ``factor`` times (nearest neighbour: no pixel value is invented)."""
+    return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)
+
+
+def error_map(render: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``|render - target|`` averaged over channels, through the fixed colour map (0 to
+    :data:`ERROR_MAP_MAX`, larger errors clipped): RGB float32 ``[H, W, 3]`` in [0, 1]."""
+    import matplotlib
+
+    error = np.abs(render.astype(np.float32) - target.astype(np.float32)).mean(axis=2)
+    colours = matplotlib.colormaps[ERROR_COLOUR_MAP](np.clip(error / ERROR_MAP_MAX, 0.0, 1.0))
+    return colours[..., :3].astype(np.float32)
+
+
+def _write_image(image: np.ndarray, out: Path, name: str) -> str:
+    """Write ``image`` (float [0, 1]) into the report's images/ as an 8-bit PNG, nearest-upscaled by
+    :func:`upscale_factor`; returns its path relative to the report."""
     (out / "images").mkdir(exist_ok=True)
-    shutil.copyfile(src, out / "images" / name)
+    write_png(out / "images" / name, nearest_upscale(image, upscale_factor(*image.shape[:2])))
     return f"images/{name}"
 
 
-def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[list[str]]:
-    """|difference| of each repeat to the method it reruns; the seeds come from the runs' config.json."""
-    rows = []
+def _copy_image(src: Path, out: Path, name: str) -> str | None:
+    """A copy of the image ``src`` in the report (see :func:`_write_image`), None when there is no such file."""
+    if not src.is_file():
+        return None
+    return _write_image(read_image(src), out, name)
+
+
+def _same_size(image: np.ndarray, reference: np.ndarray, path: Path) -> None:
+    if image.shape != reference.shape:
+        raise PipelineError(f"image is {image.shape[1]}x{image.shape[0]}, its ground truth "
+                            f"{reference.shape[1]}x{reference.shape[0]}", path=path,
+                            fix="render from the prepared scene the metrics and the report read")
+
+
+def _error_image(render_path: Path, target: np.ndarray, out: Path, name: str) -> str | None:
+    """The error map of the image ``render_path`` against ``target`` in the report, None without the file."""
+    if not render_path.is_file():
+        return None
+    render = read_image(render_path)
+    _same_size(render, target, render_path)
+    return _write_image(error_map(render, target), out, name)
+
+
+def comparison_pairs(methods, roles: Roles) -> list[tuple[str, str]]:
+    """(RT-Splatting run, plain 2DGS run) pairs with the same budget among ``methods``: the main method
+    against the baseline ``2dgs``, and for every baseline ``2dgs_<suffix>`` the method ``<main>_<suffix>``
+    against it (e.g. ``rtsplat_x4`` against ``2dgs_x4``), where both exist."""
+    main, methods = roles.main, set(methods)
+    if main is None:
+        return []
+
+    def baseline(m: str) -> bool:
+        return m in methods and roles.role.get(m, "baseline") == "baseline"
+
+    pairs = [(main, PLAIN_2DGS)] if main in methods and baseline(PLAIN_2DGS) else []
+    for other in sorted(methods):
+        suffix = other[len(PLAIN_2DGS) + 1:]
+        if other.startswith(PLAIN_2DGS + "_") and suffix and baseline(other) and baseline(f"{main}_{suffix}"):
+            pairs.append((f"{main}_{suffix}", other))
+    return pairs
+
+
+def _difference(a, b) -> float | None:
+    return a - b if isinstance(a, float) and isinstance(b, float) else None
+
+
+def _repeat_differences(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[dict]:
+    """For every repeat of the scene whose method ran: what it reruns, whether with the same seed, and
+    |difference| of PSNR (entire, transparent) and relative training time to that method."""
+    found = []
     for method in roles.of_role(runs, "repeat"):
         r, base_name = runs[method], roles.of[method]
         if base_name not in runs:
             continue
         base = runs[base_name]
         seed, base_seed = (_run_seed(results / scene / "runs" / m) for m in (method, base_name))
-        kind = "same seed" if seed == base_seed else f"seed {seed}"
-        row = [scene, base_name, kind]
-        for key in ("psnr", "psnr_transparent"):
-            a, b = base.mean.get(key), r.mean.get(key)
-            row.append(_fmt(abs(a - b), 3) if isinstance(a, float) and isinstance(b, float) else "-")
+        diffs = {key: _difference(base.mean.get(key), r.mean.get(key)) for key in ("psnr", "psnr_transparent")}
         ta, tb = base.seconds, r.seconds
-        row.append(_fmt(100 * abs(ta - tb) / max(ta, 1e-9), 1) if ta and tb else "-")
+        found.append({"method": method, "of": base_name, "seed": seed, "same_seed": seed == base_seed,
+                      **{key: None if d is None else abs(d) for key, d in diffs.items()},
+                      "time_percent": 100 * abs(ta - tb) / max(ta, 1e-9) if ta and tb else None})
+    return found
+
+
+def summary_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[list[str]]:
+    """One row per :func:`comparison_pairs` pair of the scene: the PSNR gaps (transparent region, entire
+    image) and beside them the largest |dPSNR| of a repeat of either method with another seed."""
+    repeats = [d for d in _repeat_differences(scene, runs, roles, results) if not d["same_seed"]]
+    rows = []
+    for ours, theirs in comparison_pairs(runs, roles):
+        noise = [d for d in repeats if d["of"] in (ours, theirs)]
+        row = [scene, f"{ours} - {theirs}"]
+        for key in ("psnr_transparent", "psnr"):
+            gap = _difference(runs[ours].mean.get(key), runs[theirs].mean.get(key))
+            row.append("-" if gap is None else f"{gap:+.2f}")
+        for key in ("psnr_transparent", "psnr"):
+            measured = [d[key] for d in noise if d[key] is not None]
+            row.append(_fmt(max(measured), 3) if measured else "not measured")
+        row.append(", ".join(d["method"] for d in noise) or "-")
         rows.append(row)
     return rows
+
+
+def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[list[str]]:
+    """|difference| of each repeat to the method it reruns; the seeds come from the runs' config.json."""
+    return [[scene, d["of"], "same seed" if d["same_seed"] else f"seed {d['seed']}", _fmt(d["psnr"], 3),
+             _fmt(d["psnr_transparent"], 3), _fmt(d["time_percent"], 1)]
+            for d in _repeat_differences(scene, runs, roles, results)]
 
 
 def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
@@ -323,10 +432,76 @@ def build_report(results: str | Path, out: str | Path, *, roles: Roles | None = 
     return out / "index.html"
 
 
+ERROR_CAPTION = f"|error| ({ERROR_COLOUR_MAP}, 0 to {ERROR_MAP_MAX})"
+
+
+def _test_view_section(doc: Document, results: Path, scene: str, view: str, compared: list[str], out: Path) -> None:
+    """Ground truth and each compared method's render of ``view``, then their per-pixel error maps."""
+    prepared = results / scene / "prepared" / "images" / f"{view}.png"
+    items, errors = [], []
+    gt = _copy_image(prepared, out, f"{scene}_{view}_gt.png")
+    if gt:
+        items.append((gt, "ground truth"))
+    target = read_image(prepared) if prepared.is_file() else None
+    for method in compared:
+        render = results / scene / "renders" / method / "color" / f"{view}.png"
+        img = _copy_image(render, out, f"{scene}_{view}_{method}.png")
+        if img:
+            items.append((img, method))
+        err = _error_image(render, target, out, f"{scene}_{view}_{method}_error.png") if target is not None else None
+        if err:
+            errors.append((err, f"{method} {ERROR_CAPTION}"))
+    if items:
+        doc.heading(f"Test view {view}", 3)
+        doc.images(items)
+    if errors:
+        doc.paragraph(f"Per-pixel error against the ground truth: |render - ground truth| averaged over the colour "
+                      f"channels, colour map {ERROR_COLOUR_MAP} from 0 (dark) to {ERROR_MAP_MAX} (bright; larger "
+                      f"errors are clipped), the same range for every method.")
+        doc.images(errors)
+
+
+def _layer_comparison_section(doc: Document, scene_dir: Path, view: str, main: str, out: Path) -> None:
+    """The ground-truth reflection and transmission of ``view`` next to the main method's reflection layer
+    and colour - reflection (the transmission as ``rtsplat metrics`` scores it), with their error maps."""
+    renders = scene_dir / "renders" / main
+    color_path, reflection_path = (renders / layer / f"{view}.png" for layer in ("color", "reflection"))
+    if not (color_path.is_file() and reflection_path.is_file()):
+        return
+    color, reflection = read_image(color_path), read_image(reflection_path)
+    ours = {"reflection": reflection,
+            "transmission": transmission_with_scatter(torch.from_numpy(color), torch.from_numpy(reflection))
+            .clamp(0, 1).numpy()}
+    name = f"{scene_dir.name}_{view}_{main}"
+    doc.heading(f"Decomposition against the ground-truth layers (view {view})", 3)
+    for layer, ours_image in ours.items():
+        truth_path = scene_dir / "prepared" / GT_LAYERS_DIR / layer / f"{view}.png"
+        truth = read_image(truth_path)
+        _same_size(ours_image, truth, reflection_path if layer == "reflection" else color_path)
+        label = layer if layer == "reflection" else "transmission (colour - reflection)"
+        doc.images([(_write_image(truth, out, f"{name}_gt_{layer}.png"), f"ground-truth {layer}"),
+                    (_write_image(ours_image, out, f"{name}_{layer}.png"), f"{main} {label}"),
+                    (_write_image(error_map(ours_image, truth), out, f"{name}_{layer}_error.png"),
+                     f"{main} {layer} {ERROR_CAPTION}")])
+
+
 def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: Roles, config_file,
            commands) -> None:
     main = roles.main
     doc = Document("rtsplat benchmark report")
+    doc.heading("Summary: RT-Splatting against plain 2DGS")
+    summary = [row for scene, runs in scenes.items() for row in summary_rows(scene, runs, roles, results)]
+    if summary:
+        doc.paragraph("PSNR of the RT-Splatting run minus PSNR of the plain-2DGS run with the same budget, on the "
+                      "test views' transparent region and on the entire image (positive: RT-Splatting is better). "
+                      "Beside each gap, the seed noise: the largest |dPSNR| between either run of the pair and "
+                      "its repeat with another seed (Noise section; 'noise from' names the repeats). A gap "
+                      "smaller than twice the seed noise is not significant; where the noise was not measured, "
+                      "no gap can be called significant.")
+        doc.table(["scene", "pair", "dPSNR transp.", "dPSNR", "seed noise transp.", "seed noise",
+                   "noise from"], summary)
+    else:
+        doc.paragraph(f"No scene has both the main method and the baseline {PLAIN_2DGS!r}, so there is no summary.")
     any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
     machine = any_metrics.get("machine", {})
     doc.paragraph(f"Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
@@ -376,22 +551,13 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
 
         test_names = next((r.metrics.get("views") for r in runs.values() if r.metrics.get("views")), {})
         if test_names:
-            view = sorted(test_names)[0]
-            items = []
-            prepared = results / scene / "prepared" / "images" / f"{view}.png"
-            gt = _copy_image(prepared, out, f"{scene}_{view}_gt.png")
-            if gt:
-                items.append((gt, "ground truth"))
+            gt_layers = results / scene / "prepared" / GT_LAYERS_DIR
+            with_layers = [v for v in sorted(test_names) if all((gt_layers / layer / f"{v}.png").is_file()
+                                                                for layer in ("reflection", "transmission"))]
+            view = (with_layers or sorted(test_names))[0]
             compared = [main] if main in runs else []
             compared += [m for m in sorted(runs) if m != main and roles.role.get(m, "baseline") != "ablation"]
-            for method in compared:
-                img = _copy_image(results / scene / "renders" / method / "color" / f"{view}.png", out,
-                                  f"{scene}_{view}_{method}.png")
-                if img:
-                    items.append((img, method))
-            if items:
-                doc.heading(f"Test view {view}", 3)
-                doc.images(items)
+            _test_view_section(doc, results, scene, view, compared, out)
             layers = []
             for layer in ("reflection", "transmission", "scatter", "normal", "depth"):
                 if main is None:
@@ -403,6 +569,8 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             if layers:
                 doc.heading(f"Decomposition ({main})", 3)
                 doc.images(layers)
+            if with_layers and main in runs:
+                _layer_comparison_section(doc, results / scene, view, main, out)
             edits = []
             for edit_dir in sorted((results / scene / "renders").glob(f"{main}@*") if main else []):
                 img = _copy_image(edit_dir / "color" / f"{view}.png", out, f"{scene}_{view}_{edit_dir.name}.png")

@@ -8,6 +8,9 @@ On disk::
       masks/<name>.png    transparent-surface masks (white = see-through), same size; only when
                           has_transparency is true (masks exist and at least one pixel is white)
       points.ply          SfM points with colours (initialisation), may hold zero points
+      transparent_surface.npz   optional, scenes with masks: points on the camera-facing surface of
+                          the masks' visual hull and their outward normals (xyz, normal [N,3]);
+                          the trainer starts clear surfels there (the see-through surface)
 
 ``scene.json``::
 
@@ -42,6 +45,9 @@ SCENE_FILE = "scene.json"
 IMAGES_DIR = "images"
 MASKS_DIR = "masks"
 POINTS_FILE = "points.ply"
+# scenes with transparent masks: points on the masks' visual hull that face the cameras, with outward
+# normals (npz: xyz [N,3], normal [N,3]); where the see-through surface is
+TRANSPARENT_SURFACE_FILE = "transparent_surface.npz"
 GT_LAYERS_DIR = "gt_layers"  # synthetic scenes only: <name>/<stem>.png for name in reflection, transmission
 
 
@@ -137,6 +143,18 @@ class PreparedScene:
         from rtsplat.io.ply import read_points_ply
 
         return read_points_ply(self.points_path)
+
+    def load_transparent_surface(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Points and outward normals on the transparent masks' visual hull, or None (no such file)."""
+        path = self._root() / TRANSPARENT_SURFACE_FILE
+        if not path.is_file():
+            return None
+        with np.load(path) as data:
+            xyz, normal = np.asarray(data["xyz"], np.float64), np.asarray(data["normal"], np.float64)
+        if xyz.ndim != 2 or xyz.shape[1:] != (3,) or normal.shape != xyz.shape or not np.isfinite(xyz).all():
+            raise PipelineError(f"xyz and normal must be finite [N,3] arrays, got {xyz.shape} and {normal.shape}",
+                                path=path, fix="rerun `rtsplat prepare` for this scene")
+        return xyz, normal
 
     # -- (de)serialisation -------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -170,6 +170,10 @@ class TrainConfig:
         1, help="train on the training views box-filtered by this factor (cameras scaled to match); test views, "
         "evaluation and rtsplat render stay at the prepared resolution", minimum=1
     )
+    seed_transparent_surface: bool = setting(
+        True, help="with transmission on and a prepared transparent_surface.npz, also start surfels on the "
+        "masks' visual hull, oriented along its normals (clear: opacity 0.1, transmissivity 0.9)"
+    )
     ablations: Ablations = setting(help="the paper's ablation switches", factory=Ablations)
     effects: Effects = setting(help="which branches run", factory=Effects)
     gating: Gating = setting(help="specular-aware gradient gating", factory=Gating)

@@ -344,3 +344,13 @@ def test_a_background_colour_given_to_render_replaces_the_model_background():
     result = _render(model, background=colour)
     out = result.raster
     torch.testing.assert_close(result.color, out.color + (1 - out.volume_alpha) * colour)
+
+
+def test_quats_with_normal_turn_the_surfel_normal_onto_the_given_one():
+    from rtsplat.model.surfels import quats_with_normal
+    from rtsplat.raster.projection import quat_to_rotmat
+
+    normals = torch.tensor([[0.0, 0, 1], [0, 0, -1], [1, 0, 0], [0.3, -0.4, 0.2], [0, 1e-9, -1]])
+    R = quat_to_rotmat(quats_with_normal(normals))
+    expected = torch.nn.functional.normalize(normals, dim=-1)
+    assert torch.allclose(R[:, :, 2], expected, atol=1e-6)

@@ -301,3 +301,20 @@ def test_roi_from_masks_wraps_the_visual_hull():
     # masks that mark nothing carve nothing
     empty = [(K, w2c, np.zeros_like(m)) for K, w2c, m in _ball_views(center, radius)]
     assert roi_from_masks(empty, bound) is None
+
+
+def test_hull_surface_lies_on_the_ball_and_faces_out():
+    from rtsplat.prepare import hull_surface, mask_hull
+    from rtsplat.scene import Roi
+
+    center, radius = np.array([0.3, -0.2, 0.5]), 0.4
+    views = _ball_views(center, radius)
+    hull = mask_hull(views, Roi([0.3, -0.2, 0.5], 1.0, "masks"), grid=48)
+    points, normals = hull_surface(hull, views)
+    assert len(points) > 100
+    offset = points - center
+    distance = np.linalg.norm(offset, axis=1)
+    # the carved hull of a ball seen from two rings is a little larger than the ball, nowhere smaller
+    assert distance.min() > radius - 2 * hull.step and np.median(distance) < radius + 0.12
+    # normals point away from the centre
+    assert np.median((offset / distance[:, None] * normals).sum(1)) > 0.9

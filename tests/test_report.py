@@ -7,14 +7,17 @@ import shutil
 import subprocess
 import sys
 
+import matplotlib
+import numpy as np
 import pytest
 
 from rtsplat.bench.toy_scene import write_scene
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_json_atomic
+from rtsplat.io.images import read_image, write_png
 from rtsplat.metrics import compute_metrics
 from rtsplat.render import Edits, render_run
-from rtsplat.report import Roles, build_report, pareto_front
+from rtsplat.report import Roles, build_report, comparison_pairs, pareto_front
 from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
 
@@ -30,6 +33,21 @@ def test_pareto_front_by_hand():
     #            fast+bad  mid+best  slow+mid  mid+worst  = same as first
     points = [(1.0, 10.0), (2.0, 12.0), (3.0, 11.0), (2.0, 9.0), (1.0, 10.0)]
     assert pareto_front(points) == [True, True, False, False, True]
+
+
+def test_comparison_pairs_by_hand():
+    roles = Roles.from_dict({"rt": {"role": "main"}, "2dgs": {"role": "baseline"}, "rt_x4": {"role": "baseline"},
+                             "2dgs_x4": {"role": "baseline"}, "2dgs_half": {"role": "baseline"},
+                             "2dgs_seed1": {"role": "repeat", "of": "2dgs"}, "rt_seed1": {"role": "repeat", "of": "rt"},
+                             "2dgs_abl": {"role": "ablation"}, "rt_abl": {"role": "ablation"}})
+    methods = ["2dgs_x4", "rt", "rt_x4", "2dgs", "2dgs_half", "2dgs_seed1", "rt_seed1", "2dgs_abl", "rt_abl",
+               "refgs"]
+    # rt_half does not exist; repeats and ablations are no pairs; unlisted methods (refgs) are baselines
+    assert comparison_pairs(methods, roles) == [("rt", "2dgs"), ("rt_x4", "2dgs_x4")]
+    assert comparison_pairs(["rt", "rt_x4", "2dgs_x4"], roles) == [("rt_x4", "2dgs_x4")]  # no plain 2dgs run
+    assert comparison_pairs(methods, Roles()) == []  # no main method, nothing to compare with
+    unlisted = Roles.from_dict({"rt": {"role": "main"}})
+    assert comparison_pairs(["rt", "2dgs", "rt_x4", "2dgs_x4"], unlisted) == [("rt", "2dgs"), ("rt_x4", "2dgs_x4")]
 
 
 @pytest.fixture(scope="module")
@@ -115,3 +133,88 @@ def test_no_results_is_a_clear_error_and_leaves_nothing(tmp_path):
     result = subprocess.run([sys.executable, "-m", "rtsplat.cli", "report", "--results", str(tmp_path),
                              "--out", str(tmp_path / "r")], capture_output=True, text=True)
     assert result.returncode == 1 and "rtsplat train" in result.stderr  # bad input: status 1, as every stage
+
+
+def _md_row(md: str, start: str) -> list[str]:
+    line = next(line for line in md.splitlines() if line.startswith(start))
+    return [cell.strip() for cell in line.strip("|").split("|")]
+
+
+def _mean(results, method: str) -> dict:
+    return json.loads((results / "toy" / "metrics" / f"{method}.json").read_text())["mean"]
+
+
+def test_summary_rows_are_the_metric_gaps_with_the_seed_noise_beside_them(results, tmp_path):
+    copy = tmp_path / "results"
+    shutil.copytree(results, copy)
+    for src, dst, shift in (("rtsplat", "rtsplat_x4", 1.5), ("2dgs", "2dgs_x4", 0.25), ("2dgs", "2dgs_seed3", 0.3)):
+        shutil.copytree(copy / "toy" / "runs" / src, copy / "toy" / "runs" / dst)
+        metrics = json.loads((copy / "toy" / "metrics" / f"{src}.json").read_text())
+        metrics["mean"]["psnr"] += shift
+        metrics["mean"]["psnr_transparent"] -= shift / 2
+        (copy / "toy" / "metrics" / f"{dst}.json").write_text(json.dumps(metrics))
+    config = json.loads((copy / "toy" / "runs" / "2dgs_seed3" / "config.json").read_text())
+    (copy / "toy" / "runs" / "2dgs_seed3" / "config.json").write_text(json.dumps({**config, "seed": 3}))
+    roles = Roles.from_dict({**ROLES, "rtsplat_x4": {"role": "baseline"}, "2dgs_x4": {"role": "baseline"},
+                             "2dgs_seed3": {"role": "repeat", "of": "2dgs"}})
+    md = build_report(copy, tmp_path / "report", roles=roles).with_suffix(".md").read_text()
+    assert md.index("Summary: RT-Splatting against plain 2DGS") < md.index("# Scene toy")
+    assert "smaller than twice the seed noise is not significant" in md
+    for ours, theirs in (("rtsplat", "2dgs"), ("rtsplat_x4", "2dgs_x4")):
+        row = _md_row(md, f"| toy | {ours} - {theirs} |")
+        a, b = _mean(copy, ours), _mean(copy, theirs)
+        assert float(row[2]) == pytest.approx(a["psnr_transparent"] - b["psnr_transparent"], abs=0.005)
+        assert float(row[3]) == pytest.approx(a["psnr"] - b["psnr"], abs=0.005)
+        if ours == "rtsplat":  # 2dgs_seed3 reran 2dgs with another seed: 0.15 dB transparent, 0.3 dB entire
+            assert (float(row[4]), float(row[5]), row[6]) == (pytest.approx(0.15, abs=5e-4),
+                                                              pytest.approx(0.3, abs=5e-4), "2dgs_seed3")
+        else:
+            assert row[4:6] == ["not measured", "not measured"]
+    # rtsplat_x4 - 2dgs_x4 was built as a gap of 1.25 dB more on the entire image than rtsplat - 2dgs
+    gap = float(_md_row(md, "| toy | rtsplat_x4 - 2dgs_x4 |")[3]) - float(_md_row(md, "| toy | rtsplat - 2dgs |")[3])
+    assert gap == pytest.approx(1.25, abs=0.011)
+    plain = build_report(copy, tmp_path / "plain").with_suffix(".md").read_text()
+    assert "so there is no summary" in plain  # without roles there is no main method
+
+
+def _zero_colour() -> np.ndarray:
+    return np.round(np.array(matplotlib.colormaps["viridis"](0.0)[:3]) * 255) / 255
+
+
+def test_images_are_nearest_upscaled_and_error_maps_show_zero_for_a_perfect_render(results, tmp_path):
+    copy = tmp_path / "results"
+    shutil.copytree(results, copy)
+    view = sorted(json.loads((copy / "toy" / "metrics" / "rtsplat.json").read_text())["views"])[0]
+    gt = copy / "toy" / "prepared" / "images" / f"{view}.png"
+    shutil.copy(gt, copy / "toy" / "renders" / "2dgs" / "color" / f"{view}.png")  # a perfect 2dgs render
+    # ground-truth layers equal to the main method's own layers: its layer error maps show zero too
+    renders = copy / "toy" / "renders" / "rtsplat"
+    color, reflection = (read_image(renders / layer / f"{view}.png") for layer in ("color", "reflection"))
+    for layer, image in (("reflection", reflection), ("transmission", np.clip(color - reflection, 0, 1))):
+        (copy / "toy" / "prepared" / "gt_layers" / layer).mkdir(parents=True)
+        write_png(copy / "toy" / "prepared" / "gt_layers" / layer / f"{view}.png", image, bits=16)
+    md = build_report(copy, tmp_path / "report", roles=Roles.from_dict(ROLES)).with_suffix(".md").read_text()
+    images = tmp_path / "report" / "images"
+
+    source = read_image(renders / "color" / f"{view}.png")
+    assert source.shape == (30, 40, 3)
+    copied = read_image(images / f"toy_{view}_rtsplat.png")
+    factor = 10  # the smallest integer that brings the shorter side, 30 px, to 300 px
+    assert copied.shape == (300, 400, 3)
+    np.testing.assert_array_equal(copied[::factor, ::factor], source)  # downscaled back: the source
+    blocks = copied.reshape(30, factor, 40, factor, 3)
+    np.testing.assert_array_equal(blocks, np.broadcast_to(source[:, None, :, None], blocks.shape))  # no blending
+
+    zero = _zero_colour()
+    perfect = read_image(images / f"toy_{view}_2dgs_error.png")
+    assert perfect.shape == (300, 400, 3)
+    np.testing.assert_allclose(perfect, np.broadcast_to(zero, perfect.shape), atol=1e-6)
+    main_error = read_image(images / f"toy_{view}_rtsplat_error.png")
+    assert np.abs(main_error - zero).max() > 0.1  # a 20-iteration run is not perfect: its map is not flat
+    assert "viridis, 0 to 0.25" in md
+
+    assert f"Decomposition against the ground-truth layers (view {view})" in md
+    for layer in ("reflection", "transmission"):
+        layer_error = read_image(images / f"toy_{view}_rtsplat_{layer}_error.png")
+        np.testing.assert_allclose(layer_error, np.broadcast_to(zero, layer_error.shape), atol=1e-6)
+        assert read_image(images / f"toy_{view}_rtsplat_gt_{layer}.png").shape == (300, 400, 3)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -292,3 +293,87 @@ def test_train_cli_reads_a_method_of_the_pipeline_config_like_the_workflow(tmp_p
         read("--config-json", '{"schedule": {"iteratons": 3}}')
     with pytest.raises(ConfigError, match="--scene"):
         read("--config", str(tmp_path / "tree.yaml"), "--scene", "sedan")
+
+
+def test_surfels_start_on_the_transparent_surface_only_with_transmission(tmp_path):
+    from rtsplat.raster.projection import quat_to_rotmat
+
+    scene = write_scene(tmp_path / "scene", views=5, width=32, height=24)
+    xyz = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.1, 0.1, 0.0], [0.05, 0.05, 0.0]])
+    normal = np.tile([[0.0, 0.6, 0.8]], (5, 1))
+    np.savez(tmp_path / "scene" / "transparent_surface.npz", xyz=xyz, normal=normal)
+    n_points = scene.load_points()[0].shape[0]
+    rt = Trainer(scene, config(4), tmp_path / "rt", progress=False, log=lambda m: None)
+    surfels = rt.model.surfels
+    assert len(surfels) == n_points + 5
+    seeds = slice(n_points, None)
+    assert torch.allclose(surfels.means[seeds].detach(), torch.as_tensor(xyz, dtype=torch.float32))
+    R = quat_to_rotmat(surfels.quats[seeds].detach())
+    assert torch.allclose(R[:, :, 2], torch.tensor([0.0, 0.6, 0.8]).expand(5, 3), atol=1e-6)
+    assert torch.allclose(surfels.opacity[seeds], torch.tensor(0.1)) and (surfels.transmissivity[seeds] > 0.85).all()
+    rt.train()  # the seeded model trains
+    plain = Trainer(scene, config(4, effects={"transmission": "off"}), tmp_path / "2dgs", progress=False,
+                    log=lambda m: None)
+    assert len(plain.model.surfels) == n_points
+    off = Trainer(scene, config(4, seed_transparent_surface=False), tmp_path / "off", progress=False,
+                  log=lambda m: None)
+    assert len(off.model.surfels) == n_points
+
+
+def _train_cli(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "rtsplat.cli", "train", *args, "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def test_checkpoint_dir_outlives_a_deleted_run_folder_and_training_resumes_from_it(glass_scene, tmp_path):
+    """What a training job killed under Snakemake goes through: the run folder is deleted, the checkpoint
+    folder beside it is not, and the next job resumes at the checkpoint's iteration with the log kept."""
+    cfg = config(40, schedule={"checkpoint_every": 10, "densify_from": 1000, "eval_every": 0})
+    cfg_file = tmp_path / "cfg.yaml"
+    cfg_file.write_text(yaml.safe_dump({"train": cfg.to_dict() | {"raster": {}}}))
+    run, kept = tmp_path / "runs" / "rtsplat", tmp_path / "checkpoints" / "rtsplat"
+    args = ("--data", str(glass_scene.root), "--out", str(run), "--config", str(cfg_file),
+            "--checkpoint-dir", str(kept))
+    proc = _train_cli(*args)
+    deadline = time.time() + 300
+    while not (kept / "last.pt").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    assert proc.poll() is None, f"training ended before it could be killed: {proc.stderr.read()}"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (run / "checkpoints").exists()  # the checkpoint is written to --checkpoint-dir only
+    shutil.rmtree(run)  # what Snakemake does with the output folder of a failed job
+    killed_at = read_checkpoint(kept / "last.pt").training["iteration"]
+    assert 10 <= killed_at < 40 and killed_at % 10 == 0
+
+    proc = _train_cli(*args)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    assert f"resumed from {kept / 'last.pt'} at iteration {killed_at}" in err
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["iterations"] == 40
+    logged = [r["iteration"] for r in read_log(run)]
+    # the lines up to the checkpoint come from the first job (restored from the kept copy), once each
+    assert logged == list(range(5, 41, 5))
+    assert not kept.exists()  # a finished run removes its checkpoint folder
+
+
+def test_checkpoint_dir_keeps_only_a_checkpoint_of_the_same_data_and_config(glass_scene, tmp_path):
+    from rtsplat.errors import PipelineError
+    from rtsplat.train.cli import claim_checkpoint_dir
+
+    data = Path(shutil.copytree(glass_scene.root, tmp_path / "prepared"))
+    run, kept = tmp_path / "run", tmp_path / "kept"
+    messages: list[str] = []
+    claim_checkpoint_dir(kept, run, data, config(20), messages.append)
+    (kept / "last.pt").write_bytes(b"state")
+    claim_checkpoint_dir(kept, run, data, config(20), messages.append)
+    assert (kept / "last.pt").exists() and messages == []
+    claim_checkpoint_dir(kept, run, data, config(20, seed=3), messages.append)
+    assert not (kept / "last.pt").exists() and "training starts at iteration 0" in messages[0]
+    (kept / "last.pt").write_bytes(b"state")
+    os.utime(data / "scene.json", ns=(0, 0))  # a prepared scene written again
+    claim_checkpoint_dir(kept, run, data, config(20, seed=3), messages.append)
+    assert not (kept / "last.pt").exists() and len(messages) == 2
+    with pytest.raises(PipelineError, match="--checkpoint-dir is, contains or lies inside --out"):
+        claim_checkpoint_dir(run / "checkpoints", run, data, config(20), messages.append)

@@ -10,6 +10,7 @@ import re
 import shlex
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -96,6 +97,13 @@ def test_dry_run_builds_the_whole_dag(dataset):
     assert {k: counts[k] for k in EXPECTED} == EXPECTED
     assert "rtsplat prepare --scene-dir" in out and "rtsplat train --data" in out
     assert "--edit reflections=off" in out and "rtsplat report --results" in out
+    # the checkpoint folder lies beside the run folder that Snakemake deletes when a job fails
+    for block in (b for b in _jobs(out) if b.startswith("rule train")):
+        command = shlex.split(next(line for line in block.splitlines() if " train --data" in line).strip())
+        scene, method = re.search(r"scene=(\w+)", block).group(1), re.search(r"method=(\w+)", block).group(1)
+        results = dataset / "results" / scene
+        assert command[command.index("--out") + 1] == str(results / "runs" / method)
+        assert command[command.index("--checkpoint-dir") + 1] == str(results / "checkpoints" / method)
     # per-scene overrides reach the commands
     prep = {re.search(r"--scene-dir \S+/(\w+)", b).group(1): b for b in _jobs(out) if b.startswith("rule prepare")}
     assert '"downsample": 2' in prep["glass"] and '"downsample": 4' in prep["plain"]
@@ -199,6 +207,57 @@ def test_failed_scene_leaves_no_finished_output_and_resumes(tmp_path):
     assert (results / "bad" / "prepared" / "scene.json").is_file()
     sfm_jobs = [b for b in _jobs(r.stdout + r.stderr) if re.match(r"(local)?rule sfm:", b)]
     assert len(sfm_jobs) == 1 and "scene=bad" in sfm_jobs[0]  # only the failed scene re-ran
+
+
+def _rules_to_run(output: str) -> set[tuple[str, str]]:
+    """(rule, scene) of each job of a dry run."""
+    jobs = set()
+    for block in _jobs(output):
+        rule, scene = re.match(r"(?:local)?rule (\w+):", block), re.search(r"scene=(\w+)", block)
+        if rule and scene:
+            jobs.add((rule.group(1), scene.group(1)))
+    return jobs
+
+
+def test_an_image_edited_in_place_reruns_its_scene_and_an_untouched_dataset_nothing(tmp_path):
+    import cv2
+
+    for scene in ("glass", "other"):
+        make_corner_scene(tmp_path / "data" / scene, n_views=4, width=80, height=60, with_model=True,
+                          with_masks=True)
+    cfg = _config(tmp_path, overrides={})
+    results = tmp_path / "results"
+
+    def finished_run():
+        """The preprocessing outputs as a finished run leaves them: newer than every input."""
+        old = time.time() - 100
+        for scene in ("glass", "other"):
+            os.utime(results / scene / "inputs.json", (old, old))
+            for stage in ("masks", "sfm", "prepared"):
+                (results / scene / stage).mkdir(exist_ok=True)
+                os.utime(results / scene / stage)
+
+    r = snakemake(tmp_path, "-n", "prepared_all", config=cfg)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert (results / "glass" / "inputs.json").is_file()
+    finished_run()
+    r = snakemake(tmp_path, "-n", "prepared_all", config=cfg)
+    assert "Nothing to be done" in r.stdout + r.stderr
+
+    image = tmp_path / "data" / "glass" / "images" / "view_001.png"
+    folder_mtime = image.parent.stat().st_mtime_ns
+    image.write_bytes(cv2.imencode(".png", cv2.imread(str(image)) // 2)[1].tobytes())  # same inode, new pixels
+    assert image.parent.stat().st_mtime_ns == folder_mtime  # what the folder inputs alone cannot see
+    edited = {("masks", "glass"), ("sfm", "glass"), ("prepare", "glass")}
+    for _ in range(2):  # a dry run does not use up the change: the next run still reruns the scene
+        r = snakemake(tmp_path, "-n", "prepared_all", config=cfg)
+        assert r.returncode == 0, r.stderr + r.stdout
+        assert _rules_to_run(r.stdout + r.stderr) == edited
+
+    finished_run()
+    os.utime(image, (1_000_000_000, 1_000_000_000))  # an older copy of the image put back (cp -p, rsync -t)
+    r = snakemake(tmp_path, "-n", "prepared_all", config=cfg)
+    assert _rules_to_run(r.stdout + r.stderr) == edited
 
 
 @pytest.mark.slow

@@ -95,6 +95,21 @@ def nearest_neighbour_scale(points: Tensor, k: int = 3, chunk: int = 4096) -> Te
     return torch.cat(out).clamp_min(1e-7).sqrt()
 
 
+def quats_with_normal(normals: Tensor) -> Tensor:
+    """Unit quaternions (wxyz) of the rotations that take the z axis, the surfel normal, to ``normals``
+    [N,3] (the shortest such rotation; a half turn about x for ``-z``)."""
+    n = F.normalize(normals, dim=-1)
+    q = torch.stack([1.0 + n[:, 2], -n[:, 1], n[:, 0], torch.zeros_like(n[:, 0])], -1)
+    flipped = q[:, 0] < 1e-6
+    q[flipped] = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=q.dtype)
+    return F.normalize(q, dim=-1)
+
+
+def concat_surfels(parts: list[SurfelParameters]) -> SurfelParameters:
+    """One parameter set with the rows of ``parts`` in order."""
+    return SurfelParameters({name: torch.cat([getattr(p, name).detach() for p in parts]) for name in PARAMETERS})
+
+
 def init_from_points(
     xyz: Tensor, rgb: Tensor, *, sh_degree: int = 3, occupancy: float = 0.1, opacity: float = 0.5,
     transmissivity: float = 0.5, roughness: float = 0.1, reflectance: float = 0.5,

@@ -5,6 +5,13 @@ what the workflow passes, built by :func:`rtsplat.config.train_json`) or ``--con
 ``config.yaml`` (with ``--scene`` and ``--method``: that method's trainer tree on that scene, as the
 workflow builds it) or a YAML file with a ``train:`` tree (or the trainer keys at top level).
 Bad input raises :class:`rtsplat.errors.PipelineError`.
+
+``--checkpoint-dir`` keeps the resumable checkpoint outside ``--out``: a workflow manager that deletes
+the output folder of a failed or killed job (Snakemake does) leaves it in place, and the next run
+resumes from it. The folder records what it was written for (the ``--data`` files' sizes and
+modification times, the trainer config); a checkpoint written for anything else is discarded, with a
+message, and training starts at iteration 0. A finished run removes the folder (``--out`` has the
+final ``model.pt``).
 """
 
 from __future__ import annotations
@@ -12,12 +19,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from rtsplat.config import PipelineConfig, add_config_arguments, load_config, trainer_options
 from rtsplat.devices import resolve_device
-from rtsplat.errors import ConfigError
+from rtsplat.errors import ConfigError, PipelineError
+from rtsplat.io.atomic import write_json_atomic
+from rtsplat.io.manifest import scene_manifest
 from rtsplat.io.outputs import check_output_dir, mark_output
 from rtsplat.train_config import TrainConfig
 
@@ -34,9 +45,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", help="rasterizer backend (auto, reference, ...)")
     parser.add_argument("--device", help="override device: auto (the GPU when torch sees one), cpu, cuda, cuda:N")
     parser.add_argument("--seed", type=int, help="random seed")
-    parser.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint in --out")
+    parser.add_argument("--checkpoint-dir", type=Path,
+                        help="folder for the resumable checkpoint instead of <out>/checkpoints, e.g. one a workflow "
+                        "manager does not delete when the job fails; resumed from when it was written for the "
+                        "same --data and config, removed when the run finishes")
+    parser.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint")
     parser.add_argument("--resume-with-new-config", action="store_true",
-                        help="resume from --out's checkpoint even though this config differs from the one it was "
+                        help="resume from the checkpoint even though this config differs from the one it was "
                         "written with (without it that is an error naming the keys; schedule.iterations, the "
                         "log/eval/checkpoint cadence, device and backend may always change)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -94,8 +109,45 @@ def run(args: argparse.Namespace) -> int:
     resolve_device(cfg.device, key="--device" if args.device is not None else "train.device")
     check_output_dir(args.out, "train", inputs=[args.data])
     scene = PreparedScene.load(args.data)
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr)
+
+    if args.checkpoint_dir is not None:
+        claim_checkpoint_dir(args.checkpoint_dir, args.out, args.data, cfg, log)
     args.out.mkdir(parents=True, exist_ok=True)
     mark_output(args.out, "train")
-    trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=lambda msg: print(msg, file=sys.stderr))
+    trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=log, checkpoint_dir=args.checkpoint_dir)
     trainer.train(resume=not args.no_resume, new_config=args.resume_with_new_config)
+    if args.checkpoint_dir is not None:
+        shutil.rmtree(args.checkpoint_dir)
     return 0
+
+
+CHECKPOINT_RECORD = "written_for.json"
+
+
+def claim_checkpoint_dir(folder: Path, out: Path, data: Path, cfg: TrainConfig, log: Callable[[str], None]) -> None:
+    """Make ``folder`` the checkpoint folder of a training into ``out`` on ``data`` with ``cfg``: a
+    checkpoint there that was written for other ``data`` files (sizes, modification times) or another
+    config is removed (and said so); ``folder`` is marked as train output and records what it is for."""
+    folder_r, out_r = folder.resolve(), out.resolve()
+    if folder_r == out_r or folder_r in out_r.parents or out_r in folder_r.parents:
+        raise PipelineError("--checkpoint-dir is, contains or lies inside --out; it is removed when the run "
+                            "finishes and is meant to outlive a deleted --out", path=folder,
+                            fix="pass a folder beside --out, e.g. <results>/<scene>/checkpoints/<method>")
+    check_output_dir(folder, "train", inputs=[data])
+    written_for = json.loads(json.dumps({"data": scene_manifest(data), "config": cfg.to_dict()}, default=str))
+    record = folder / CHECKPOINT_RECORD
+    if (folder / "last.pt").exists():
+        try:
+            same = json.loads(record.read_text()) == written_for
+        except (OSError, ValueError):
+            same = False
+        if not same:
+            log(f"{folder}: its checkpoint was written for other --data files or another config; "
+                "removed, training starts at iteration 0")
+            shutil.rmtree(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    mark_output(folder, "train")
+    write_json_atomic(record, written_for)

@@ -7,7 +7,8 @@ Run directory layout::
     <out>/effects.json       which branches run and why (effects: auto)
     <out>/train_log.jsonl    one JSON line per logging step: losses, PSNR, surfels, seconds
     <out>/checkpoints/last.pt  resumable state (rtsplat.model.checkpoint, written atomically; never
-                             a diverged one, and resuming needs the same config, see load_checkpoint)
+                             a diverged one, and resuming needs the same config, see load_checkpoint);
+                             with a checkpoint_dir: <checkpoint_dir>/last.pt and a copy of train_log.jsonl
     <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
     <out>/summary.json       written last: a run without it is not finished
 """
@@ -31,7 +32,13 @@ from rtsplat.io.atomic import write_text_atomic
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
 from rtsplat.model.rtmodel import RTModel
-from rtsplat.model.surfels import PARAMETERS, SurfelParameters, init_from_points
+from rtsplat.model.surfels import (
+    PARAMETERS,
+    SurfelParameters,
+    concat_surfels,
+    init_from_points,
+    quats_with_normal,
+)
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
 from rtsplat.raster import default_backend
@@ -80,11 +87,12 @@ def _write_json(path: Path, data) -> None:
 class Trainer:
     def __init__(
         self, scene: PreparedScene, cfg: TrainConfig, out_dir: str | Path, *, log: Callable[[str], None] = print,
-        progress: bool = True,
+        progress: bool = True, checkpoint_dir: str | Path | None = None,
     ):
         self.cfg = cfg.validate()
         self.scene = scene
         self.out = Path(out_dir)
+        self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else self.out / "checkpoints"
         self.log = log
         self.progress = progress
         self.device = resolve_device(cfg.device, key="train.device")
@@ -121,11 +129,28 @@ class Trainer:
     # -- construction ------------------------------------------------------------------------
     def _init_surfels(self) -> SurfelParameters:
         m = self.cfg.model
-        return init_from_points(
+        surfels = init_from_points(
             *self.points, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
             transmissivity=m.transmissivity_init, roughness=m.roughness_init, reflectance=m.reflectance_init,
             generator=self.rng,
         )
+        surface = self.scene.load_transparent_surface() if self.cfg.seed_transparent_surface else None
+        if surface is None or not self.effects.transmission or len(surface[0]) < 4:
+            return surfels
+        return concat_surfels([surfels, self._transparent_surface_surfels(*surface)])
+
+    def _transparent_surface_surfels(self, xyz: np.ndarray, normal: np.ndarray) -> SurfelParameters:
+        """Surfels where the see-through surface is (prepare's points on the masks' visual hull), which
+        SfM points miss: oriented along the hull's normals and clear (low opacity, high transmissivity,
+        no colour of their own), so that they start as glass that reflects and lets the scene through."""
+        m = self.cfg.model
+        xyz_t = torch.as_tensor(xyz, dtype=torch.float32)
+        seeds = init_from_points(
+            xyz_t, torch.zeros_like(xyz_t), sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=0.1,
+            transmissivity=0.9, roughness=m.roughness_init, reflectance=m.reflectance_init, generator=self.rng,
+        )
+        seeds.quats.data.copy_(quats_with_normal(torch.as_tensor(normal, dtype=torch.float32)))
+        return seeds
 
     def _new_model(self, surfels: SurfelParameters) -> RTModel:
         roi = self.scene.roi
@@ -250,7 +275,13 @@ class Trainer:
     # -- checkpoints ---------------------------------------------------------------------------
     @property
     def checkpoint_path(self) -> Path:
-        return self.out / "checkpoints" / "last.pt"
+        return self.checkpoint_dir / "last.pt"
+
+    @property
+    def kept_log_path(self) -> Path | None:
+        """A checkpoint folder outside the run folder keeps a copy of the train log, taken with each
+        checkpoint: a resume into a run folder that was deleted restores the log from it."""
+        return None if self.checkpoint_dir == self.out / "checkpoints" else self.checkpoint_dir / "train_log.jsonl"
 
     def training_state(self) -> dict:
         """What resumes the run besides the model: iteration, config, optimizer, density, RNGs."""
@@ -331,6 +362,8 @@ class Trainer:
         if resume and self.checkpoint_path.exists():
             self.load_checkpoint(self.checkpoint_path, new_config)
             self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
+            if self.kept_log_path is not None and self.kept_log_path.exists() and not log_path.exists():
+                write_text_atomic(log_path, self.kept_log_path.read_text())
             _truncate_log(log_path, self.iteration)
         else:
             log_path.unlink(missing_ok=True)
@@ -380,6 +413,8 @@ class Trainer:
                     log_file.write(json.dumps(record) + "\n")
                     log_file.flush()
                 if cfg.schedule.checkpoint_every > 0 and step.iteration % cfg.schedule.checkpoint_every == 0:
+                    if self.kept_log_path is not None:  # before the checkpoint: never older than it
+                        write_text_atomic(self.kept_log_path, log_path.read_text())
                     self.save_checkpoint()
         bar.close()
         return self.finish()

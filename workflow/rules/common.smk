@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 from rtsplat.config import ConfigError, discover_scenes, load_config_dict, section_json
+from rtsplat.io.manifest import refresh_manifest
 
 # Readable messages first (unknown keys, wrong types, with the fix), then Snakemake's own
 # validation against the same schema (defaults come from the dataclasses).
@@ -43,6 +44,13 @@ wildcard_constraints:
 
 def scene_dir(wildcards):
     return f"{DATA}/{wildcards.scene}"
+
+
+def inputs_manifest(wildcards):
+    """Input function: <results>/<scene>/inputs.json, the size and modification time of every file
+    under <data>/<scene> (rtsplat/io/manifest.py), rewritten only when one of them changed. The rules
+    that read the dataset take it as an input, so an image edited in place reruns them."""
+    return str(refresh_manifest(scene_dir(wildcards), out(wildcards.scene, "inputs.json")))
 
 
 def stage_json(section):

@@ -24,6 +24,9 @@ rule train:
         f"{RESULTS}/{{scene}}/benchmarks/train_{{method}}.tsv"
     params:
         cfg=lambda wildcards: train_json(CFG, wildcards.scene, wildcards.method),
+        # outside the run folder, which Snakemake deletes when the job fails or is killed: the next
+        # run resumes from the checkpoint there (rtsplat train --checkpoint-dir)
+        checkpoints=f"{RESULTS}/{{scene}}/checkpoints/{{method}}",
     threads: 2
     resources:
         gpu=1,
@@ -32,7 +35,8 @@ rule train:
     conda:
         ENV
     shell:
-        "{RTSPLAT} train --data {input.prepared:q} --out {output:q} --config-json {params.cfg} --quiet > {log:q} 2>&1"
+        "{RTSPLAT} train --data {input.prepared:q} --out {output:q} --checkpoint-dir {params.checkpoints:q} "
+        "--config-json {params.cfg} --quiet > {log:q} 2>&1"
 
 
 rule render:

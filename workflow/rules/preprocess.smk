@@ -1,4 +1,5 @@
-# Masks, structure from motion and the prepared scene (the trainer's only input).
+# Masks, structure from motion and the prepared scene (the trainer's only input). The three rules
+# read <data>/<scene> and take its manifest <results>/<scene>/inputs.json as an input (common.smk).
 import shlex
 from pathlib import Path
 
@@ -6,7 +7,7 @@ from rtsplat.config import scene_config
 
 
 def masks_inputs(wildcards):
-    inputs = {"images": f"{DATA}/{wildcards.scene}/images"}
+    inputs = {"images": f"{DATA}/{wildcards.scene}/images", "manifest": inputs_manifest(wildcards)}
     cfg = scene_config(CFG, wildcards.scene).masks
     if Path(DATA, wildcards.scene, cfg.dir).is_dir():
         inputs["dataset_masks"] = f"{DATA}/{wildcards.scene}/{cfg.dir}"
@@ -18,7 +19,7 @@ def masks_inputs(wildcards):
 
 
 def sfm_inputs(wildcards):
-    inputs = {"images": f"{DATA}/{wildcards.scene}/images"}
+    inputs = {"images": f"{DATA}/{wildcards.scene}/images", "manifest": inputs_manifest(wildcards)}
     if scene_config(CFG, wildcards.scene).sfm.use_dataset_model and Path(DATA, wildcards.scene, "sparse", "0").is_dir():
         inputs["model"] = f"{DATA}/{wildcards.scene}/sparse/0"
     if scene_config(CFG, wildcards.scene).sfm.use_masks:
@@ -73,6 +74,7 @@ rule prepare:
     input:
         sfm=f"{RESULTS}/{{scene}}/sfm",
         masks=f"{RESULTS}/{{scene}}/masks",
+        manifest=inputs_manifest,
     output:
         directory(f"{RESULTS}/{{scene}}/prepared"),
     log:

@@ -1,0 +1,67 @@
+"""The scene input manifest: rewritten exactly when a file under the scene changed."""
+
+from __future__ import annotations
+
+import json
+import os
+
+from rtsplat.io.manifest import refresh_manifest, scene_manifest
+
+
+def _scene(tmp_path):
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    (scene / "sparse" / "0").mkdir(parents=True)
+    for i in range(3):
+        (scene / "images" / f"{i:04d}.png").write_bytes(bytes([i]) * (100 + i))
+    (scene / "sparse" / "0" / "cameras.bin").write_bytes(b"cams")
+    (scene / ".DS_Store").write_bytes(b"finder")
+    (scene / "images" / ".hidden").mkdir()
+    (scene / "images" / ".hidden" / "x.png").write_bytes(b"x")
+    return scene
+
+
+def test_manifest_lists_every_visible_file_with_size_and_mtime(tmp_path):
+    scene = _scene(tmp_path)
+    files = scene_manifest(scene)["files"]
+    assert sorted(files) == ["images/0000.png", "images/0001.png", "images/0002.png", "sparse/0/cameras.bin"]
+    st = (scene / "images" / "0002.png").stat()
+    assert files["images/0002.png"] == [102, st.st_mtime_ns]
+
+
+def test_refresh_rewrites_only_when_a_file_changed(tmp_path):
+    scene = _scene(tmp_path)
+    image = scene / "images" / "0001.png"
+    os.utime(image, ns=(2_000_000_000, 2_000_000_000))  # written long ago: the edit below changes its mtime
+    path = refresh_manifest(scene, tmp_path / "results" / "inputs.json")
+    os.utime(path, ns=(1_000_000_000, 1_000_000_000))  # an old manifest: any rewrite is visible
+    refresh_manifest(scene, path)
+    assert path.stat().st_mtime_ns == 1_000_000_000  # nothing changed: left as it was
+    (scene / ".DS_Store").write_bytes(b"finder, again")
+    refresh_manifest(scene, path)
+    assert path.stat().st_mtime_ns == 1_000_000_000  # hidden files do not count
+
+    with open(image, "r+b") as f:  # edited in place: the folder's mtime stays, the file's does not
+        f.write(b"\xff")
+    refresh_manifest(scene, path)
+    assert path.stat().st_mtime_ns > 1_000_000_000
+    assert json.loads(path.read_text())["files"]["images/0001.png"][1] == image.stat().st_mtime_ns
+
+    os.utime(path, ns=(1_000_000_000, 1_000_000_000))
+    os.utime(image, ns=(3_000_000_000, 3_000_000_000))  # an older copy put back (cp -p, rsync -t)
+    refresh_manifest(scene, path)
+    assert path.stat().st_mtime_ns > 1_000_000_000
+
+    os.utime(path, ns=(1_000_000_000, 1_000_000_000))
+    (scene / "images" / "0002.png").unlink()  # a view removed
+    refresh_manifest(scene, path)
+    assert path.stat().st_mtime_ns > 1_000_000_000
+    assert "images/0002.png" not in json.loads(path.read_text())["files"]
+
+
+def test_an_unreadable_manifest_is_rewritten(tmp_path):
+    scene = _scene(tmp_path)
+    path = tmp_path / "inputs.json"
+    path.write_text("{truncated")
+    refresh_manifest(scene, path)
+    assert json.loads(path.read_text()) == scene_manifest(scene)
