@@ -8,7 +8,10 @@ rebuilds the structure:
 1. features and matches with :func:`rtsplat.sfm_attempts.denser_features` (more, weaker SIFT
    features and guided matching; reused when the ladder already ran that step);
 2. tracks triangulated with the model's poses fixed (``pycolmap.triangulate_points``, then every
-   view's untriangulated matches again and the pairs that should share tracks);
+   view's untriangulated matches again and the pairs that should share tracks); the model is first
+   renumbered to the denser database's image, camera, rig and frame ids, matched by image name
+   (:func:`with_database_ids`: extraction on several threads numbers the images in the order they
+   are written, so the two databases can disagree);
 3. ``sfm.refine_rounds`` rounds at most of global bundle adjustment with a Cauchy loss (poses,
    points and the focal length), track completion and merging, and removal of the observations
    that reproject farther than ``sfm.refine_max_reprojection_error``; the rounds stop early when
@@ -21,6 +24,7 @@ reprojection error; otherwise the chosen model stays and the result says why.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -58,6 +62,54 @@ def _focal_lengths(rec) -> list[float]:
     return [float(rec.camera(cid).mean_focal_length()) for cid in sorted(rec.cameras)]
 
 
+def with_database_ids(rec, db_path: Path):
+    """A pycolmap.Reconstruction with ``rec``'s poses and calibration under the ids of the database at ``db_path``.
+
+    Feature extraction numbers images, cameras, rigs and frames in the order its threads write
+    them, so two databases of the same images can number them differently. The result takes every
+    id, rig and frame from the database and matches the views to ``rec``'s by image name: a frame
+    gets the pose of the ``rec`` frame that holds the same-named image (unregistered when ``rec``
+    has no pose for it), a camera the calibration of the ``rec`` camera of its images. Images
+    carry no 2D points (``pycolmap.triangulate_points`` reads them from the database).
+    """
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        db_cameras = {c.camera_id: c for c in db.read_all_cameras()}
+        db_rigs = db.read_all_rigs()
+        db_frames = db.read_all_frames()
+        db_images = db.read_all_images()
+    finally:
+        db.close()
+    by_name = {im.name: im for im in rec.images.values()}
+    out = pycolmap.Reconstruction()
+    for camera_id, db_camera in sorted(db_cameras.items()):
+        matched = [by_name[im.name] for im in db_images if im.camera_id == camera_id and im.name in by_name]
+        camera = copy.copy(rec.camera(matched[0].camera_id)) if matched else db_camera
+        camera.camera_id = camera_id
+        out.add_camera(camera)
+    for rig in db_rigs:
+        out.add_rig(rig)
+    db_names = {im.image_id: im.name for im in db_images}
+    posed = []
+    for frame in db_frames:
+        for data_id in frame.image_ids:
+            model_image = by_name.get(db_names.get(data_id.id))
+            if model_image is not None and rec.frame(model_image.frame_id).has_pose():
+                frame.rig_from_world = rec.frame(model_image.frame_id).rig_from_world
+                posed.append(frame.frame_id)
+                break
+        out.add_frame(frame)
+    for db_image in db_images:
+        image = pycolmap.Image(name=db_image.name, camera_id=db_image.camera_id, image_id=db_image.image_id)
+        image.frame_id = db_image.frame_id
+        out.add_image(image)
+    for frame_id in posed:
+        out.register_frame(frame_id)
+    return out
+
+
 def refine_model(rec, runner: AttemptRunner, first: AttemptSettings, cfg: SfmConfig, work: Path):
     """Refine ``rec`` (a pycolmap.Reconstruction, left unchanged); returns (RefinementResult, refined model).
 
@@ -82,7 +134,7 @@ def refine_model(rec, runner: AttemptRunner, first: AttemptSettings, cfg: SfmCon
     work.mkdir(parents=True, exist_ok=True)
     try:
         refined = pycolmap.triangulate_points(
-            pycolmap.Reconstruction(rec), str(db_path), str(runner.images_dir), str(work), clear_points=True
+            with_database_ids(rec, db_path), str(db_path), str(runner.images_dir), str(work), clear_points=True
         )
     except (ValueError, RuntimeError) as exc:  # pycolmap's failed checks
         result.verdict = f"the triangulation with the denser features failed ({exc}); the chosen model stays"
@@ -159,4 +211,4 @@ def describe_refinement(r: RefinementResult) -> str:
     )
 
 
-__all__ = ["RefinementResult", "describe_refinement", "refine_model"]
+__all__ = ["RefinementResult", "describe_refinement", "refine_model", "with_database_ids"]

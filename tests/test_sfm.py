@@ -367,3 +367,54 @@ def test_refinement_keeps_every_view_and_lowers_the_reprojection_error(tmp_path)
     assert off.mean_reprojection_error == pytest.approx(chosen_off["mean_reprojection_error"])
     assert off.num_points == chosen_off["num_points"]
     assert off.pose_errors == chosen_off["pose_errors"]
+
+
+def test_refinement_matches_views_by_name_when_the_database_numbers_them_differently(tmp_path):
+    """Feature extraction on several threads numbers the images in the order they finish, so the
+    refinement's database can give a view another id than the chosen model. A model whose ids run
+    backwards against the database is refined (num_threads=2) with every view kept at its own pose."""
+    import pycolmap
+
+    from rtsplat.pose_eval import compare_poses
+    from rtsplat.sfm_attempts import AttemptRunner, denser_features, first_settings
+    from rtsplat.sfm_refine import refine_model
+
+    views = make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150)
+    names = [v.name for v in views]
+    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=2)
+    (tmp_path / "work").mkdir()
+    runner = AttemptRunner(tmp_path / "s" / "images", names, tmp_path / "work", cfg, None)
+    first = first_settings(cfg, len(names))
+    attempt, rec = runner.run(0, "configured", "", first)
+    assert attempt.registered == 10, attempt
+    # the same views, poses and camera under image and frame ids in reverse order
+    (camera_id,) = rec.cameras
+    reversed_ids = dict(zip(sorted(rec.images), sorted(rec.images, reverse=True), strict=True))
+    permuted = pycolmap.Reconstruction()
+    permuted.add_camera_with_trivial_rig(rec.camera(camera_id))
+    for image_id, image in rec.images.items():
+        new = pycolmap.Image(name=image.name, camera_id=camera_id, image_id=reversed_ids[image_id])
+        permuted.add_image_with_trivial_frame(new, image.cam_from_world())
+    db = pycolmap.Database.open(str(runner.match_database(denser_features(first))))
+    try:
+        db_ids = {im.name: im.image_id for im in db.read_all_images()}
+    finally:
+        db.close()
+    assert sum(permuted.find_image_with_name(n).image_id != db_ids[n] for n in names) >= 8
+
+    result, refined = refine_model(permuted, runner, first, cfg, tmp_path / "refined")
+    print(result)
+    assert result.kept and result.registered == 10, result.verdict
+    assert result.mean_reprojection_error < cfg.refine_max_reprojection_error
+    assert refined.num_points3D() > 100
+    assert {refined.image(i).name: i for i in refined.reg_image_ids()} == db_ids
+    estimated = {}
+    for image in refined.images.values():
+        w2c = np.eye(4)
+        w2c[:3] = image.cam_from_world().matrix()
+        estimated[image.name] = w2c
+    errors = compare_poses(estimated, {v.name: v.world_to_camera for v in views})
+    # as in the pose check above: the orientations fit closely, the centres within 2% of their spread
+    assert errors.compared == 10
+    assert errors.orientation_aligned_rotation_error_deg_max < 0.5, errors
+    assert errors.center_error_relative < 0.02, errors
