@@ -103,6 +103,20 @@ class SfmConfig:
         "as in models that global mapping assembles from few wide-baseline matches",
         minimum=0,
     )
+    refine: bool = _f(
+        True,
+        help="after the chosen attempt: tracks from denser features (more, weaker SIFT features, guided matching) "
+        "triangulated with its poses, then rounds of robust global bundle adjustment, track completion and "
+        "outlier filtering; kept when it keeps every view at a lower mean reprojection error",
+    )
+    refine_max_reprojection_error: float = _f(
+        1.0,
+        help="refinement: observations reprojecting farther than this (px) are dropped after each bundle adjustment",
+        exclusiveMinimum=0.0,
+    )
+    refine_rounds: int = _f(
+        5, help="refinement: rounds of bundle adjustment, track completion and filtering at most", minimum=1
+    )
 
 
 @dataclass

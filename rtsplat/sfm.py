@@ -11,6 +11,12 @@ attempt is logged and listed in the summary, with the reason for the choice. Whe
 a ``sparse/0`` that is not used, every attempt's poses are compared with it after a similarity fit
 (:mod:`rtsplat.pose_eval`; the synthetic scenes ship their ground-truth cameras there).
 
+With ``sfm.refine`` (default) the chosen model is then refined (:mod:`rtsplat.sfm_refine`): tracks
+from denser features triangulated with its poses, robust global bundle adjustment and outlier
+filtering. The refined model is written when it keeps every view at a lower mean reprojection
+error; the refinement is logged and listed in the summary either way, and ``pose_errors`` are
+those of the model written.
+
 Either way, a camera model with distortion is undistorted to PINHOLE (images and model), and the
 stage fails with a clear message (the unregistered images and the attempts) when too few images
 register; the output folder is then left as it was.
@@ -21,7 +27,9 @@ Output folder::
                           "registered", "total", "mean_reprojection_error", "unregistered",
                           "attempts": [{"name", "reason", "settings", "registered", "models",
                           "mean_reprojection_error", "seconds", "acceptable", ...}],
-                          "chosen_attempt", "choice", "reference_model", "pose_errors", ...}
+                          "chosen_attempt", "choice", "reference_model", "pose_errors",
+                          "refinement": {"registered", "mean_reprojection_error_before",
+                          "mean_reprojection_error", "seconds", "kept", "verdict", "pose_errors", ...}}
     sfm/sparse/0/        the model (copied from the dataset or computed)
     sfm/undistorted/     images/ and sparse/ after undistortion (only when needed)
 
@@ -48,6 +56,7 @@ from rtsplat.io.images import list_images, read_mask, validate_image_set, write_
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.pose_eval import compare_poses
 from rtsplat.sfm_attempts import AttemptResult, AttemptRunner, better, describe, first_settings, next_attempt
+from rtsplat.sfm_refine import describe_refinement, refine_model
 
 
 @dataclass
@@ -67,7 +76,8 @@ class SfmSummary:
     chosen_attempt: int | None = None  # index into attempts
     choice: str = ""  # why that attempt
     reference_model: str | None = None  # the dataset's sparse/0 the poses were compared with
-    pose_errors: dict | None = None  # PoseErrors fields of the chosen model against reference_model
+    pose_errors: dict | None = None  # PoseErrors fields of the written model against reference_model
+    refinement: dict | None = None  # RefinementResult fields (None: sfm.refine off, or a dataset model)
     seconds: float = 0.0
 
 
@@ -133,7 +143,10 @@ def _reconstruct(
     reference: dict[str, np.ndarray] | None,
     log,
 ):
-    """Attempts until every view registers or the ladder ends; returns (chosen rec, attempts, index, choice)."""
+    """Attempts until every view registers or the ladder ends.
+
+    Returns (chosen rec, attempts, its index, choice, the AttemptRunner, the first attempt's settings).
+    """
     mask_dir = None
     if masks_dir is not None and cfg.use_masks:
         mask_dir = work / "colmap_masks"
@@ -173,7 +186,7 @@ def _reconstruct(
         choice = f"attempt {best + 1} ({chosen.name}, {chosen.registered}/{len(names)}) {why}; others: {others}"
         if chosen.unregistered and len(attempts) < cfg.max_attempts:
             choice += "; no further step suits the failure"
-    return recs[best], attempts, best, choice
+    return recs[best], attempts, best, choice, runner, first
 
 
 def _attempts_text(attempts: list[AttemptResult], total: int) -> str:
@@ -208,7 +221,7 @@ def run_sfm(
     names = [h.path.name for h in headers]
     given = scene_dir / "sparse" / "0"
     attempts: list[AttemptResult] = []
-    chosen, choice, pose_errors, reference_dir = None, "", None, None
+    chosen, choice, pose_errors, reference_dir, refinement = None, "", None, None, None
     matcher = ""
     with output_dir(out_dir, "sfm", inputs=[scene_dir, masks_dir]) as tmp:
         model_dir = tmp / "sparse" / "0"
@@ -233,7 +246,7 @@ def run_sfm(
                 )
             ref = _reference_poses(scene_dir)
             with tempfile.TemporaryDirectory(prefix="rtsplat-sfm-", dir=tmp) as work:
-                rec, attempts, chosen, choice = _reconstruct(
+                rec, attempts, chosen, choice, runner, first = _reconstruct(
                     images_dir,
                     names,
                     Path(work),
@@ -268,8 +281,20 @@ def run_sfm(
                         fix="raise sfm.max_reprojection_error or lower sfm.min_points_per_image if the model is "
                         "good enough for you, or take sharper, more overlapping photos",
                     )
+                if ref is not None:
+                    pose_errors = best.pose_errors
+                if cfg.refine:
+                    log(f"sfm refinement of attempt {chosen + 1} ({best.name})")
+                    refinement, refined = refine_model(rec, runner, first, cfg, Path(work) / "refined")
+                    if ref is not None:
+                        errors = compare_poses(_rec_poses(refined), ref[1])
+                        refinement.pose_errors = asdict(errors) if errors else None
+                    log(f"sfm refinement: {describe_refinement(refinement)}")
+                    if refinement.kept:
+                        rec = refined
+                        pose_errors = refinement.pose_errors
             if ref is not None:
-                pose_errors, reference_dir = best.pose_errors, str(ref[0])
+                reference_dir = str(ref[0])
             source = "sfm"
         model_dir.mkdir(parents=True)
         rec.write_binary(str(model_dir))
@@ -305,6 +330,7 @@ def run_sfm(
             choice=choice,
             reference_model=reference_dir,
             pose_errors=pose_errors,
+            refinement=asdict(refinement) if refinement else None,
             seconds=time.perf_counter() - t0,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
@@ -335,7 +361,9 @@ def run(args: argparse.Namespace) -> int:
         f"sfm {args.scene_dir}: {how}: {s.registered}/{s.total} images registered, {s.num_points} points, "
         f"mean reprojection error {err}, camera {s.camera_model}"
         + (", undistorted to PINHOLE" if s.undistorted else "")
-        + (f", {len(s.attempts)} attempt(s), {s.seconds:.0f} s" if s.attempts else "")
+        + (f", {len(s.attempts)} attempt(s)" if s.attempts else "")
+        + (", refined" if s.refinement and s.refinement["kept"] else "")
+        + (f", {s.seconds:.0f} s" if s.attempts else "")
         + pose
     )
     return 0

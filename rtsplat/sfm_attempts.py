@@ -131,19 +131,23 @@ def _exhaustive(s: AttemptSettings) -> tuple[str, str, AttemptSettings]:
     )
 
 
-def _more_features(s: AttemptSettings) -> tuple[str, str, AttemptSettings]:
-    more = replace(
+def denser_features(s: AttemptSettings) -> AttemptSettings:
+    """``s`` with more, weaker SIFT features (half the peak threshold, upsampled first octave) and guided matching."""
+    return replace(
         s,
         sift_peak_threshold=min(s.sift_peak_threshold, 0.02 / 3) / 2,
         sift_first_octave=min(s.sift_first_octave, -1),
         max_num_features=max(s.max_num_features, 8192),
         guided_matching=True,
     )
+
+
+def _more_features(s: AttemptSettings) -> tuple[str, str, AttemptSettings]:
     return (
         "more_features",
         "views have too few verified matches: more, weaker SIFT features (half the peak threshold, "
         "upsampled first octave) and guided matching",
-        more,
+        denser_features(s),
     )
 
 
@@ -222,7 +226,7 @@ class AttemptRunner:
         self._features[key] = db
         return db
 
-    def _match(self, s: AttemptSettings) -> Path:
+    def match_database(self, s: AttemptSettings) -> Path:
         import pycolmap
 
         key = s.matches_key()
@@ -261,7 +265,7 @@ class AttemptRunner:
         """Of ``names``, those with fewer than ``min_pairs`` verified pairs of ``min_inliers`` inliers."""
         import pycolmap
 
-        db = pycolmap.Database.open(str(self._match(s)))
+        db = pycolmap.Database.open(str(self.match_database(s)))
         try:
             ids = {im.image_id: im.name for im in db.read_all_images()}
             pair_ids, inliers = db.read_two_view_geometry_num_inliers()
@@ -280,7 +284,7 @@ class AttemptRunner:
         import pycolmap
 
         t0 = time.perf_counter()
-        db = self._match(s)
+        db = self.match_database(s)
         out = self.work / f"attempt_{index}"
         out.mkdir()
         if s.mapper == "global":
@@ -299,25 +303,44 @@ class AttemptRunner:
             options.mapper.abs_pose_min_num_inliers = s.abs_pose_min_num_inliers
             options.mapper.abs_pose_min_inlier_ratio = s.abs_pose_min_inlier_ratio
             recs = pycolmap.incremental_mapping(db, self.images_dir, out, options=options)
-        result = AttemptResult(name=name, reason=reason, settings=asdict(s), models=len(recs))
         rec = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
-        if rec is not None and rec.num_reg_images() > 0:
-            registered = {rec.image(i).name for i in rec.reg_image_ids()}
-            result.registered = len(registered)
-            result.num_points = int(rec.num_points3D())
-            if rec.compute_num_observations() > 0:
-                result.mean_reprojection_error = float(rec.compute_mean_reprojection_error())
-            per_image = sorted(rec.image(i).num_points3D for i in rec.reg_image_ids())
-            result.median_points_per_image = float(per_image[len(per_image) // 2])
-            result.unregistered = [n for n in self.names if n not in registered]
-        else:
-            result.unregistered = list(self.names)
+        stats = model_stats(rec, self.names)
+        result = AttemptResult(name=name, reason=reason, settings=asdict(s), models=len(recs), **asdict(stats))
         result.seconds = time.perf_counter() - t0
-        result.acceptable, result.verdict = _judge(result, self.cfg)
+        result.acceptable, result.verdict = judge(stats, self.cfg)
         return result, rec
 
 
-def _judge(r: AttemptResult, cfg: SfmConfig) -> tuple[bool, str]:
+@dataclass
+class ModelStats:
+    """What :func:`judge` weighs in a model."""
+
+    registered: int = 0
+    num_points: int = 0
+    mean_reprojection_error: float | None = None  # None: no point observations
+    median_points_per_image: float | None = None
+    unregistered: list[str] = field(default_factory=list)
+
+
+def model_stats(rec, names: list[str]) -> ModelStats:
+    """Registration, points and reprojection error of a pycolmap.Reconstruction (or None) over ``names``."""
+    if rec is None or rec.num_reg_images() == 0:
+        return ModelStats(unregistered=list(names))
+    registered = {rec.image(i).name for i in rec.reg_image_ids()}
+    per_image = sorted(rec.image(i).num_points3D for i in rec.reg_image_ids())
+    return ModelStats(
+        registered=len(registered),
+        num_points=int(rec.num_points3D()),
+        mean_reprojection_error=(
+            float(rec.compute_mean_reprojection_error()) if rec.compute_num_observations() > 0 else None
+        ),
+        median_points_per_image=float(per_image[len(per_image) // 2]),
+        unregistered=[n for n in names if n not in registered],
+    )
+
+
+def judge(r: ModelStats | AttemptResult, cfg: SfmConfig) -> tuple[bool, str]:
+    """(acceptable, why) for a model's stats."""
     if r.registered == 0:
         return False, "no model"
     if r.mean_reprojection_error is None:
@@ -374,4 +397,16 @@ def describe(r: AttemptResult, total: int) -> str:
     )
 
 
-__all__ = ["AttemptResult", "AttemptRunner", "AttemptSettings", "better", "describe", "first_settings", "next_attempt"]
+__all__ = [
+    "AttemptResult",
+    "AttemptRunner",
+    "AttemptSettings",
+    "ModelStats",
+    "better",
+    "denser_features",
+    "describe",
+    "first_settings",
+    "judge",
+    "model_stats",
+    "next_attempt",
+]

@@ -6,6 +6,7 @@ import json
 import re
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -285,7 +286,8 @@ def test_pose_check_against_reference_model_and_report_table(tmp_path):
     from rtsplat.report import sfm_section
 
     make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150, with_model=True)
-    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=2)
+    # the attempt's own poses (the refinement has its own test)
+    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=2, refine=False)
     s = run_sfm(tmp_path / "s", tmp_path / "sfm", cfg, progress=False, log=lambda line: None)
     assert s.source == "sfm" and s.registered == 10 and s.unregistered == []
     assert len(s.attempts) == 1 and s.chosen_attempt == 0 and "first attempt" in s.choice
@@ -334,3 +336,85 @@ def test_compare_poses_recovers_a_known_similarity():
     errors = compare_poses(tilted, ref)
     assert errors.relative_rotation_error_deg_max == pytest.approx(2.0, abs=1e-6)
     assert compare_poses({"a": np.eye(4)}, {"a": np.eye(4)}) is None
+
+
+def test_refinement_keeps_every_view_and_lowers_the_reprojection_error(tmp_path):
+    """The refinement of the chosen model (denser tracks, robust global bundle adjustment, filtering)
+    keeps every registered view, lowers the mean reprojection error and is what gets written; with
+    sfm.refine off the chosen attempt's model is written as it was."""
+    make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150, with_model=True)
+    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=1)
+    lines: list[str] = []
+    s = run_sfm(tmp_path / "s", tmp_path / "sfm", cfg, progress=False, log=lines.append)
+    print("\n".join(lines))
+    chosen = s.attempts[s.chosen_attempt]
+    r = s.refinement
+    assert r is not None and r["kept"], r
+    assert r["registered"] == chosen["registered"] == s.registered == 10
+    assert r["mean_reprojection_error_before"] == pytest.approx(chosen["mean_reprojection_error"])
+    assert r["mean_reprojection_error"] < r["mean_reprojection_error_before"]
+    assert r["mean_reprojection_error"] < cfg.refine_max_reprojection_error
+    assert r["seconds"] > 0 and r["settings"]["guided_matching"]
+    # the written model is the refined one
+    assert s.mean_reprojection_error == pytest.approx(r["mean_reprojection_error"])
+    assert s.num_points == r["num_points"] == load_model(s.model_dir).xyz.shape[0]
+    assert s.pose_errors == r["pose_errors"] and s.pose_errors["compared"] == 10
+    assert any(line.startswith("sfm refinement: 10 registered") for line in lines)
+
+    off = run_sfm(tmp_path / "s", tmp_path / "sfm_off", replace(cfg, refine=False), progress=False, log=lambda x: None)
+    assert off.refinement is None
+    chosen_off = off.attempts[off.chosen_attempt]
+    assert off.mean_reprojection_error == pytest.approx(chosen_off["mean_reprojection_error"])
+    assert off.num_points == chosen_off["num_points"]
+    assert off.pose_errors == chosen_off["pose_errors"]
+
+
+def test_refinement_matches_views_by_name_when_the_database_numbers_them_differently(tmp_path):
+    """Feature extraction on several threads numbers the images in the order they finish, so the
+    refinement's database can give a view another id than the chosen model. A model whose ids run
+    backwards against the database is refined (num_threads=2) with every view kept at its own pose."""
+    import pycolmap
+
+    from rtsplat.pose_eval import compare_poses
+    from rtsplat.sfm_attempts import AttemptRunner, denser_features, first_settings
+    from rtsplat.sfm_refine import refine_model
+
+    views = make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150)
+    names = [v.name for v in views]
+    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=2)
+    (tmp_path / "work").mkdir()
+    runner = AttemptRunner(tmp_path / "s" / "images", names, tmp_path / "work", cfg, None)
+    first = first_settings(cfg, len(names))
+    attempt, rec = runner.run(0, "configured", "", first)
+    assert attempt.registered == 10, attempt
+    # the same views, poses and camera under image and frame ids in reverse order
+    (camera_id,) = rec.cameras
+    reversed_ids = dict(zip(sorted(rec.images), sorted(rec.images, reverse=True), strict=True))
+    permuted = pycolmap.Reconstruction()
+    permuted.add_camera_with_trivial_rig(rec.camera(camera_id))
+    for image_id, image in rec.images.items():
+        new = pycolmap.Image(name=image.name, camera_id=camera_id, image_id=reversed_ids[image_id])
+        permuted.add_image_with_trivial_frame(new, image.cam_from_world())
+    db = pycolmap.Database.open(str(runner.match_database(denser_features(first))))
+    try:
+        db_ids = {im.name: im.image_id for im in db.read_all_images()}
+    finally:
+        db.close()
+    assert sum(permuted.find_image_with_name(n).image_id != db_ids[n] for n in names) >= 8
+
+    result, refined = refine_model(permuted, runner, first, cfg, tmp_path / "refined")
+    print(result)
+    assert result.kept and result.registered == 10, result.verdict
+    assert result.mean_reprojection_error < cfg.refine_max_reprojection_error
+    assert refined.num_points3D() > 100
+    assert {refined.image(i).name: i for i in refined.reg_image_ids()} == db_ids
+    estimated = {}
+    for image in refined.images.values():
+        w2c = np.eye(4)
+        w2c[:3] = image.cam_from_world().matrix()
+        estimated[image.name] = w2c
+    errors = compare_poses(estimated, {v.name: v.world_to_camera for v in views})
+    # as in the pose check above: the orientations fit closely, the centres within 2% of their spread
+    assert errors.compared == 10
+    assert errors.orientation_aligned_rotation_error_deg_max < 0.5, errors
+    assert errors.center_error_relative < 0.02, errors
