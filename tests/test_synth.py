@@ -331,3 +331,16 @@ def test_colmap_recovers_dome_poses(tmp_path):
     assert stats["mean_reprojection_error_px"] < 1.0, stats
     assert stats["rotation_error_deg_max"] < 1.0, stats
     assert stats["center_error_relative"] < 0.02, stats
+
+
+def test_overwrite_never_replaces_a_folder_synth_did_not_write(tmp_path):
+    from rtsplat.errors import PipelineError
+    from rtsplat.synth.dataset import SynthConfig, render_dataset
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "holiday.jpg").write_bytes(b"not a dataset")
+    with pytest.raises(PipelineError, match="not written by 'rtsplat synth'"):
+        config = SynthConfig(scene="dome", views=2, width=16, height=16, spp=1, allow_any_views=True)
+        render_dataset(config, photos, overwrite=True, progress=False)
+    assert (photos / "holiday.jpg").read_bytes() == b"not a dataset"

@@ -12,8 +12,9 @@ Output directory (``<stem>`` = ``0000`` ... for view 0 ...)::
     scene.json                          generator, parameters, seed, Mitsuba version, file list
 
 Everything is written into a hidden temporary directory beside ``out_dir`` that is renamed into
-place at the end (:func:`rtsplat.io.atomic.atomic_dir`), so a failure or ctrl-C never leaves a
-partial dataset, and an existing dataset being overwritten survives a failed run.
+place at the end (:func:`rtsplat.io.outputs.output_dir`), so a failure or ctrl-C never leaves a
+partial dataset, and an existing dataset being overwritten survives a failed run. Only a folder that
+synth wrote itself (its marker file) or an empty one is ever replaced.
 """
 
 from __future__ import annotations
@@ -27,9 +28,9 @@ import numpy as np
 
 from rtsplat.camera import Camera
 from rtsplat.errors import ConfigError, PipelineError
-from rtsplat.io.atomic import atomic_dir
 from rtsplat.io.colmap import ColmapImage, ColmapPoints, write_sparse_model
 from rtsplat.io.images import linear_to_srgb, to_uint, write_png
+from rtsplat.io.outputs import output_dir
 from rtsplat.synth.cameras import SAMPLER, effective_spp
 from rtsplat.synth.render import VARIANT, ViewRender, load_scene, render_view, set_variant
 from rtsplat.synth.scenes import SCENES, SceneSpec, build_scene
@@ -270,7 +271,9 @@ def render_dataset(
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise PipelineError("the output exists", path=out_dir, fix="pass overwrite=True (--overwrite) to replace it")
-    with atomic_dir(out_dir) as tmp:  # a failure or ctrl-C leaves no partial dataset (nor harms an old one)
+    # only a folder that synth wrote itself (its marker) or an empty one is replaced; a failure or
+    # ctrl-C leaves no partial dataset (nor harms an old one)
+    with output_dir(out_dir, "synth") as tmp:
         set_variant()
         work = tmp / "_work"
         work.mkdir()
