@@ -42,6 +42,7 @@ from rtsplat.io.images import (
 )
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.io.ply import write_points_ply
+from rtsplat.pose_eval import camera_center
 from rtsplat.scene import (
     GT_LAYERS_DIR,
     IMAGES_DIR,
@@ -214,9 +215,7 @@ def hull_surface(
     facing = np.zeros(len(points))
     in_frame, _ = _mask_votes(views, points)
     for _, world_to_camera, _ in views:
-        R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
-        eye = -R.T @ t
-        facing += ((eye - points) * normals).sum(1) > 0
+        facing += ((camera_center(world_to_camera) - points) * normals).sum(1) > 0
     keep = (in_frame > 0) & (facing >= min_facing * len(views))
     return points[keep], normals[keep]
 
