@@ -192,25 +192,21 @@ def train_yaml(text: str) -> Callable[[Path], None]:
     return write("train.yaml", "train:\n" + text)
 
 
+def train_yaml_case(expected: list[str], text: str) -> Case:
+    """A new training run whose --config file has ``train:`` followed by ``text``."""
+    return Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], expected, train_yaml(text))
+
+
 CONFIG_CASES = {
-    "iterations NaN": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "nan"],
-                           train_yaml("  schedule: {iterations: .nan}\n")),
-    "iterations infinite": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "inf"],
-                                train_yaml("  schedule: {iterations: .inf}\n")),
-    "iterations 10.5": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "integer"],
-                            train_yaml("  schedule: {iterations: 10.5}\n")),
-    "iterations 0": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "minimum"],
-                         train_yaml("  schedule: {iterations: 0}\n")),
-    "iterations a word": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.schedule.iterations", "ten"],
-                              train_yaml("  schedule: {iterations: ten}\n")),
-    "lr infinite": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.lr.occupancy", "inf"],
-                        train_yaml("  lr: {occupancy: .inf}\n")),
-    "lr NaN": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.lr.opacity", "nan"],
-                   train_yaml("  lr: {opacity: .nan}\n")),
-    "lr negative": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.lr.scaling", "minimum"],
-                        train_yaml("  lr: {scaling: -0.001}\n")),
-    "position lr zero": Case([*TRAIN_NEW, "--config", "{R}/train.yaml"], ["train.lr.position_init"],
-                             train_yaml("  lr: {position_init: 0}\n")),
+    "iterations NaN": train_yaml_case(["train.schedule.iterations", "nan"], "  schedule: {iterations: .nan}\n"),
+    "iterations infinite": train_yaml_case(["train.schedule.iterations", "inf"], "  schedule: {iterations: .inf}\n"),
+    "iterations 10.5": train_yaml_case(["train.schedule.iterations", "integer"], "  schedule: {iterations: 10.5}\n"),
+    "iterations 0": train_yaml_case(["train.schedule.iterations", "minimum"], "  schedule: {iterations: 0}\n"),
+    "iterations a word": train_yaml_case(["train.schedule.iterations", "ten"], "  schedule: {iterations: ten}\n"),
+    "lr infinite": train_yaml_case(["train.lr.occupancy", "inf"], "  lr: {occupancy: .inf}\n"),
+    "lr NaN": train_yaml_case(["train.lr.opacity", "nan"], "  lr: {opacity: .nan}\n"),
+    "lr negative": train_yaml_case(["train.lr.scaling", "minimum"], "  lr: {scaling: -0.001}\n"),
+    "position lr zero": train_yaml_case(["train.lr.position_init"], "  lr: {position_init: 0}\n"),
     "lr -inf in JSON": Case([*TRAIN_NEW, "--config-json", '{"lr": {"mlp": -Infinity}}'], ["train.lr.mlp", "-inf"]),
     "unknown lr key": Case([*TRAIN_NEW, "--config-json", '{"lr": {"means": 0.1}}'],
                            ["train.lr.means", "position_init"]),
