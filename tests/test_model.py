@@ -100,6 +100,20 @@ def test_environment_map_matches_a_per_sample_trilinear_lookup(height, width, le
         torch.testing.assert_close(got[k].double(), want, rtol=1e-5, atol=1e-5)
 
 
+def test_single_level_sample_matches_the_by_hand_bilinear_lookup():
+    """``sample_level`` (the background map's lookup) is the roughness-0 lookup of that level."""
+    env = EnvironmentMap(channels=3, height=12, width=20, levels=2)
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        env.features.copy_(torch.randn(env.features.shape, generator=g))
+    dirs = torch.nn.functional.normalize(torch.randn(30, 3, generator=g), dim=-1)
+    dirs[:3] = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 1e-4, 0.0], [-1.0, -1e-4, 0.0]])
+    u, v = EnvironmentMap.direction_to_uv(dirs)
+    got = EnvironmentMap.sample_level(env.features, u, v)
+    for k in range(30):
+        torch.testing.assert_close(got[k].double(), _env_lookup_by_hand(env, dirs[k], 0.0), rtol=1e-5, atol=1e-5)
+
+
 def test_environment_map_gradients_match_finite_differences():
     env = EnvironmentMap(channels=2, height=8, width=16, levels=3).double()
     g = torch.Generator().manual_seed(3)
@@ -202,6 +216,38 @@ def test_composite_equation_with_every_branch_on():
     expected = torch.where(L["shade"] > 0, L["roi"] * shaded + (1 - L["roi"]) * L["trans"], L["trans"])
     torch.testing.assert_close(result.color, expected)
     assert L["shade"].sum() > 10  # the test exercises shaded pixels
+
+
+class _EveryShadedPixel(RTModel):
+    """Runs the specular network on every shaded pixel, region of interest or not."""
+
+    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None):
+        return super()._specular(camera, normal, g, alpha_safe, alpha_safe > self.settings.shade_alpha_threshold,
+                                 every_pixel)
+
+
+def test_specular_runs_only_where_the_roi_weighs_and_the_image_and_gradients_do_not_change():
+    results = []
+    for cls in (RTModel, _EveryShadedPixel):
+        model = _model()
+        model.__class__ = cls
+        with torch.no_grad():  # half of the surfels leave the region of interest
+            model.roi_radius.fill_(0.5)
+        result = _render(model)
+        (result.color * torch.linspace(0.5, 1.5, result.color.numel()).reshape(result.color.shape)).sum().backward()
+        grads = [p.grad.clone() for p in model.parameters() if p.grad is not None]
+        results.append((result, grads))
+    (restricted, g_restricted), (full, g_full) = results
+    outside = (full.layers["shade"] > 0) & (full.layers["roi"] == 0)
+    assert outside.sum() > 20  # the network sees fewer pixels
+    assert restricted.layers["spec"][outside.expand(-1, -1, 3)].abs().max() == 0
+    assert full.layers["spec"][outside.expand(-1, -1, 3)].abs().max() > 0
+    torch.testing.assert_close(restricted.color, full.color, rtol=0, atol=0)
+    for key in ("reflection", "transmission"):
+        torch.testing.assert_close(restricted.layers[key], full.layers[key], rtol=0, atol=0)
+    assert len(g_restricted) == len(g_full)
+    for a, b in zip(g_restricted, g_full, strict=True):  # float32 sums over fewer zero rows: rounding only
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
 
 
 def _sh_grad(model, gating, weight):

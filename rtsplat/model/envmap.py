@@ -70,12 +70,14 @@ class EnvironmentMap(nn.Module):
         """Bilinear sample [M,C] of one map ``level`` [1,C,H,W] at (u, v) [M]: the taps of
         :meth:`_bilinear_taps` (longitude wraps around, colatitude clamps at the poles)."""
         _, C, H, W = level.shape
-        table = level[0].permute(1, 2, 0).reshape(H * W, C)
+        # channel-major [C, H*W] is a view of the map (no copy); gathering whole columns from it is
+        # several times faster than gathering 3-float rows from a strided texel-major view
+        table = level[0].reshape(C, H * W)
         rows, weights = EnvironmentMap._bilinear_taps(
             u, v, torch.zeros_like(u, dtype=torch.long), torch.full_like(u, H), torch.full_like(u, W)
         )
-        taps = table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, C)
-        return (taps * weights[:, :, None].to(table.dtype)).sum(1)
+        taps = table.index_select(1, rows.reshape(-1)).reshape(C, *rows.shape)
+        return (taps * weights[None].to(table.dtype)).sum(-1).T
 
     @staticmethod
     def _bilinear_taps(u: Tensor, v: Tensor, offset: Tensor, H: Tensor, W: Tensor) -> tuple[Tensor, Tensor]:

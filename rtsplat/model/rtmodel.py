@@ -133,7 +133,9 @@ class RTModel(nn.Module):
         roi = (g["roi"] / alpha_safe).clamp(0, 1)
         specular_on = stage == "full" and self.effects.specular
         if specular_on:
-            spec, beta = self._specular(camera, normal, g, alpha_safe, shade)
+            # a pixel with no region-of-interest weight shows C_trans alone (region_blend and the layers
+            # weigh C_spec and beta by roi), so the network runs only where roi > 0
+            spec, beta = self._specular(camera, normal, g, alpha_safe, shade & (roi > 0))
             if not self.ablations.attenuation:
                 beta = torch.ones_like(beta)
             layers.update(spec=spec, beta=beta)
@@ -169,10 +171,10 @@ class RTModel(nn.Module):
 
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
                   every_pixel: bool | None = None):
-        """C_spec and beta where ``shade``; 0 and 1 elsewhere. On the CPU only the shaded pixels are
-        evaluated; on other devices (``every_pixel``, default: not on the CPU) every pixel is and the
-        unshaded ones are masked out, because gathering the shaded ones would wait for the device to
-        count them. Both give the same values and gradients."""
+        """C_spec and beta where ``shade`` (the render passes the shaded pixels with region-of-interest
+        weight); 0 and 1 elsewhere. On the CPU only those pixels are evaluated; on other devices
+        (``every_pixel``, default: not on the CPU) every pixel is and the others are masked out, because
+        gathering them would wait for the device to count them. Both give the same values and gradients."""
         H, W = normal.shape[:2]
         flat = shade.reshape(-1)
         every_pixel = normal.device.type != "cpu" if every_pixel is None else every_pixel
