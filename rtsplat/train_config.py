@@ -153,6 +153,12 @@ class Densification:
         0.01, help="a reset clamps occupancy (then, next time, opacity) to at most this", minimum=0.0, maximum=1.0
     )
     max_surfels: int = setting(200_000, help="no densification beyond this many surfels", minimum=1)
+    initial_copies: int = setting(
+        4, help="surfels started per SfM point: the point and copies - 1 more around it, offset by a normal "
+        "deviate of half its RMS distance to its 3 nearest points (colour copied); a sparse SfM cloud otherwise "
+        "leaves too few surfels for the few densifications of a short run to grow. 1: one surfel per point",
+        minimum=1,
+    )
 
 
 @dataclass

@@ -392,6 +392,27 @@ def test_a_background_colour_given_to_render_replaces_the_model_background():
     torch.testing.assert_close(result.color, out.color + (1 - out.volume_alpha) * colour)
 
 
+def test_scattered_points_keep_the_originals_and_spread_by_half_the_neighbour_distance():
+    from rtsplat.model.surfels import nearest_neighbour_scale, scatter_points
+
+    g = torch.Generator().manual_seed(0)
+    grid = torch.stack(torch.meshgrid(torch.arange(20.0), torch.arange(20.0), indexing="ij"), -1).reshape(-1, 2)
+    xyz = torch.cat([grid * 0.1, torch.zeros(400, 1)], 1)  # a plane of points 0.1 apart
+    xyz[:200] *= 3.0  # half of them 0.3 apart
+    rgb = torch.rand(400, 3, generator=g)
+    out_xyz, out_rgb = scatter_points(xyz, rgb, 5, generator=g)
+    assert out_xyz.shape == (2000, 3) and out_rgb.shape == (2000, 3)
+    assert torch.equal(out_xyz[:400], xyz) and torch.equal(out_rgb[400:].reshape(4, 400, 3), rgb.expand(4, 400, 3))
+    offsets = (out_xyz[400:].reshape(4, 400, 3) - xyz).reshape(4, 400, 3)
+    spread = offsets.pow(2).mean((0, 2)).sqrt()  # per point, over its copies and the axes
+    want = 0.5 * nearest_neighbour_scale(xyz)
+    for rows in (slice(0, 200), slice(200, 400)):  # tracks the local spacing: 0.3 apart vs 0.1 apart
+        ratio = spread[rows].mean() / want[rows].mean()
+        assert 0.85 < ratio < 1.15
+    same_xyz, same_rgb = scatter_points(xyz, rgb, 1)
+    assert same_xyz is xyz and same_rgb is rgb
+
+
 def test_quats_with_normal_turn_the_surfel_normal_onto_the_given_one():
     from rtsplat.model.surfels import quats_with_normal
     from rtsplat.raster.projection import quat_to_rotmat

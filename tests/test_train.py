@@ -141,11 +141,12 @@ def test_mask_loss_switch(glass_scene, tmp_path):
 def test_separate_optimization_freezes_the_background(glass_scene, tmp_path):
     cfg = config(20, ablations={"joint_optimization": False})
     trainer = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
-    n_points = trainer.points[0].shape[0]
+    n_start = len(trainer.model.surfels)  # the initial set: SfM points x densify.initial_copies
+    assert n_start == trainer.points[0].shape[0] * cfg.densify.initial_copies
     while trainer.iteration < 11:  # background phase is iterations 1..10
         trainer.step()
     frozen = trainer.frozen.clone()
-    assert frozen.sum() >= n_points and (~frozen).sum() == n_points
+    assert frozen.sum() >= n_start and (~frozen).sum() == n_start  # a fresh initial set for the glass
     before = {k: v.detach()[frozen].clone() for k, v in trainer.model.surfels.tensors().items()}
     while trainer.iteration < 20:
         trainer.step()
@@ -302,7 +303,7 @@ def test_surfels_start_on_the_transparent_surface_only_with_transmission(tmp_pat
     xyz = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.1, 0.1, 0.0], [0.05, 0.05, 0.0]])
     normal = np.tile([[0.0, 0.6, 0.8]], (5, 1))
     np.savez(tmp_path / "scene" / "transparent_surface.npz", xyz=xyz, normal=normal)
-    n_points = scene.load_points()[0].shape[0]
+    n_points = scene.load_points()[0].shape[0] * config(4).densify.initial_copies
     rt = Trainer(scene, config(4), tmp_path / "rt", progress=False, log=lambda m: None)
     surfels = rt.model.surfels
     assert len(surfels) == n_points + 5

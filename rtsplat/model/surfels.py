@@ -95,6 +95,19 @@ def nearest_neighbour_scale(points: Tensor, k: int = 3, chunk: int = 4096) -> Te
     return torch.cat(out).clamp_min(1e-7).sqrt()
 
 
+def scatter_points(xyz: Tensor, rgb: Tensor, copies: int, generator: torch.Generator | None = None
+                   ) -> tuple[Tensor, Tensor]:
+    """Each point [N,3] followed by ``copies - 1`` more drawn around it: offsets from a normal
+    distribution of standard deviation half the point's :func:`nearest_neighbour_scale`, colours copied.
+    Returns ([N * copies, 3], [N * copies, 3]); ``copies`` 1 returns the points unchanged."""
+    if copies <= 1 or xyz.shape[0] == 0:
+        return xyz, rgb
+    sigma = 0.5 * nearest_neighbour_scale(xyz)
+    offsets = torch.randn(copies - 1, *xyz.shape, generator=generator, dtype=xyz.dtype) * sigma[:, None]
+    extra = (xyz[None] + offsets.to(xyz.device)).reshape(-1, 3)
+    return torch.cat([xyz, extra]), torch.cat([rgb, rgb.repeat(copies - 1, 1)])
+
+
 def quats_with_normal(normals: Tensor) -> Tensor:
     """Unit quaternions (wxyz) of the rotations that take the z axis, the surfel normal, to ``normals``
     [N,3] (the shortest such rotation; a half turn about x for ``-z``)."""

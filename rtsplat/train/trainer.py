@@ -38,6 +38,7 @@ from rtsplat.model.surfels import (
     concat_surfels,
     init_from_points,
     quats_with_normal,
+    scatter_points,
 )
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
@@ -129,8 +130,9 @@ class Trainer:
     # -- construction ------------------------------------------------------------------------
     def _init_surfels(self) -> SurfelParameters:
         m = self.cfg.model
+        xyz, rgb = scatter_points(*self.points, self.cfg.densify.initial_copies, generator=self.rng)
         surfels = init_from_points(
-            *self.points, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
+            xyz, rgb, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
             transmissivity=m.transmissivity_init, roughness=m.roughness_init, reflectance=m.reflectance_init,
             generator=self.rng,
         )
