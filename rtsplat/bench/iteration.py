@@ -2,7 +2,7 @@
 
 Trains rtsplat and 2dgs (transmission and specular off) on a prepared scene at the demo's
 settings (demo/config.yaml: 600 iterations, 128x256 environment map with 7 levels, volume until
-100, specular from 200, densification every 100 from 150). Each (checkout, method) pair runs in
+100, specular from 200, densification every 50 from 150). Each (checkout, method) pair runs in
 its own worker process: it first trains ``--warmup`` iterations (default 300: past
 ``specular_from``, so the full model runs, after two densifications, so the surfel count is a
 trained one), then times ``--iterations`` iterations per round. Rounds are interleaved over the
@@ -41,7 +41,7 @@ from pathlib import Path
 DEMO_OPTIONS = {
     "model": {"env_height": 128, "env_width": 256, "env_levels": 7},
     "schedule": {"iterations": 600, "volume_until": 100, "specular_from": 200, "densify_from": 150,
-                 "densify_every": 100, "reset_every": 0, "eval_every": 0, "checkpoint_every": 0,
+                 "densify_every": 50, "reset_every": 0, "eval_every": 0, "checkpoint_every": 0,
                  "log_every": 10**9},
 }
 METHODS = {
