@@ -13,9 +13,10 @@ The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
   reference, and the traversal of a pixel ends as soon as *both* sets have stopped;
 * backward: hand written, no autograd graph over pixel x surfel pairs. It replays each pixel's
   traversal front to back and uses the forward totals to get the suffix sums
-  (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); gradients go to a per-(tile, surfel) buffer so
-  threads never race, then one ``index_add_`` reduces them per surfel;
-* both kernels run in parallel across tiles (numba ``prange``, dynamic chunks of one tile), with
+  (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); gradients go to one per-surfel buffer per
+  thread so threads never race, summed over threads at the end;
+* both kernels run in parallel across 4x4 pixel blocks (numba ``prange``, dynamic chunks of one
+  block), with
   as many threads as ``torch.get_num_threads()``; all arithmetic is float64 (inputs of any float
   dtype are converted, outputs and gradients are returned in the input dtype).
 
@@ -224,9 +225,13 @@ class _Composite(torch.autograd.Function):
         n_done = np.zeros(n_pix, dtype=np.int64)
         median_k = np.full(n_pix, -1, dtype=np.int64)
         used = np.zeros(arrays[6].shape[0], dtype=np.uint8)
+        keep = np.empty(arrays[6].shape[0], dtype=np.int64)
+        n_keep = np.zeros(arrays[8].shape[0], dtype=np.int64)
+        lists = (cut, boxes, keep, n_keep)
         with _threads():
-            kernels.forward_kernel(*arrays, *scalars, cut, boxes, out, stats, n_done, median_k, used)
-        ctx.saved = (arrays, scalars, cut, boxes, out, stats, n_done, median_k)
+            kernels.tile_entries_kernel(arrays[6], boxes, arrays[7], arrays[8], scalars[0], scalars[1], keep, n_keep)
+            kernels.forward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, used)
+        ctx.saved = (arrays, scalars, lists, out, stats, n_done, median_k)
         ctx.meta = (n, fc, width, height, M.dtype)
         visible = torch.zeros(n, dtype=torch.bool)
         if used.size:
@@ -238,18 +243,17 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_image, grad_visible):
-        arrays, scalars, cut, boxes, out, stats, n_done, median_k = ctx.saved
+        arrays, scalars, lists, out, stats, n_done, median_k = ctx.saved
         n, fc, width, height, dtype = ctx.meta
         if grad_image is None or not any(ctx.needs_input_grad[:6]):
             return (None,) * 8
         grad = _np64(grad_image.reshape(width * height, fc + 9))
-        ids = arrays[6]
-        pair_grad = np.zeros((ids.shape[0], 16 + fc), dtype=np.float64)
-        with _threads():
-            _kernels.backward_kernel(*arrays, *scalars, cut, boxes, out, stats, n_done, median_k, grad, pair_grad)
-        per_surfel = torch.zeros(n, 16 + fc, dtype=torch.float64)
-        if ids.shape[0]:
-            per_surfel.index_add_(0, torch.from_numpy(ids), torch.from_numpy(pair_grad))
+        result = np.empty((n, 16 + fc), dtype=np.float64)
+        with _threads() as threads:
+            acc = np.zeros((threads, n, 16 + fc), dtype=np.float64)
+            _kernels.backward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, grad, acc)
+            _kernels.sum_threads_kernel(acc, result)
+        per_surfel = torch.from_numpy(result)
         per_surfel = per_surfel.to(dtype)
         k = _kernels
         return (
@@ -273,6 +277,7 @@ class _threads:
         self._threads = numba.get_num_threads()
         numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
         self._chunk = numba.set_parallel_chunksize(1)
+        return numba.get_num_threads()
 
     def __exit__(self, *exc):
         import numba

@@ -12,16 +12,17 @@ All arithmetic is float64. Per-surfel inputs (projected by :mod:`rtsplat.raster.
 * ``rho_cut`` [N]: pairs with rho above it cannot reach ``alpha_min`` in either weight set (see
   :func:`rtsplat.raster.cpu.rho_cutoff`); they are skipped before the exponential;
 * ``boxes`` [N,4]: pixel boxes outside which rho > ``rho_cut`` (see
-  :func:`rtsplat.raster.cpu.contribution_boxes`); each tile first keeps the entries whose box meets
-  it, then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
-  positions in that block list), and each pixel skips entries whose box it is outside of.
+  :func:`rtsplat.raster.cpu.contribution_boxes`); :func:`tile_entries_kernel` keeps per tile the
+  entries whose box meets it (``keep``/``n_keep``), then each 4x4 pixel block of the tile the
+  entries whose box meets the block (``n_done`` counts positions in that block list), and each
+  pixel skips entries whose box it is outside of. The parallel work unit is one 4x4 block.
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
 
-Pair-gradient row layout (``pair_grad`` [pairs, 16+Fc]), one row per (tile, surfel) entry of the
-binned lists, so that threads (one tile each) never write the same memory:
-``M (9) | centers (2) | occ | opa | colors (3) | feats (Fc)``.
+Per-surfel gradient row layout (``acc`` [threads, N, 16+Fc], one slice per thread indexed by
+``numba.get_thread_id()`` so that threads never write the same memory, summed over threads by
+:func:`sum_threads_kernel`): ``M (9) | centers (2) | occ | opa | colors (3) | feats (Fc)``.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import get_thread_id, njit, prange
 
 G_M, G_CENTER, G_OCC, G_OPA, G_COLOR, G_FEAT = 0, 9, 11, 12, 13, 16
 
@@ -79,51 +80,49 @@ def _eval_pair(M, centers, i, px, py, lowpass, edge_on_ratio):
     return z, rho, use_plane, plane_ok, u, v, p2, dx, dy, hx0, hx1, hx2, hy0, hy1, hy2
 
 
-@njit(inline="always", **_JIT)
-def _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size):
-    """List positions (relative to ``start``) of the tile's surfels whose box meets the tile."""
-    lo_x = tx0 + 0.5
-    hi_x = tx0 + tile_size - 0.5
-    lo_y = ty0 + 0.5
-    hi_y = ty0 + tile_size - 0.5
-    keep = np.empty(cnt, dtype=np.int64)
-    n = 0
-    for k in range(cnt):
-        i = ids[start + k]
-        if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
-            keep[n] = k
-            n += 1
-    return keep, n
+@njit(parallel=True, **_JIT)
+def tile_entries_kernel(ids, boxes, tile_start, tile_count, tiles_x, tile_size, keep, n_keep):
+    """Per tile: the list positions (relative to the tile's start, depth order kept) of the surfels whose
+    box meets the tile, written to ``keep[start:start + n_keep[t]]``."""
+    for t in prange(tile_count.shape[0]):
+        cnt = tile_count[t]
+        start = tile_start[t]
+        tx0 = (t % tiles_x) * tile_size
+        ty0 = (t // tiles_x) * tile_size
+        lo_x = tx0 + 0.5
+        hi_x = tx0 + tile_size - 0.5
+        lo_y = ty0 + 0.5
+        hi_y = ty0 + tile_size - 0.5
+        n = 0
+        for k in range(cnt):
+            i = ids[start + k]
+            if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
+                keep[start + n] = k
+                n += 1
+        n_keep[t] = n
 
 
 BLOCK = 4  # pixels per side of the sub-tile blocks whose entry lists each pixel scans
 
 
 @njit(inline="always", **_JIT)
-def _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size):
-    """Per BLOCK x BLOCK pixel block of the tile: the tile entries (list positions relative to ``start``,
-    depth order kept) whose box meets the block. A pixel scans only its block's list, so the long lists of
-    small tiles full of small surfels are not walked once per pixel. Returns (lists [blocks, n_keep],
-    counts [blocks], blocks per row)."""
-    nbx = (tile_size + BLOCK - 1) // BLOCK
-    lists = np.empty((nbx * nbx, max(n_keep, 1)), dtype=np.int64)
-    counts = np.zeros(nbx * nbx, dtype=np.int64)
-    for by in range(nbx):
-        lo_y = ty0 + by * BLOCK + 0.5
-        hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
-        for bx in range(nbx):
-            lo_x = tx0 + bx * BLOCK + 0.5
-            hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
-            b = by * nbx + bx
-            n = 0
-            for j in range(n_keep):
-                k = keep[j]
-                i = ids[start + k]
-                if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
-                    lists[b, n] = k
-                    n += 1
-            counts[b] = n
-    return lists, counts, nbx
+def _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by):
+    """The tile entries (list positions relative to ``start``, depth order kept) whose box meets pixel
+    block (bx, by) of the tile, and their count. A pixel scans only its block's list, so the long lists of
+    small tiles full of small surfels are not walked once per pixel."""
+    lo_y = ty0 + by * BLOCK + 0.5
+    hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
+    lo_x = tx0 + bx * BLOCK + 0.5
+    hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
+    lst = np.empty(max(nk, 1), dtype=np.int64)
+    n = 0
+    for j in range(nk):
+        k = keep[start + j]
+        i = ids[start + k]
+        if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
+            lst[n] = k
+            n += 1
+    return lst, n
 
 
 @njit(parallel=True, **_JIT)
@@ -150,6 +149,8 @@ def forward_kernel(
     edge_on_ratio,
     rho_cut,
     boxes,
+    keep,
+    n_keep,
     out,
     stats,
     n_done,
@@ -159,21 +160,25 @@ def forward_kernel(
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
     ndc_scale = far / (far - near)
-    for t in prange(n_tiles):
-        cnt = tile_count[t]
-        if cnt == 0:
+    nbx = (tile_size + BLOCK - 1) // BLOCK
+    nb2 = nbx * nbx
+    for unit in prange(n_tiles * nb2):
+        t = unit // nb2
+        nk = n_keep[t]
+        if nk == 0:
             continue
         start = tile_start[t]
         tx0 = (t % tiles_x) * tile_size
         ty0 = (t // tiles_x) * tile_size
-        keep, n_keep = _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size)
-        blocks, block_count, nbx = _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size)
-        for ly in range(tile_size):
+        by = (unit - t * nb2) // nbx
+        bx = (unit - t * nb2) - by * nbx
+        lst, n_scan = _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by)
+        for ly in range(by * BLOCK, min((by + 1) * BLOCK, tile_size)):
             yi = ty0 + ly
             if yi >= height:
                 break
             py = yi + 0.5
-            for lx in range(tile_size):
+            for lx in range(bx * BLOCK, min((bx + 1) * BLOCK, tile_size)):
                 xi = tx0 + lx
                 if xi >= width:
                     break
@@ -195,14 +200,12 @@ def forward_kernel(
                 c2 = 0.0
                 Av = 0.0
                 dvsum = 0.0
-                b = (ly // BLOCK) * nbx + lx // BLOCK
-                n_scan = block_count[b]
                 done = n_scan
                 for j in range(n_scan):
                     if not live_s and not live_v:
                         done = j
                         break
-                    k = blocks[b, j]
+                    k = lst[j]
                     i = ids[start + k]
                     if px < boxes[i, 0] or px > boxes[i, 1] or py < boxes[i, 2] or py > boxes[i, 3]:
                         continue
@@ -289,12 +292,14 @@ def backward_kernel(
     edge_on_ratio,
     rho_cut,
     boxes,
+    keep,
+    n_keep,
     out,
     stats,
     n_done,
     median_k,
     grad_out,
-    pair_grad,
+    acc,
 ):
     """Accumulate dL/d(per-surfel inputs) per binned pair, replaying the forward front to back.
 
@@ -305,21 +310,26 @@ def backward_kernel(
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
     ndc_scale = far / (far - near)
-    for t in prange(n_tiles):
-        cnt = tile_count[t]
-        if cnt == 0:
+    nbx = (tile_size + BLOCK - 1) // BLOCK
+    nb2 = nbx * nbx
+    for unit in prange(n_tiles * nb2):
+        t = unit // nb2
+        nk = n_keep[t]
+        if nk == 0:
             continue
         start = tile_start[t]
         tx0 = (t % tiles_x) * tile_size
         ty0 = (t // tiles_x) * tile_size
-        keep, n_keep = _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size)
-        blocks, block_count, nbx = _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size)
-        for ly in range(tile_size):
+        by = (unit - t * nb2) // nbx
+        bx = (unit - t * nb2) - by * nbx
+        lst, n_scan = _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by)
+        tid = get_thread_id()
+        for ly in range(by * BLOCK, min((by + 1) * BLOCK, tile_size)):
             yi = ty0 + ly
             if yi >= height:
                 break
             py = yi + 0.5
-            for lx in range(tile_size):
+            for lx in range(bx * BLOCK, min((bx + 1) * BLOCK, tile_size)):
                 xi = tx0 + lx
                 if xi >= width:
                     break
@@ -354,9 +364,8 @@ def backward_kernel(
                 T_v = 1.0
                 live_s = True
                 live_v = True
-                b = (ly // BLOCK) * nbx + lx // BLOCK
                 for j in range(n_done[pix]):
-                    k = blocks[b, j]
+                    k = lst[j]
                     i = ids[start + k]
                     if px < boxes[i, 0] or px > boxes[i, 1] or py < boxes[i, 2] or py > boxes[i, 3]:
                         continue
@@ -366,7 +375,6 @@ def backward_kernel(
                     if not (z >= near) or rho > rho_cut[i]:
                         continue
                     gauss = math.exp(-0.5 * rho)
-                    row = start + k
                     o = occ[i]
                     op = opa[i]
                     raw_s = o * gauss
@@ -392,14 +400,14 @@ def backward_kernel(
                             q = g_A + g_dsum * z + g_dist * (m * m * A - 2.0 * m * S1 + S2)
                             for c in range(fc):
                                 q += grad_out[pix, c] * feats[i, c]
-                                pair_grad[row, G_FEAT + c] += grad_out[pix, c] * w
+                                acc[tid, i, G_FEAT + c] += grad_out[pix, c] * w
                             P_s += q * w
                             g_a = q * T_s - (Q_s - P_s) / (1.0 - a_s)
                             g_z += g_dsum * w + g_dist * 2.0 * w * (m * A - S1) * (ndc_scale * near / (z * z))
                             if k == medk:
                                 g_z += g_med
                             if raw_s <= alpha_max:
-                                pair_grad[row, G_OCC] += g_a * gauss
+                                acc[tid, i, G_OCC] += g_a * gauss
                                 g_gauss += g_a * o
                             T_s = t_next
                     if live_v and a_v >= alpha_min:
@@ -410,16 +418,16 @@ def backward_kernel(
                             touched = True
                             w = a_v * T_v
                             q = g_Av + g_dv * z + g_c0 * colors[i, 0] + g_c1 * colors[i, 1] + g_c2 * colors[i, 2]
-                            pair_grad[row, G_COLOR] += g_c0 * w
-                            pair_grad[row, G_COLOR + 1] += g_c1 * w
-                            pair_grad[row, G_COLOR + 2] += g_c2 * w
+                            acc[tid, i, G_COLOR] += g_c0 * w
+                            acc[tid, i, G_COLOR + 1] += g_c1 * w
+                            acc[tid, i, G_COLOR + 2] += g_c2 * w
                             P_v += q * w
                             g_a = q * T_v - (Q_v - P_v) / (1.0 - a_v)
                             g_z += g_dv * w
                             if raw_v <= alpha_max:
                                 g_oo = g_a * gauss
-                                pair_grad[row, G_OCC] += g_oo * op
-                                pair_grad[row, G_OPA] += g_oo * o
+                                acc[tid, i, G_OCC] += g_oo * op
+                                acc[tid, i, G_OPA] += g_oo * o
                                 g_gauss += g_a * oo
                             T_v = t_next
                     if not touched:
@@ -428,9 +436,9 @@ def backward_kernel(
                     if use_plane:
                         if plane_ok:
                             # z = u m6 + v m7 + m8 ; rho = u^2 + v^2
-                            pair_grad[row, G_M + 6] += g_z * u
-                            pair_grad[row, G_M + 7] += g_z * v
-                            pair_grad[row, G_M + 8] += g_z
+                            acc[tid, i, G_M + 6] += g_z * u
+                            acc[tid, i, G_M + 7] += g_z * v
+                            acc[tid, i, G_M + 8] += g_z
                             g_u = g_z * M[i, 6] + 2.0 * u * g_rho
                             g_v = g_z * M[i, 7] + 2.0 * v * g_rho
                             gp0 = g_u / p2
@@ -443,18 +451,30 @@ def backward_kernel(
                             ghy0 = gp1 * hx2 - gp2 * hx1
                             ghy1 = gp2 * hx0 - gp0 * hx2
                             ghy2 = gp0 * hx1 - gp1 * hx0
-                            pair_grad[row, G_M + 0] += ghx0
-                            pair_grad[row, G_M + 1] += ghx1
-                            pair_grad[row, G_M + 2] += ghx2
-                            pair_grad[row, G_M + 3] += ghy0
-                            pair_grad[row, G_M + 4] += ghy1
-                            pair_grad[row, G_M + 5] += ghy2
-                            pair_grad[row, G_M + 6] -= px * ghx0 + py * ghy0
-                            pair_grad[row, G_M + 7] -= px * ghx1 + py * ghy1
-                            pair_grad[row, G_M + 8] -= px * ghx2 + py * ghy2
+                            acc[tid, i, G_M + 0] += ghx0
+                            acc[tid, i, G_M + 1] += ghx1
+                            acc[tid, i, G_M + 2] += ghx2
+                            acc[tid, i, G_M + 3] += ghy0
+                            acc[tid, i, G_M + 4] += ghy1
+                            acc[tid, i, G_M + 5] += ghy2
+                            acc[tid, i, G_M + 6] -= px * ghx0 + py * ghy0
+                            acc[tid, i, G_M + 7] -= px * ghx1 + py * ghy1
+                            acc[tid, i, G_M + 8] -= px * ghx2 + py * ghy2
                         else:
-                            pair_grad[row, G_M + 8] += g_z
+                            acc[tid, i, G_M + 8] += g_z
                     else:
-                        pair_grad[row, G_M + 8] += g_z
-                        pair_grad[row, G_CENTER] += g_rho * lowpass * 2.0 * dx
-                        pair_grad[row, G_CENTER + 1] += g_rho * lowpass * 2.0 * dy
+                        acc[tid, i, G_M + 8] += g_z
+                        acc[tid, i, G_CENTER] += g_rho * lowpass * 2.0 * dx
+                        acc[tid, i, G_CENTER + 1] += g_rho * lowpass * 2.0 * dy
+
+
+@njit(parallel=True, **_JIT)
+def sum_threads_kernel(acc, result):
+    """``result[i] = sum over threads of acc[thread, i]`` (the backward's per-thread accumulators)."""
+    n_threads = acc.shape[0]
+    for i in prange(acc.shape[1]):
+        for c in range(acc.shape[2]):
+            total = 0.0
+            for th in range(n_threads):
+                total += acc[th, i, c]
+            result[i, c] = total
