@@ -122,67 +122,6 @@ def _np_i64(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.int64).numpy())
 
 
-def rho_cutoff(occupancy: np.ndarray, opacity: np.ndarray, alpha_min: float) -> np.ndarray:
-    """Per surfel: the kernel exponent rho above which neither weight set can reach ``alpha_min``.
-
-    Both alphas are at most max(occupancy, occupancy x opacity) x exp(-rho/2), so a pair with
-    rho > 2 ln(that / alpha_min) contributes nothing; the margin (1e-6 + 1e-9 rho) keeps every pair
-    near the threshold for the exact test, so skipping changes no result. +inf (never skip) when
-    ``alpha_min`` <= 0, -inf (always skip) for a surfel whose alphas are all 0.
-    """
-    peak = np.maximum(occupancy, occupancy * opacity)
-    if alpha_min <= 0:
-        return np.full_like(peak, np.inf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cut = 2.0 * np.log(peak / alpha_min)
-    cut = np.where(np.isnan(cut), np.inf, cut)  # NaN inputs: leave them to the exact test
-    margin = 1e-6 + 1e-9 * np.abs(np.where(np.isfinite(cut), cut, 0.0))
-    return np.ascontiguousarray(cut + margin)
-
-
-def contribution_boxes(M: np.ndarray, centers: np.ndarray, cut: np.ndarray, lowpass: float) -> np.ndarray:
-    """Per surfel [N,4] (x_min, x_max, y_min, y_max), pixel coordinates: outside, rho > ``cut``.
-
-    rho = min(rho_3d, rho_2d) <= cut needs rho_3d <= cut (the pixel's ray meets the surfel plane
-    inside the ellipse u^2 + v^2 <= cut, whose projection is bounded by the dual-conic box of
-    :func:`ellipse_screen_box`) or rho_2d <= cut (a disc of radius sqrt(cut / lowpass) around the
-    centre). The union of both boxes, widened by a safety margin, bounds every pixel a surfel can
-    contribute to; the kernels skip pairs outside it. Unbounded projections (the ellipse reaches the
-    camera plane) and non-finite values give an infinite box: no skipping, the exact test decides.
-    """
-    n = M.shape[0]
-    boxes = np.empty((n, 4), dtype=np.float64)
-    boxes[:, 0::2] = -np.inf
-    boxes[:, 1::2] = np.inf
-    if n == 0:
-        return boxes
-    with np.errstate(all="ignore"):
-        c2 = np.where(np.isfinite(cut), np.maximum(cut, 0.0), 0.0)
-        rx, ry, rw = M[:, 0:3], M[:, 3:6], M[:, 6:9]
-        f = np.stack([c2, c2, -np.ones_like(c2)], 1)
-        d = (f * rw * rw).sum(1)
-        bounded = d < 0
-        d_safe = np.where(bounded, d, -1.0)
-        cx = (f * rx * rw).sum(1) / d_safe
-        cy = (f * ry * rw).sum(1) / d_safe
-        ex = np.sqrt(np.maximum(cx * cx - (f * rx * rx).sum(1) / d_safe, 0.0))
-        ey = np.sqrt(np.maximum(cy * cy - (f * ry * ry).sum(1) / d_safe, 0.0))
-        r = np.sqrt(c2 / lowpass) if lowpass > 0 else np.full_like(c2, np.inf)
-        ox, oy = centers[:, 0], centers[:, 1]
-        x0 = np.minimum(cx - ex, ox - r)
-        x1 = np.maximum(cx + ex, ox + r)
-        y0 = np.minimum(cy - ey, oy - r)
-        y1 = np.maximum(cy + ey, oy + r)
-        mx = 1e-2 + 1e-3 * (x1 - x0) + 1e-6 * (np.abs(cx) + np.abs(ox))
-        my = 1e-2 + 1e-3 * (y1 - y0) + 1e-6 * (np.abs(cy) + np.abs(oy))
-        box = np.stack([x0 - mx, x1 + mx, y0 - my, y1 + my], 1)
-        ok = bounded & np.isfinite(box).all(1) & np.isfinite(cut)
-    boxes[ok] = box[ok]
-    never = cut == -np.inf  # all alphas are 0: the surfel contributes nowhere
-    boxes[never] = np.array([np.inf, -np.inf, np.inf, -np.inf])
-    return boxes
-
-
 class _Composite(torch.autograd.Function):
     """Per-pixel compositing of both weight sets; inputs are per-surfel projected tensors."""
 
@@ -217,8 +156,8 @@ class _Composite(torch.autograd.Function):
             float(settings.lowpass_inv_var),
             float(EDGE_ON_RATIO),
         )
-        cut = rho_cutoff(arrays[2], arrays[3], float(settings.alpha_min))
-        boxes = contribution_boxes(arrays[0], arrays[1], cut, float(settings.lowpass_inv_var))
+        cut = np.empty(n, dtype=np.float64)
+        boxes = np.empty((n, 4), dtype=np.float64)
         n_pix = width * height
         out = np.zeros((n_pix, n_channels), dtype=np.float64)
         stats = np.zeros((n_pix, 2), dtype=np.float64)
@@ -229,6 +168,7 @@ class _Composite(torch.autograd.Function):
         n_keep = np.zeros(arrays[8].shape[0], dtype=np.int64)
         lists = (cut, boxes, keep, n_keep)
         with _threads():
+            kernels.surfel_bounds_kernel(*arrays[:4], scalars[7], scalars[9], cut, boxes)
             kernels.tile_entries_kernel(arrays[6], boxes, arrays[7], arrays[8], scalars[0], scalars[1], keep, n_keep)
             kernels.forward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, used)
         ctx.saved = (arrays, scalars, lists, out, stats, n_done, median_k)
@@ -268,15 +208,18 @@ class _Composite(torch.autograd.Function):
         )
 
 
+CHUNK = 4  # loop iterations (4x4 pixel blocks, surfels) per dynamic chunk of the parallel kernels
+
+
 class _threads:
-    """Run the kernels with torch's thread count and one-tile dynamic chunks."""
+    """Run the kernels with torch's thread count and dynamic chunks of ``CHUNK`` iterations."""
 
     def __enter__(self):
         import numba
 
         self._threads = numba.get_num_threads()
         numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-        self._chunk = numba.set_parallel_chunksize(1)
+        self._chunk = numba.set_parallel_chunksize(CHUNK)
         return numba.get_num_threads()
 
     def __exit__(self, *exc):

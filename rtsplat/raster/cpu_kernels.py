@@ -10,12 +10,12 @@ All arithmetic is float64. Per-surfel inputs (projected by :mod:`rtsplat.raster.
 * ``feats`` [N,Fc]: surface attributes (features, then camera-facing normals);
 * ``colors`` [N,3]: volume radiance;
 * ``rho_cut`` [N]: pairs with rho above it cannot reach ``alpha_min`` in either weight set (see
-  :func:`rtsplat.raster.cpu.rho_cutoff`); they are skipped before the exponential;
-* ``boxes`` [N,4]: pixel boxes outside which rho > ``rho_cut`` (see
-  :func:`rtsplat.raster.cpu.contribution_boxes`); :func:`tile_entries_kernel` keeps per tile the
-  entries whose box meets it (``keep``/``n_keep``), then each 4x4 pixel block of the tile the
-  entries whose box meets the block (``n_done`` counts positions in that block list), and each
-  pixel skips entries whose box it is outside of. The parallel work unit is one 4x4 block.
+  :func:`surfel_bounds_kernel`); they are skipped before the exponential;
+* ``boxes`` [N,4]: pixel boxes outside which rho > ``rho_cut`` (see :func:`surfel_bounds_kernel`);
+  :func:`tile_entries_kernel` keeps per tile the entries whose box meets it (``keep``/``n_keep``),
+  then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
+  positions in that block list), and each pixel skips entries whose box it is outside of. The
+  parallel work unit is one 4x4 block.
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
@@ -70,6 +70,102 @@ def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge
         rho = rho2
         z = m8
     return z, rho, use_plane, plane_ok, u, v, p2
+
+
+@njit(inline="always", **_JIT)
+def _nan_min(a, b):
+    """min that returns NaN when either argument is NaN (numpy's ``minimum``)."""
+    if a != a or b != b:
+        return np.nan
+    return a if a < b else b
+
+
+@njit(inline="always", **_JIT)
+def _nan_max(a, b):
+    """max that returns NaN when either argument is NaN (numpy's ``maximum``)."""
+    if a != a or b != b:
+        return np.nan
+    return a if a > b else b
+
+
+@njit(parallel=True, **_JIT)
+def surfel_bounds_kernel(M, centers, occ, opa, alpha_min, lowpass, rho_cut, boxes):
+    """Per surfel: ``rho_cut`` (the kernel exponent above which neither weight set can reach
+    ``alpha_min``) and ``boxes`` (x_min, x_max, y_min, y_max: pixel coordinates outside which
+    rho > ``rho_cut``).
+
+    Cut-off: both alphas are at most max(occupancy, occupancy x opacity) x exp(-rho/2), so a pair
+    with rho > 2 ln(that / alpha_min) contributes nothing; the margin (1e-6 + 1e-9 rho) keeps every
+    pair near the threshold for the exact test, so skipping changes no result. +inf (never skip)
+    when ``alpha_min`` <= 0 or for NaN inputs, -inf (always skip) for a surfel whose alphas are 0.
+
+    Box: rho = min(rho_3d, rho_2d) <= cut needs rho_3d <= cut (the pixel's ray meets the surfel
+    plane inside the ellipse u^2 + v^2 <= cut, whose projection is bounded by the dual-conic box of
+    :func:`rtsplat.raster.projection.ellipse_screen_box`) or rho_2d <= cut (a disc of radius
+    sqrt(cut / lowpass) around the centre). The union of both boxes, widened by a safety margin,
+    bounds every pixel a surfel can contribute to. Unbounded projections (the ellipse reaches the
+    camera plane) and non-finite values give an infinite box: no skipping, the exact test decides;
+    a surfel whose cut is -inf gets an empty box.
+    """
+    for n in prange(M.shape[0]):
+        o = occ[n]
+        peak = _nan_max(o, o * opa[n])
+        if alpha_min <= 0:
+            cut = np.inf
+        else:
+            cut = 2.0 * np.log(peak / alpha_min)
+            if cut != cut:
+                cut = np.inf  # NaN inputs: leave them to the exact test
+            finite = cut - cut == 0.0
+            cut = cut + (1e-6 + 1e-9 * (abs(cut) if finite else 0.0))
+        rho_cut[n] = cut
+        boxes[n, 0] = -np.inf
+        boxes[n, 1] = np.inf
+        boxes[n, 2] = -np.inf
+        boxes[n, 3] = np.inf
+        if cut == -np.inf:  # all alphas are 0: the surfel contributes nowhere
+            boxes[n, 0] = np.inf
+            boxes[n, 1] = -np.inf
+            boxes[n, 2] = np.inf
+            boxes[n, 3] = -np.inf
+            continue
+        if not (cut - cut == 0.0):
+            continue
+        c2 = cut if cut > 0.0 else 0.0
+        rx0 = M[n, 0]
+        rx1 = M[n, 1]
+        rx2 = M[n, 2]
+        ry0 = M[n, 3]
+        ry1 = M[n, 4]
+        ry2 = M[n, 5]
+        rw0 = M[n, 6]
+        rw1 = M[n, 7]
+        rw2 = M[n, 8]
+        d = c2 * rw0 * rw0 + c2 * rw1 * rw1 - rw2 * rw2
+        if not (d < 0.0):
+            continue
+        cx = (c2 * rx0 * rw0 + c2 * rx1 * rw1 - rx2 * rw2) / d
+        cy = (c2 * ry0 * rw0 + c2 * ry1 * rw1 - ry2 * rw2) / d
+        ex = np.sqrt(_nan_max(cx * cx - (c2 * rx0 * rx0 + c2 * rx1 * rx1 - rx2 * rx2) / d, 0.0))
+        ey = np.sqrt(_nan_max(cy * cy - (c2 * ry0 * ry0 + c2 * ry1 * ry1 - ry2 * ry2) / d, 0.0))
+        r = np.sqrt(c2 / lowpass) if lowpass > 0 else np.inf
+        ox = centers[n, 0]
+        oy = centers[n, 1]
+        x0 = _nan_min(cx - ex, ox - r)
+        x1 = _nan_max(cx + ex, ox + r)
+        y0 = _nan_min(cy - ey, oy - r)
+        y1 = _nan_max(cy + ey, oy + r)
+        mx = 1e-2 + 1e-3 * (x1 - x0) + 1e-6 * (abs(cx) + abs(ox))
+        my = 1e-2 + 1e-3 * (y1 - y0) + 1e-6 * (abs(cy) + abs(oy))
+        b0 = x0 - mx
+        b1 = x1 + mx
+        b2 = y0 - my
+        b3 = y1 + my
+        if b0 - b0 == 0.0 and b1 - b1 == 0.0 and b2 - b2 == 0.0 and b3 - b3 == 0.0:
+            boxes[n, 0] = b0
+            boxes[n, 1] = b1
+            boxes[n, 2] = b2
+            boxes[n, 3] = b3
 
 
 @njit(parallel=True, **_JIT)
