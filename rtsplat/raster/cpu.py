@@ -8,23 +8,30 @@ quantities to means/quats/scales and to the screen probe.
 
 The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
 
+* a first pass computes per surfel the rho cut-off and the pixel box outside which it cannot
+  contribute, a second per tile the entries whose box meets the tile;
 * forward: one front-to-back traversal per pixel accumulates both weight sets (surface set from
   occupancy, volume set from occupancy x opacity); each set stops on its own exactly as in the
-  reference, and the traversal of a pixel ends as soon as *both* sets have stopped;
+  reference, and the traversal of a pixel ends as soon as *both* sets have stopped. The pixels of
+  a 4x4 block are traversed together, entry by entry: the ray-splat geometry of one entry is
+  computed for the whole block in one branch-free loop (vectorised by LLVM), then every pixel
+  still traversing composites it;
 * backward: hand written, no autograd graph over pixel x surfel pairs. It replays each pixel's
-  traversal front to back and uses the forward totals to get the suffix sums
-  (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); gradients go to one per-surfel buffer per
-  thread so threads never race, summed over threads at the end;
-* both kernels run in parallel across 4x4 pixel blocks (numba ``prange``, dynamic chunks of one
-  block), with
-  as many threads as ``torch.get_num_threads()``; all arithmetic is float64 (inputs of any float
-  dtype are converted, outputs and gradients are returned in the input dtype).
+  traversal front to back (again block by block) and uses the forward totals to get the suffix
+  sums (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); the gradient of one entry is summed over
+  the block's pixels, then added to one per-surfel buffer per thread (threads never race), and the
+  buffers are summed over threads at the end;
+* all kernels run in parallel (numba ``prange`` over 4x4 pixel blocks or surfels, dynamic chunks
+  of ``CHUNK`` iterations), with as many threads as ``torch.get_num_threads()``; all arithmetic is
+  float64 (per-surfel inputs of any float dtype are converted; the image gradient is read as
+  float32 or float64 as it comes; outputs and gradients are returned in the input dtype).
 
 Technology choice (measured on the 2-core development machine):
 
 * numba ``@njit(parallel=True, cache=True)``: no compiler toolchain or torch headers at run time,
-  pip-installable wheels (numba, llvmlite); the first use compiles both kernels in ~14 s (idle
-  machine; ~25 s loaded, once per machine), later processes load them from the cache in ~1 s.
+  pip-installable wheels (numba, llvmlite); the first use compiles the kernels in ~28 s (loaded
+  machine; once per machine, and once more for the backward when the image gradient is float64),
+  later processes load them from the cache in ~1 s.
   ``python -m rtsplat.bench.raster``: forward+backward at 20k surfels, 160x120 takes 0.04-0.07x
   the reference's time (0.6-1.3 s against 20-31 s, 2 threads) and ~2% of its peak memory;
 * a ``torch.utils.cpp_extension`` C++/OpenMP extension was the alternative: a one-function
@@ -118,6 +125,15 @@ def _np64(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.float64).numpy())
 
 
+def _np_float(x: Tensor) -> np.ndarray:
+    """float32 and float64 as they are (the kernels read either into float64 arithmetic, exactly),
+    other dtypes as float64."""
+    x = x.detach().to(device="cpu")
+    if x.dtype not in (torch.float32, torch.float64):
+        x = x.to(torch.float64)
+    return np.ascontiguousarray(x.numpy())
+
+
 def _np_i64(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.int64).numpy())
 
@@ -187,7 +203,7 @@ class _Composite(torch.autograd.Function):
         n, fc, width, height, dtype = ctx.meta
         if grad_image is None or not any(ctx.needs_input_grad[:6]):
             return (None,) * 8
-        grad = _np64(grad_image.reshape(width * height, fc + 9))
+        grad = _np_float(grad_image.reshape(width * height, fc + 9))
         result = np.empty((n, 16 + fc), dtype=np.float64)
         with _threads() as threads:
             acc = np.zeros((threads, n, 16 + fc), dtype=np.float64)

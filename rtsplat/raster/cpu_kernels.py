@@ -3,7 +3,8 @@
 Imported lazily by :mod:`rtsplat.raster.cpu` on the first rasterization, never by ``import
 rtsplat``: importing numba costs ~0.5 s and the first call compiles (or loads from the cache).
 
-All arithmetic is float64. Per-surfel inputs (projected by :mod:`rtsplat.raster.projection`):
+All arithmetic is float64 (``grad_out`` may be float32: read exactly into float64). Per-surfel
+inputs (projected by :mod:`rtsplat.raster.projection`):
 
 * ``M`` [N,9]: ray transform, row major (rows: x w, y w, w);
 * ``centers`` [N,2]: projected centres (px); ``occ``/``opa`` [N]: occupancy / opacity;
