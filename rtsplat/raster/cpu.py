@@ -204,12 +204,12 @@ class _Composite(torch.autograd.Function):
         if grad_image is None or not any(ctx.needs_input_grad[:6]):
             return (None,) * 8
         grad = _np_float(grad_image.reshape(width * height, fc + 9))
-        result = np.empty((n, 16 + fc), dtype=np.float64)
         with _threads() as threads:
             acc = np.zeros((threads, n, 16 + fc), dtype=np.float64)
             _kernels.backward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, grad, acc)
-            _kernels.sum_threads_kernel(acc, result)
-        per_surfel = torch.from_numpy(result)
+            if threads > 1:
+                _kernels.sum_threads_kernel(acc)
+        per_surfel = torch.from_numpy(acc[0])
         per_surfel = per_surfel.to(dtype)
         k = _kernels
         return (

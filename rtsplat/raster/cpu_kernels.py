@@ -23,7 +23,7 @@ Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 
 Per-surfel gradient row layout (``acc`` [threads, N, 16+Fc], one slice per thread indexed by
 ``numba.get_thread_id()`` so that threads never write the same memory, summed over threads by
-:func:`sum_threads_kernel`): ``M (9) | centers (2) | occ | opa | colors (3) | feats (Fc)``.
+:func:`sum_threads_kernel` into ``acc[0]``): ``M (9) | centers (2) | occ | opa | colors (3) | feats (Fc)``.
 """
 
 from __future__ import annotations
@@ -644,9 +644,10 @@ def backward_kernel(
                         eg[G_M + 8] += g_z
                         g_u = g_z * m6 + 2.0 * u * g_rho
                         g_v = g_z * m7 + 2.0 * v * g_rho
-                        gp0 = g_u / p2
-                        gp1 = g_v / p2
-                        gp2 = -(g_u * u + g_v * v) / p2
+                        inv_p2 = 1.0 / p2
+                        gp0 = g_u * inv_p2
+                        gp1 = g_v * inv_p2
+                        gp2 = -(g_u * u + g_v * v) * inv_p2
                         # p = hx x hy: dL/dhx = hy x gp, dL/dhy = gp x hx
                         ghx0 = hy1 * gp2 - hy2 * gp1
                         ghx1 = hy2 * gp0 - hy0 * gp2
@@ -676,12 +677,10 @@ def backward_kernel(
 
 
 @njit(parallel=True, **_JIT)
-def sum_threads_kernel(acc, result):
-    """``result[i] = sum over threads of acc[thread, i]`` (the backward's per-thread accumulators)."""
+def sum_threads_kernel(acc):
+    """``acc[0, i] += acc[t, i]`` for every other thread t (the backward's per-thread sums)."""
     n_threads = acc.shape[0]
     for i in prange(acc.shape[1]):
-        for c in range(acc.shape[2]):
-            total = 0.0
-            for th in range(n_threads):
-                total += acc[th, i, c]
-            result[i, c] = total
+        for th in range(1, n_threads):
+            for c in range(acc.shape[2]):
+                acc[0, i, c] += acc[th, i, c]
