@@ -338,6 +338,7 @@ def forward_kernel(
                 )
             o = occ[i]
             oo = o * opa[i]
+            entry_used = False
             for p in range(npx):
                 if not ok_b[p] or not running[p]:
                     continue
@@ -372,7 +373,7 @@ def forward_kernel(
                             st[4, p] = z
                             medk_b[p] = k
                         st[0, p] = t_next
-                        used[start + k] = 1
+                        entry_used = True
                 if live[1, p] and a_v >= alpha_min:
                     T_v = st[1, p]
                     t_next = T_v * (1.0 - a_v)
@@ -386,11 +387,13 @@ def forward_kernel(
                         st[11, p] += w
                         st[12, p] += w * z
                         st[1, p] = t_next
-                        used[start + k] = 1
+                        entry_used = True
                 if not live[0, p] and not live[1, p]:
                     running[p] = False
                     n_done[pix] = j + 1
                     alive -= 1
+            if entry_used and used[start + k] == 0:  # read first: blocks of one tile share the flags
+                used[start + k] = 1
         for p in range(npx):
             pix = pixs[p]
             median_k[pix] = medk_b[p]
