@@ -10,7 +10,7 @@ Tolerances (``max|g|`` is the largest reference gradient of that parameter, floo
 
 * float64 inputs: outputs to atol 1e-9 (rtol 1e-9 for depths of 1e4), gradients to rtol 1e-7 /
   atol 1e-9 max|g| (random scenes) and rtol 1e-6 / atol 1e-8 max|g| (hard cases): only the
-  summation order differs (per-(tile, surfel) gradient rows reduced with ``index_add_``);
+  summation order of the per-surfel gradients differs (one sum per thread, then over threads);
 * float32 inputs: outputs to atol 5e-5 / rtol 1e-5 (max seen 2.3e-5 on a normal, 2.9e-3 on a
   depth of 1e4); gradients to rtol 1e-3 / atol 1e-4 max|g| for at least 99% of the entries and
   5e-3 max|g| for all. The reference accumulates in float32, the kernels in float64; at pixels

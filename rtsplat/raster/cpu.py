@@ -8,22 +8,30 @@ quantities to means/quats/scales and to the screen probe.
 
 The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
 
+* a first pass computes per surfel the rho cut-off and the pixel box outside which it cannot
+  contribute, a second per tile the entries whose box meets the tile;
 * forward: one front-to-back traversal per pixel accumulates both weight sets (surface set from
   occupancy, volume set from occupancy x opacity); each set stops on its own exactly as in the
-  reference, and the traversal of a pixel ends as soon as *both* sets have stopped;
+  reference, and the traversal of a pixel ends as soon as *both* sets have stopped. The pixels of
+  a 4x4 block are traversed together, entry by entry: the ray-splat geometry of one entry is
+  computed for the whole block in one branch-free loop (vectorised by LLVM), then every pixel
+  still traversing composites it;
 * backward: hand written, no autograd graph over pixel x surfel pairs. It replays each pixel's
-  traversal front to back and uses the forward totals to get the suffix sums
-  (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); gradients go to a per-(tile, surfel) buffer so
-  threads never race, then one ``index_add_`` reduces them per surfel;
-* both kernels run in parallel across tiles (numba ``prange``, dynamic chunks of one tile), with
-  as many threads as ``torch.get_num_threads()``; all arithmetic is float64 (inputs of any float
-  dtype are converted, outputs and gradients are returned in the input dtype).
+  traversal front to back (again block by block) and uses the forward totals to get the suffix
+  sums (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); the gradient of one entry is summed over
+  the block's pixels, then added to one per-surfel buffer per thread (threads never race), and the
+  buffers are summed over threads at the end;
+* all kernels run in parallel (numba ``prange`` over 4x4 pixel blocks or surfels, dynamic chunks
+  of ``CHUNK`` iterations), with as many threads as ``torch.get_num_threads()``; all arithmetic is
+  float64 (per-surfel inputs of any float dtype are converted; the image gradient is read as
+  float32 or float64 as it comes; outputs and gradients are returned in the input dtype).
 
 Technology choice (measured on the 2-core development machine):
 
 * numba ``@njit(parallel=True, cache=True)``: no compiler toolchain or torch headers at run time,
-  pip-installable wheels (numba, llvmlite); the first use compiles both kernels in ~14 s (idle
-  machine; ~25 s loaded, once per machine), later processes load them from the cache in ~1 s.
+  pip-installable wheels (numba, llvmlite); the first use compiles the kernels in ~28 s (loaded
+  machine; once per machine, and once more for the backward when the image gradient is float64),
+  later processes load them from the cache in ~1 s.
   ``python -m rtsplat.bench.raster``: forward+backward at 20k surfels, 160x120 takes 0.04-0.07x
   the reference's time (0.6-1.3 s against 20-31 s, 2 threads) and ~2% of its peak memory;
 * a ``torch.utils.cpp_extension`` C++/OpenMP extension was the alternative: a one-function
@@ -117,69 +125,17 @@ def _np64(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.float64).numpy())
 
 
+def _np_float(x: Tensor) -> np.ndarray:
+    """float32 and float64 as they are (the kernels read either into float64 arithmetic, exactly),
+    other dtypes as float64."""
+    x = x.detach().to(device="cpu")
+    if x.dtype not in (torch.float32, torch.float64):
+        x = x.to(torch.float64)
+    return np.ascontiguousarray(x.numpy())
+
+
 def _np_i64(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.int64).numpy())
-
-
-def rho_cutoff(occupancy: np.ndarray, opacity: np.ndarray, alpha_min: float) -> np.ndarray:
-    """Per surfel: the kernel exponent rho above which neither weight set can reach ``alpha_min``.
-
-    Both alphas are at most max(occupancy, occupancy x opacity) x exp(-rho/2), so a pair with
-    rho > 2 ln(that / alpha_min) contributes nothing; the margin (1e-6 + 1e-9 rho) keeps every pair
-    near the threshold for the exact test, so skipping changes no result. +inf (never skip) when
-    ``alpha_min`` <= 0, -inf (always skip) for a surfel whose alphas are all 0.
-    """
-    peak = np.maximum(occupancy, occupancy * opacity)
-    if alpha_min <= 0:
-        return np.full_like(peak, np.inf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cut = 2.0 * np.log(peak / alpha_min)
-    cut = np.where(np.isnan(cut), np.inf, cut)  # NaN inputs: leave them to the exact test
-    margin = 1e-6 + 1e-9 * np.abs(np.where(np.isfinite(cut), cut, 0.0))
-    return np.ascontiguousarray(cut + margin)
-
-
-def contribution_boxes(M: np.ndarray, centers: np.ndarray, cut: np.ndarray, lowpass: float) -> np.ndarray:
-    """Per surfel [N,4] (x_min, x_max, y_min, y_max), pixel coordinates: outside, rho > ``cut``.
-
-    rho = min(rho_3d, rho_2d) <= cut needs rho_3d <= cut (the pixel's ray meets the surfel plane
-    inside the ellipse u^2 + v^2 <= cut, whose projection is bounded by the dual-conic box of
-    :func:`ellipse_screen_box`) or rho_2d <= cut (a disc of radius sqrt(cut / lowpass) around the
-    centre). The union of both boxes, widened by a safety margin, bounds every pixel a surfel can
-    contribute to; the kernels skip pairs outside it. Unbounded projections (the ellipse reaches the
-    camera plane) and non-finite values give an infinite box: no skipping, the exact test decides.
-    """
-    n = M.shape[0]
-    boxes = np.empty((n, 4), dtype=np.float64)
-    boxes[:, 0::2] = -np.inf
-    boxes[:, 1::2] = np.inf
-    if n == 0:
-        return boxes
-    with np.errstate(all="ignore"):
-        c2 = np.where(np.isfinite(cut), np.maximum(cut, 0.0), 0.0)
-        rx, ry, rw = M[:, 0:3], M[:, 3:6], M[:, 6:9]
-        f = np.stack([c2, c2, -np.ones_like(c2)], 1)
-        d = (f * rw * rw).sum(1)
-        bounded = d < 0
-        d_safe = np.where(bounded, d, -1.0)
-        cx = (f * rx * rw).sum(1) / d_safe
-        cy = (f * ry * rw).sum(1) / d_safe
-        ex = np.sqrt(np.maximum(cx * cx - (f * rx * rx).sum(1) / d_safe, 0.0))
-        ey = np.sqrt(np.maximum(cy * cy - (f * ry * ry).sum(1) / d_safe, 0.0))
-        r = np.sqrt(c2 / lowpass) if lowpass > 0 else np.full_like(c2, np.inf)
-        ox, oy = centers[:, 0], centers[:, 1]
-        x0 = np.minimum(cx - ex, ox - r)
-        x1 = np.maximum(cx + ex, ox + r)
-        y0 = np.minimum(cy - ey, oy - r)
-        y1 = np.maximum(cy + ey, oy + r)
-        mx = 1e-2 + 1e-3 * (x1 - x0) + 1e-6 * (np.abs(cx) + np.abs(ox))
-        my = 1e-2 + 1e-3 * (y1 - y0) + 1e-6 * (np.abs(cy) + np.abs(oy))
-        box = np.stack([x0 - mx, x1 + mx, y0 - my, y1 + my], 1)
-        ok = bounded & np.isfinite(box).all(1) & np.isfinite(cut)
-    boxes[ok] = box[ok]
-    never = cut == -np.inf  # all alphas are 0: the surfel contributes nowhere
-    boxes[never] = np.array([np.inf, -np.inf, np.inf, -np.inf])
-    return boxes
 
 
 class _Composite(torch.autograd.Function):
@@ -216,17 +172,22 @@ class _Composite(torch.autograd.Function):
             float(settings.lowpass_inv_var),
             float(EDGE_ON_RATIO),
         )
-        cut = rho_cutoff(arrays[2], arrays[3], float(settings.alpha_min))
-        boxes = contribution_boxes(arrays[0], arrays[1], cut, float(settings.lowpass_inv_var))
+        cut = np.empty(n, dtype=np.float64)
+        boxes = np.empty((n, 4), dtype=np.float64)
         n_pix = width * height
         out = np.zeros((n_pix, n_channels), dtype=np.float64)
         stats = np.zeros((n_pix, 2), dtype=np.float64)
         n_done = np.zeros(n_pix, dtype=np.int64)
         median_k = np.full(n_pix, -1, dtype=np.int64)
         used = np.zeros(arrays[6].shape[0], dtype=np.uint8)
+        keep = np.empty(arrays[6].shape[0], dtype=np.int64)
+        n_keep = np.zeros(arrays[8].shape[0], dtype=np.int64)
+        lists = (cut, boxes, keep, n_keep)
         with _threads():
-            kernels.forward_kernel(*arrays, *scalars, cut, boxes, out, stats, n_done, median_k, used)
-        ctx.saved = (arrays, scalars, cut, boxes, out, stats, n_done, median_k)
+            kernels.surfel_bounds_kernel(*arrays[:4], scalars[7], scalars[9], cut, boxes)
+            kernels.tile_entries_kernel(arrays[6], boxes, arrays[7], arrays[8], scalars[0], scalars[1], keep, n_keep)
+            kernels.forward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, used)
+        ctx.saved = (arrays, scalars, lists, out, stats, n_done, median_k)
         ctx.meta = (n, fc, width, height, M.dtype)
         visible = torch.zeros(n, dtype=torch.bool)
         if used.size:
@@ -238,18 +199,17 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_image, grad_visible):
-        arrays, scalars, cut, boxes, out, stats, n_done, median_k = ctx.saved
+        arrays, scalars, lists, out, stats, n_done, median_k = ctx.saved
         n, fc, width, height, dtype = ctx.meta
         if grad_image is None or not any(ctx.needs_input_grad[:6]):
             return (None,) * 8
-        grad = _np64(grad_image.reshape(width * height, fc + 9))
-        ids = arrays[6]
-        pair_grad = np.zeros((ids.shape[0], 16 + fc), dtype=np.float64)
-        with _threads():
-            _kernels.backward_kernel(*arrays, *scalars, cut, boxes, out, stats, n_done, median_k, grad, pair_grad)
-        per_surfel = torch.zeros(n, 16 + fc, dtype=torch.float64)
-        if ids.shape[0]:
-            per_surfel.index_add_(0, torch.from_numpy(ids), torch.from_numpy(pair_grad))
+        grad = _np_float(grad_image.reshape(width * height, fc + 9))
+        with _threads() as threads:
+            acc = np.zeros((threads, n, 16 + fc), dtype=np.float64)
+            _kernels.backward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, grad, acc)
+            if threads > 1:
+                _kernels.sum_threads_kernel(acc)
+        per_surfel = torch.from_numpy(acc[0])
         per_surfel = per_surfel.to(dtype)
         k = _kernels
         return (
@@ -264,15 +224,19 @@ class _Composite(torch.autograd.Function):
         )
 
 
+CHUNK = 4  # loop iterations (4x4 pixel blocks, surfels) per dynamic chunk of the parallel kernels
+
+
 class _threads:
-    """Run the kernels with torch's thread count and one-tile dynamic chunks."""
+    """Run the kernels with torch's thread count and dynamic chunks of ``CHUNK`` iterations."""
 
     def __enter__(self):
         import numba
 
         self._threads = numba.get_num_threads()
         numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-        self._chunk = numba.set_parallel_chunksize(1)
+        self._chunk = numba.set_parallel_chunksize(CHUNK)
+        return numba.get_num_threads()
 
     def __exit__(self, *exc):
         import numba

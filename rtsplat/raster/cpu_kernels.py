@@ -3,25 +3,27 @@
 Imported lazily by :mod:`rtsplat.raster.cpu` on the first rasterization, never by ``import
 rtsplat``: importing numba costs ~0.5 s and the first call compiles (or loads from the cache).
 
-All arithmetic is float64. Per-surfel inputs (projected by :mod:`rtsplat.raster.projection`):
+All arithmetic is float64 (``grad_out`` may be float32: read exactly into float64). Per-surfel
+inputs (projected by :mod:`rtsplat.raster.projection`):
 
 * ``M`` [N,9]: ray transform, row major (rows: x w, y w, w);
 * ``centers`` [N,2]: projected centres (px); ``occ``/``opa`` [N]: occupancy / opacity;
 * ``feats`` [N,Fc]: surface attributes (features, then camera-facing normals);
 * ``colors`` [N,3]: volume radiance;
 * ``rho_cut`` [N]: pairs with rho above it cannot reach ``alpha_min`` in either weight set (see
-  :func:`rtsplat.raster.cpu.rho_cutoff`); they are skipped before the exponential;
-* ``boxes`` [N,4]: pixel boxes outside which rho > ``rho_cut`` (see
-  :func:`rtsplat.raster.cpu.contribution_boxes`); each tile first keeps the entries whose box meets
-  it, then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
-  positions in that block list), and each pixel skips entries whose box it is outside of.
+  :func:`surfel_bounds_kernel`); they are skipped before the exponential;
+* ``boxes`` [N,4]: pixel boxes outside which rho > ``rho_cut`` (see :func:`surfel_bounds_kernel`);
+  :func:`tile_entries_kernel` keeps per tile the entries whose box meets it (``keep``/``n_keep``),
+  then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
+  positions in that block list), and each pixel skips entries whose box it is outside of. The
+  parallel work unit is one 4x4 block.
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
 
-Pair-gradient row layout (``pair_grad`` [pairs, 16+Fc]), one row per (tile, surfel) entry of the
-binned lists, so that threads (one tile each) never write the same memory:
-``M (9) | centers (2) | occ | opa | colors (3) | feats (Fc)``.
+Per-surfel gradient row layout (``acc`` [threads, N, 16+Fc], one slice per thread indexed by
+``numba.get_thread_id()`` so that threads never write the same memory, summed over threads by
+:func:`sum_threads_kernel` into ``acc[0]``): ``M (9) | centers (2) | occ | opa | colors (3) | feats (Fc)``.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import get_thread_id, njit, prange
 
 G_M, G_CENTER, G_OCC, G_OPA, G_COLOR, G_FEAT = 0, 9, 11, 12, 13, 16
 
@@ -37,17 +39,9 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 
 
 @njit(inline="always", **_JIT)
-def _eval_pair(M, centers, i, px, py, lowpass, edge_on_ratio):
-    """Ray-splat intersection of surfel ``i`` at pixel centre (px, py): reference semantics."""
-    m0 = M[i, 0]
-    m1 = M[i, 1]
-    m2 = M[i, 2]
-    m3 = M[i, 3]
-    m4 = M[i, 4]
-    m5 = M[i, 5]
-    m6 = M[i, 6]
-    m7 = M[i, 7]
-    m8 = M[i, 8]
+def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio):
+    """Ray-splat intersection at pixel centre (px, py) of the surfel with ray transform rows
+    (m0 m1 m2 | m3 m4 m5 | m6 m7 m8) and projected centre (cx, cy): reference semantics."""
     hx0 = m0 - px * m6
     hx1 = m1 - px * m7
     hx2 = m2 - px * m8
@@ -66,8 +60,8 @@ def _eval_pair(M, centers, i, px, py, lowpass, edge_on_ratio):
         u = 0.0
         v = 0.0
         rho3 = np.inf
-    dx = centers[i, 0] - px
-    dy = centers[i, 1] - py
+    dx = cx - px
+    dy = cy - py
     rho2 = lowpass * (dx * dx + dy * dy)
     use_plane = rho3 <= rho2
     if use_plane:
@@ -76,54 +70,171 @@ def _eval_pair(M, centers, i, px, py, lowpass, edge_on_ratio):
     else:
         rho = rho2
         z = m8
-    return z, rho, use_plane, plane_ok, u, v, p2, dx, dy, hx0, hx1, hx2, hy0, hy1, hy2
+    return z, rho, use_plane, plane_ok, u, v, p2
 
 
 @njit(inline="always", **_JIT)
-def _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size):
-    """List positions (relative to ``start``) of the tile's surfels whose box meets the tile."""
-    lo_x = tx0 + 0.5
-    hi_x = tx0 + tile_size - 0.5
-    lo_y = ty0 + 0.5
-    hi_y = ty0 + tile_size - 0.5
-    keep = np.empty(cnt, dtype=np.int64)
-    n = 0
-    for k in range(cnt):
-        i = ids[start + k]
-        if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
-            keep[n] = k
-            n += 1
-    return keep, n
+def _nan_min(a, b):
+    """min that returns NaN when either argument is NaN (numpy's ``minimum``)."""
+    if a != a or b != b:
+        return np.nan
+    return a if a < b else b
+
+
+@njit(inline="always", **_JIT)
+def _nan_max(a, b):
+    """max that returns NaN when either argument is NaN (numpy's ``maximum``)."""
+    if a != a or b != b:
+        return np.nan
+    return a if a > b else b
+
+
+@njit(parallel=True, **_JIT)
+def surfel_bounds_kernel(M, centers, occ, opa, alpha_min, lowpass, rho_cut, boxes):
+    """Per surfel: ``rho_cut`` (the kernel exponent above which neither weight set can reach
+    ``alpha_min``) and ``boxes`` (x_min, x_max, y_min, y_max: pixel coordinates outside which
+    rho > ``rho_cut``).
+
+    Cut-off: both alphas are at most max(occupancy, occupancy x opacity) x exp(-rho/2), so a pair
+    with rho > 2 ln(that / alpha_min) contributes nothing; the margin (1e-6 + 1e-9 rho) keeps every
+    pair near the threshold for the exact test, so skipping changes no result. +inf (never skip)
+    when ``alpha_min`` <= 0 or for NaN inputs, -inf (always skip) for a surfel whose alphas are 0.
+
+    Box: rho = min(rho_3d, rho_2d) <= cut needs rho_3d <= cut (the pixel's ray meets the surfel
+    plane inside the ellipse u^2 + v^2 <= cut, whose projection is bounded by the dual-conic box of
+    :func:`rtsplat.raster.projection.ellipse_screen_box`) or rho_2d <= cut (a disc of radius
+    sqrt(cut / lowpass) around the centre). The union of both boxes, widened by a safety margin,
+    bounds every pixel a surfel can contribute to. Unbounded projections (the ellipse reaches the
+    camera plane) and non-finite values give an infinite box: no skipping, the exact test decides;
+    a surfel whose cut is -inf gets an empty box.
+    """
+    for n in prange(M.shape[0]):
+        o = occ[n]
+        peak = _nan_max(o, o * opa[n])
+        if alpha_min <= 0:
+            cut = np.inf
+        else:
+            cut = 2.0 * np.log(peak / alpha_min)
+            if cut != cut:
+                cut = np.inf  # NaN inputs: leave them to the exact test
+            finite = cut - cut == 0.0
+            cut = cut + (1e-6 + 1e-9 * (abs(cut) if finite else 0.0))
+        rho_cut[n] = cut
+        boxes[n, 0] = -np.inf
+        boxes[n, 1] = np.inf
+        boxes[n, 2] = -np.inf
+        boxes[n, 3] = np.inf
+        if cut == -np.inf:  # all alphas are 0: the surfel contributes nowhere
+            boxes[n, 0] = np.inf
+            boxes[n, 1] = -np.inf
+            boxes[n, 2] = np.inf
+            boxes[n, 3] = -np.inf
+            continue
+        if not (cut - cut == 0.0):
+            continue
+        c2 = cut if cut > 0.0 else 0.0
+        rx0 = M[n, 0]
+        rx1 = M[n, 1]
+        rx2 = M[n, 2]
+        ry0 = M[n, 3]
+        ry1 = M[n, 4]
+        ry2 = M[n, 5]
+        rw0 = M[n, 6]
+        rw1 = M[n, 7]
+        rw2 = M[n, 8]
+        d = c2 * rw0 * rw0 + c2 * rw1 * rw1 - rw2 * rw2
+        if not (d < 0.0):
+            continue
+        cx = (c2 * rx0 * rw0 + c2 * rx1 * rw1 - rx2 * rw2) / d
+        cy = (c2 * ry0 * rw0 + c2 * ry1 * rw1 - ry2 * rw2) / d
+        ex = np.sqrt(_nan_max(cx * cx - (c2 * rx0 * rx0 + c2 * rx1 * rx1 - rx2 * rx2) / d, 0.0))
+        ey = np.sqrt(_nan_max(cy * cy - (c2 * ry0 * ry0 + c2 * ry1 * ry1 - ry2 * ry2) / d, 0.0))
+        r = np.sqrt(c2 / lowpass) if lowpass > 0 else np.inf
+        ox = centers[n, 0]
+        oy = centers[n, 1]
+        x0 = _nan_min(cx - ex, ox - r)
+        x1 = _nan_max(cx + ex, ox + r)
+        y0 = _nan_min(cy - ey, oy - r)
+        y1 = _nan_max(cy + ey, oy + r)
+        mx = 1e-2 + 1e-3 * (x1 - x0) + 1e-6 * (abs(cx) + abs(ox))
+        my = 1e-2 + 1e-3 * (y1 - y0) + 1e-6 * (abs(cy) + abs(oy))
+        b0 = x0 - mx
+        b1 = x1 + mx
+        b2 = y0 - my
+        b3 = y1 + my
+        if b0 - b0 == 0.0 and b1 - b1 == 0.0 and b2 - b2 == 0.0 and b3 - b3 == 0.0:
+            boxes[n, 0] = b0
+            boxes[n, 1] = b1
+            boxes[n, 2] = b2
+            boxes[n, 3] = b3
+
+
+@njit(parallel=True, **_JIT)
+def tile_entries_kernel(ids, boxes, tile_start, tile_count, tiles_x, tile_size, keep, n_keep):
+    """Per tile: the list positions (relative to the tile's start, depth order kept) of the surfels whose
+    box meets the tile, written to ``keep[start:start + n_keep[t]]``."""
+    for t in prange(tile_count.shape[0]):
+        cnt = tile_count[t]
+        start = tile_start[t]
+        tx0 = (t % tiles_x) * tile_size
+        ty0 = (t // tiles_x) * tile_size
+        lo_x = tx0 + 0.5
+        hi_x = tx0 + tile_size - 0.5
+        lo_y = ty0 + 0.5
+        hi_y = ty0 + tile_size - 0.5
+        n = 0
+        for k in range(cnt):
+            i = ids[start + k]
+            if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
+                keep[start + n] = k
+                n += 1
+        n_keep[t] = n
 
 
 BLOCK = 4  # pixels per side of the sub-tile blocks whose entry lists each pixel scans
 
 
 @njit(inline="always", **_JIT)
-def _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size):
-    """Per BLOCK x BLOCK pixel block of the tile: the tile entries (list positions relative to ``start``,
-    depth order kept) whose box meets the block. A pixel scans only its block's list, so the long lists of
-    small tiles full of small surfels are not walked once per pixel. Returns (lists [blocks, n_keep],
-    counts [blocks], blocks per row)."""
-    nbx = (tile_size + BLOCK - 1) // BLOCK
-    lists = np.empty((nbx * nbx, max(n_keep, 1)), dtype=np.int64)
-    counts = np.zeros(nbx * nbx, dtype=np.int64)
-    for by in range(nbx):
-        lo_y = ty0 + by * BLOCK + 0.5
-        hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
-        for bx in range(nbx):
-            lo_x = tx0 + bx * BLOCK + 0.5
-            hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
-            b = by * nbx + bx
-            n = 0
-            for j in range(n_keep):
-                k = keep[j]
-                i = ids[start + k]
-                if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
-                    lists[b, n] = k
-                    n += 1
-            counts[b] = n
-    return lists, counts, nbx
+def _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by):
+    """The tile entries (list positions relative to ``start``, depth order kept) whose box meets pixel
+    block (bx, by) of the tile, and their count. A pixel scans only its block's list, so the long lists of
+    small tiles full of small surfels are not walked once per pixel."""
+    lo_y = ty0 + by * BLOCK + 0.5
+    hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
+    lo_x = tx0 + bx * BLOCK + 0.5
+    hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
+    lst = np.empty(max(nk, 1), dtype=np.int64)
+    n = 0
+    for j in range(nk):
+        k = keep[start + j]
+        i = ids[start + k]
+        if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
+            lst[n] = k
+            n += 1
+    return lst, n
+
+
+NPIX = BLOCK * BLOCK
+
+
+@njit(inline="always", **_JIT)
+def _block_pixels(tx0, ty0, tile_size, bx, by, width, height):
+    """Pixel-centre coordinates and flat indices of block (bx, by), clipped to the tile and image."""
+    x0 = tx0 + bx * BLOCK
+    y0 = ty0 + by * BLOCK
+    nx = min(BLOCK, tile_size - bx * BLOCK, width - x0)
+    ny = min(BLOCK, tile_size - by * BLOCK, height - y0)
+    npx = max(nx, 0) * max(ny, 0)
+    pxs = np.empty(NPIX, dtype=np.float64)
+    pys = np.empty(NPIX, dtype=np.float64)
+    pixs = np.empty(NPIX, dtype=np.int64)
+    for p in range(npx):
+        xi = x0 + p % nx
+        yi = y0 + p // nx
+        pxs[p] = xi + 0.5
+        pys[p] = yi + 0.5
+        pixs[p] = yi * width + xi
+    return pxs, pys, pixs, npx
 
 
 @njit(parallel=True, **_JIT)
@@ -150,119 +261,153 @@ def forward_kernel(
     edge_on_ratio,
     rho_cut,
     boxes,
+    keep,
+    n_keep,
     out,
     stats,
     n_done,
     median_k,
     used,
 ):
+    """Composite every pixel front to back; one 4x4 block per work unit, entry by entry: the
+    geometry of an entry is evaluated for all pixels of the block in one branch-free loop, then
+    each pixel that is still traversing composites it."""
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
     ndc_scale = far / (far - near)
-    for t in prange(n_tiles):
-        cnt = tile_count[t]
-        if cnt == 0:
+    nbx = (tile_size + BLOCK - 1) // BLOCK
+    nb2 = nbx * nbx
+    for unit in prange(n_tiles * nb2):
+        t = unit // nb2
+        nk = n_keep[t]
+        if nk == 0:
             continue
         start = tile_start[t]
         tx0 = (t % tiles_x) * tile_size
         ty0 = (t // tiles_x) * tile_size
-        keep, n_keep = _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size)
-        blocks, block_count, nbx = _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size)
-        for ly in range(tile_size):
-            yi = ty0 + ly
-            if yi >= height:
+        by = (unit - t * nb2) // nbx
+        bx = (unit - t * nb2) - by * nbx
+        pxs, pys, pixs, npx = _block_pixels(tx0, ty0, tile_size, bx, by, width, height)
+        if npx == 0:
+            continue
+        lst, n_scan = _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by)
+        rho_b = np.empty(NPIX, dtype=np.float64)
+        z_b = np.empty(NPIX, dtype=np.float64)
+        ok_b = np.empty(NPIX, dtype=np.bool_)
+        # per pixel: T_s T_v A dsum med dist S1 S2 c0 c1 c2 Av dvsum
+        st = np.zeros((13, NPIX), dtype=np.float64)
+        medk_b = np.full(NPIX, -1, dtype=np.int64)
+        live = np.ones((2, NPIX), dtype=np.bool_)
+        running = np.ones(NPIX, dtype=np.bool_)
+        for p in range(npx):
+            st[0, p] = 1.0
+            st[1, p] = 1.0
+            n_done[pixs[p]] = n_scan
+        alive = npx
+        for j in range(n_scan):
+            if alive == 0:
                 break
-            py = yi + 0.5
-            for lx in range(tile_size):
-                xi = tx0 + lx
-                if xi >= width:
-                    break
-                px = xi + 0.5
-                pix = yi * width + xi
-                T_s = 1.0
-                T_v = 1.0
-                live_s = True
-                live_v = True
-                A = 0.0
-                dsum = 0.0
-                med = 0.0
-                medk = -1
-                dist = 0.0
-                S1 = 0.0
-                S2 = 0.0
-                c0 = 0.0
-                c1 = 0.0
-                c2 = 0.0
-                Av = 0.0
-                dvsum = 0.0
-                b = (ly // BLOCK) * nbx + lx // BLOCK
-                n_scan = block_count[b]
-                done = n_scan
-                for j in range(n_scan):
-                    if not live_s and not live_v:
-                        done = j
-                        break
-                    k = blocks[b, j]
-                    i = ids[start + k]
-                    if px < boxes[i, 0] or px > boxes[i, 1] or py < boxes[i, 2] or py > boxes[i, 3]:
-                        continue
-                    z, rho, _, _, _, _, _, _, _, _, _, _, _, _, _ = _eval_pair(
-                        M, centers, i, px, py, lowpass, edge_on_ratio
-                    )
-                    if z >= near and not (rho > rho_cut[i]):
-                        gauss = math.exp(-0.5 * rho)
-                        o = occ[i]
-                        a_s = o * gauss
-                        if a_s > alpha_max:
-                            a_s = alpha_max
-                        a_v = o * opa[i] * gauss
-                        if a_v > alpha_max:
-                            a_v = alpha_max
-                        if live_s and a_s >= alpha_min:
-                            t_next = T_s * (1.0 - a_s)
-                            if t_next < t_min:
-                                live_s = False
-                            else:
-                                w = a_s * T_s
-                                for c in range(fc):
-                                    out[pix, c] += w * feats[i, c]
-                                m = ndc_scale * (1.0 - near / z)
-                                dist += w * (m * m * A + S2 - 2.0 * m * S1)
-                                A += w
-                                S1 += w * m
-                                S2 += w * m * m
-                                dsum += w * z
-                                if T_s > 0.5:
-                                    med = z
-                                    medk = k
-                                T_s = t_next
-                                used[start + k] = 1
-                        if live_v and a_v >= alpha_min:
-                            t_next = T_v * (1.0 - a_v)
-                            if t_next < t_min:
-                                live_v = False
-                            else:
-                                w = a_v * T_v
-                                c0 += w * colors[i, 0]
-                                c1 += w * colors[i, 1]
-                                c2 += w * colors[i, 2]
-                                Av += w
-                                dvsum += w * z
-                                T_v = t_next
-                                used[start + k] = 1
-                n_done[pix] = done
-                median_k[pix] = medk
-                out[pix, fc] = A
-                out[pix, fc + 1] = dsum
-                out[pix, fc + 2] = med
-                out[pix, fc + 3] = dist
-                out[pix, fc + 4] = c0
-                out[pix, fc + 5] = c1
-                out[pix, fc + 6] = c2
-                out[pix, fc + 7] = Av
-                out[pix, fc + 8] = dvsum
-                stats[pix, 0] = S1
-                stats[pix, 1] = S2
+            k = lst[j]
+            i = ids[start + k]
+            b0 = boxes[i, 0]
+            b1 = boxes[i, 1]
+            b2 = boxes[i, 2]
+            b3 = boxes[i, 3]
+            cut = rho_cut[i]
+            m0 = M[i, 0]
+            m1 = M[i, 1]
+            m2 = M[i, 2]
+            m3 = M[i, 3]
+            m4 = M[i, 4]
+            m5 = M[i, 5]
+            m6 = M[i, 6]
+            m7 = M[i, 7]
+            m8 = M[i, 8]
+            cx = centers[i, 0]
+            cy = centers[i, 1]
+            for p in range(npx):
+                px = pxs[p]
+                py = pys[p]
+                z, rho, _, _, _, _, _ = _eval_pair(
+                    m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
+                )
+                rho_b[p] = rho
+                z_b[p] = z
+                ok_b[p] = not (
+                    (px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near))
+                )
+            o = occ[i]
+            oo = o * opa[i]
+            entry_used = False
+            for p in range(npx):
+                if not ok_b[p] or not running[p]:
+                    continue
+                pix = pixs[p]
+                z = z_b[p]
+                gauss = math.exp(-0.5 * rho_b[p])
+                a_s = o * gauss
+                if a_s > alpha_max:
+                    a_s = alpha_max
+                a_v = oo * gauss
+                if a_v > alpha_max:
+                    a_v = alpha_max
+                if live[0, p] and a_s >= alpha_min:
+                    T_s = st[0, p]
+                    t_next = T_s * (1.0 - a_s)
+                    if t_next < t_min:
+                        live[0, p] = False
+                    else:
+                        w = a_s * T_s
+                        for c in range(fc):
+                            out[pix, c] += w * feats[i, c]
+                        m = ndc_scale * (1.0 - near / z)
+                        A = st[2, p]
+                        S1 = st[6, p]
+                        S2 = st[7, p]
+                        st[5, p] += w * (m * m * A + S2 - 2.0 * m * S1)
+                        st[2, p] = A + w
+                        st[6, p] = S1 + w * m
+                        st[7, p] = S2 + w * m * m
+                        st[3, p] += w * z
+                        if T_s > 0.5:
+                            st[4, p] = z
+                            medk_b[p] = k
+                        st[0, p] = t_next
+                        entry_used = True
+                if live[1, p] and a_v >= alpha_min:
+                    T_v = st[1, p]
+                    t_next = T_v * (1.0 - a_v)
+                    if t_next < t_min:
+                        live[1, p] = False
+                    else:
+                        w = a_v * T_v
+                        st[8, p] += w * colors[i, 0]
+                        st[9, p] += w * colors[i, 1]
+                        st[10, p] += w * colors[i, 2]
+                        st[11, p] += w
+                        st[12, p] += w * z
+                        st[1, p] = t_next
+                        entry_used = True
+                if not live[0, p] and not live[1, p]:
+                    running[p] = False
+                    n_done[pix] = j + 1
+                    alive -= 1
+            if entry_used and used[start + k] == 0:  # read first: blocks of one tile share the flags
+                used[start + k] = 1
+        for p in range(npx):
+            pix = pixs[p]
+            median_k[pix] = medk_b[p]
+            out[pix, fc] = st[2, p]
+            out[pix, fc + 1] = st[3, p]
+            out[pix, fc + 2] = st[4, p]
+            out[pix, fc + 3] = st[5, p]
+            out[pix, fc + 4] = st[8, p]
+            out[pix, fc + 5] = st[9, p]
+            out[pix, fc + 6] = st[10, p]
+            out[pix, fc + 7] = st[11, p]
+            out[pix, fc + 8] = st[12, p]
+            stats[pix, 0] = st[6, p]
+            stats[pix, 1] = st[7, p]
 
 
 @njit(parallel=True, **_JIT)
@@ -289,172 +434,256 @@ def backward_kernel(
     edge_on_ratio,
     rho_cut,
     boxes,
+    keep,
+    n_keep,
     out,
     stats,
     n_done,
     median_k,
     grad_out,
-    pair_grad,
+    acc,
 ):
-    """Accumulate dL/d(per-surfel inputs) per binned pair, replaying the forward front to back.
+    """Accumulate dL/d(per-surfel inputs), replaying the forward front to back per 4x4 block.
 
     For one weight set with weights w_k = a_k T_k and a per-pixel loss whose partial derivative
     with respect to w_k is q_k, dL/da_i = q_i T_i - (sum_{k>i} q_k w_k) / (1 - a_i); the suffix sum
-    is Q - (prefix incl. i), with Q = sum_k q_k w_k computed from the forward totals.
+    is Q - (prefix incl. i), with Q = sum_k q_k w_k computed from the forward totals. The gradient
+    of one entry is summed over the pixels of the block first, then added to the thread's row.
     """
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
+    n_grad = G_FEAT + fc
     ndc_scale = far / (far - near)
-    for t in prange(n_tiles):
-        cnt = tile_count[t]
-        if cnt == 0:
+    nbx = (tile_size + BLOCK - 1) // BLOCK
+    nb2 = nbx * nbx
+    for unit in prange(n_tiles * nb2):
+        t = unit // nb2
+        nk = n_keep[t]
+        if nk == 0:
             continue
         start = tile_start[t]
         tx0 = (t % tiles_x) * tile_size
         ty0 = (t // tiles_x) * tile_size
-        keep, n_keep = _tile_entries(ids, boxes, start, cnt, tx0, ty0, tile_size)
-        blocks, block_count, nbx = _block_entries(ids, boxes, start, keep, n_keep, tx0, ty0, tile_size)
-        for ly in range(tile_size):
-            yi = ty0 + ly
-            if yi >= height:
-                break
-            py = yi + 0.5
-            for lx in range(tile_size):
-                xi = tx0 + lx
-                if xi >= width:
-                    break
-                px = xi + 0.5
-                pix = yi * width + xi
-                g_A = grad_out[pix, fc]
-                g_dsum = grad_out[pix, fc + 1]
-                g_med = grad_out[pix, fc + 2]
-                g_dist = grad_out[pix, fc + 3]
-                g_c0 = grad_out[pix, fc + 4]
-                g_c1 = grad_out[pix, fc + 5]
-                g_c2 = grad_out[pix, fc + 6]
-                g_Av = grad_out[pix, fc + 7]
-                g_dv = grad_out[pix, fc + 8]
-                A = out[pix, fc]
-                S1 = stats[pix, 0]
-                S2 = stats[pix, 1]
-                Q_s = g_A * A + g_dsum * out[pix, fc + 1] + g_dist * 2.0 * (A * S2 - S1 * S1)
-                for c in range(fc):
-                    Q_s += grad_out[pix, c] * out[pix, c]
-                Q_v = (
-                    g_c0 * out[pix, fc + 4]
-                    + g_c1 * out[pix, fc + 5]
-                    + g_c2 * out[pix, fc + 6]
-                    + g_Av * out[pix, fc + 7]
-                    + g_dv * out[pix, fc + 8]
+        by = (unit - t * nb2) // nbx
+        bx = (unit - t * nb2) - by * nbx
+        pxs, pys, pixs, npx = _block_pixels(tx0, ty0, tile_size, bx, by, width, height)
+        if npx == 0:
+            continue
+        lst, n_scan = _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by)
+        tid = get_thread_id()
+        rho_b = np.empty(NPIX, dtype=np.float64)
+        z_b = np.empty(NPIX, dtype=np.float64)
+        u_b = np.empty(NPIX, dtype=np.float64)
+        v_b = np.empty(NPIX, dtype=np.float64)
+        p2_b = np.empty(NPIX, dtype=np.float64)
+        ok_b = np.empty(NPIX, dtype=np.bool_)
+        plane_b = np.empty(NPIX, dtype=np.bool_)
+        plane_ok_b = np.empty(NPIX, dtype=np.bool_)
+        # per pixel: Q_s Q_v P_s P_v T_s T_v
+        st = np.zeros((6, NPIX), dtype=np.float64)
+        live = np.ones((2, NPIX), dtype=np.bool_)
+        limit = np.zeros(NPIX, dtype=np.int64)
+        eg = np.zeros(n_grad, dtype=np.float64)
+        n_run = 0
+        for p in range(npx):
+            pix = pixs[p]
+            A = out[pix, fc]
+            S1 = stats[pix, 0]
+            S2 = stats[pix, 1]
+            Q_s = (
+                grad_out[pix, fc] * A
+                + grad_out[pix, fc + 1] * out[pix, fc + 1]
+                + grad_out[pix, fc + 3] * 2.0 * (A * S2 - S1 * S1)
+            )
+            for c in range(fc):
+                Q_s += grad_out[pix, c] * out[pix, c]
+            st[0, p] = Q_s
+            st[1, p] = (
+                grad_out[pix, fc + 4] * out[pix, fc + 4]
+                + grad_out[pix, fc + 5] * out[pix, fc + 5]
+                + grad_out[pix, fc + 6] * out[pix, fc + 6]
+                + grad_out[pix, fc + 7] * out[pix, fc + 7]
+                + grad_out[pix, fc + 8] * out[pix, fc + 8]
+            )
+            st[4, p] = 1.0
+            st[5, p] = 1.0
+            limit[p] = n_done[pix]
+            n_run = max(n_run, limit[p])
+        for j in range(n_run):
+            k = lst[j]
+            i = ids[start + k]
+            b0 = boxes[i, 0]
+            b1 = boxes[i, 1]
+            b2 = boxes[i, 2]
+            b3 = boxes[i, 3]
+            cut = rho_cut[i]
+            m0 = M[i, 0]
+            m1 = M[i, 1]
+            m2 = M[i, 2]
+            m3 = M[i, 3]
+            m4 = M[i, 4]
+            m5 = M[i, 5]
+            m6 = M[i, 6]
+            m7 = M[i, 7]
+            m8 = M[i, 8]
+            cx = centers[i, 0]
+            cy = centers[i, 1]
+            for p in range(npx):
+                px = pxs[p]
+                py = pys[p]
+                z, rho, use_plane, plane_ok, u, v, p2 = _eval_pair(
+                    m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
                 )
-                medk = median_k[pix]
-                P_s = 0.0
-                P_v = 0.0
-                T_s = 1.0
-                T_v = 1.0
-                live_s = True
-                live_v = True
-                b = (ly // BLOCK) * nbx + lx // BLOCK
-                for j in range(n_done[pix]):
-                    k = blocks[b, j]
-                    i = ids[start + k]
-                    if px < boxes[i, 0] or px > boxes[i, 1] or py < boxes[i, 2] or py > boxes[i, 3]:
-                        continue
-                    z, rho, use_plane, plane_ok, u, v, p2, dx, dy, hx0, hx1, hx2, hy0, hy1, hy2 = _eval_pair(
-                        M, centers, i, px, py, lowpass, edge_on_ratio
-                    )
-                    if not (z >= near) or rho > rho_cut[i]:
-                        continue
-                    gauss = math.exp(-0.5 * rho)
-                    row = start + k
-                    o = occ[i]
-                    op = opa[i]
-                    raw_s = o * gauss
-                    a_s = raw_s
-                    if a_s > alpha_max:
-                        a_s = alpha_max
-                    oo = o * op
-                    raw_v = oo * gauss
-                    a_v = raw_v
-                    if a_v > alpha_max:
-                        a_v = alpha_max
-                    g_z = 0.0
-                    g_gauss = 0.0
-                    touched = False
-                    if live_s and a_s >= alpha_min:
-                        t_next = T_s * (1.0 - a_s)
-                        if t_next < t_min:
-                            live_s = False
-                        else:
-                            touched = True
-                            w = a_s * T_s
-                            m = ndc_scale * (1.0 - near / z)
-                            q = g_A + g_dsum * z + g_dist * (m * m * A - 2.0 * m * S1 + S2)
-                            for c in range(fc):
-                                q += grad_out[pix, c] * feats[i, c]
-                                pair_grad[row, G_FEAT + c] += grad_out[pix, c] * w
-                            P_s += q * w
-                            g_a = q * T_s - (Q_s - P_s) / (1.0 - a_s)
-                            g_z += g_dsum * w + g_dist * 2.0 * w * (m * A - S1) * (ndc_scale * near / (z * z))
-                            if k == medk:
-                                g_z += g_med
-                            if raw_s <= alpha_max:
-                                pair_grad[row, G_OCC] += g_a * gauss
-                                g_gauss += g_a * o
-                            T_s = t_next
-                    if live_v and a_v >= alpha_min:
-                        t_next = T_v * (1.0 - a_v)
-                        if t_next < t_min:
-                            live_v = False
-                        else:
-                            touched = True
-                            w = a_v * T_v
-                            q = g_Av + g_dv * z + g_c0 * colors[i, 0] + g_c1 * colors[i, 1] + g_c2 * colors[i, 2]
-                            pair_grad[row, G_COLOR] += g_c0 * w
-                            pair_grad[row, G_COLOR + 1] += g_c1 * w
-                            pair_grad[row, G_COLOR + 2] += g_c2 * w
-                            P_v += q * w
-                            g_a = q * T_v - (Q_v - P_v) / (1.0 - a_v)
-                            g_z += g_dv * w
-                            if raw_v <= alpha_max:
-                                g_oo = g_a * gauss
-                                pair_grad[row, G_OCC] += g_oo * op
-                                pair_grad[row, G_OPA] += g_oo * o
-                                g_gauss += g_a * oo
-                            T_v = t_next
-                    if not touched:
-                        continue
-                    g_rho = -0.5 * gauss * g_gauss
-                    if use_plane:
-                        if plane_ok:
-                            # z = u m6 + v m7 + m8 ; rho = u^2 + v^2
-                            pair_grad[row, G_M + 6] += g_z * u
-                            pair_grad[row, G_M + 7] += g_z * v
-                            pair_grad[row, G_M + 8] += g_z
-                            g_u = g_z * M[i, 6] + 2.0 * u * g_rho
-                            g_v = g_z * M[i, 7] + 2.0 * v * g_rho
-                            gp0 = g_u / p2
-                            gp1 = g_v / p2
-                            gp2 = -(g_u * u + g_v * v) / p2
-                            # p = hx x hy: dL/dhx = hy x gp, dL/dhy = gp x hx
-                            ghx0 = hy1 * gp2 - hy2 * gp1
-                            ghx1 = hy2 * gp0 - hy0 * gp2
-                            ghx2 = hy0 * gp1 - hy1 * gp0
-                            ghy0 = gp1 * hx2 - gp2 * hx1
-                            ghy1 = gp2 * hx0 - gp0 * hx2
-                            ghy2 = gp0 * hx1 - gp1 * hx0
-                            pair_grad[row, G_M + 0] += ghx0
-                            pair_grad[row, G_M + 1] += ghx1
-                            pair_grad[row, G_M + 2] += ghx2
-                            pair_grad[row, G_M + 3] += ghy0
-                            pair_grad[row, G_M + 4] += ghy1
-                            pair_grad[row, G_M + 5] += ghy2
-                            pair_grad[row, G_M + 6] -= px * ghx0 + py * ghy0
-                            pair_grad[row, G_M + 7] -= px * ghx1 + py * ghy1
-                            pair_grad[row, G_M + 8] -= px * ghx2 + py * ghy2
-                        else:
-                            pair_grad[row, G_M + 8] += g_z
+                rho_b[p] = rho
+                z_b[p] = z
+                u_b[p] = u
+                v_b[p] = v
+                p2_b[p] = p2
+                plane_b[p] = use_plane
+                plane_ok_b[p] = plane_ok
+                ok_b[p] = not (
+                    (px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near))
+                )
+            o = occ[i]
+            op = opa[i]
+            oo = o * op
+            any_touched = False
+            for p in range(npx):
+                if not ok_b[p] or j >= limit[p]:
+                    continue
+                pix = pixs[p]
+                z = z_b[p]
+                gauss = math.exp(-0.5 * rho_b[p])
+                raw_s = o * gauss
+                a_s = raw_s
+                if a_s > alpha_max:
+                    a_s = alpha_max
+                raw_v = oo * gauss
+                a_v = raw_v
+                if a_v > alpha_max:
+                    a_v = alpha_max
+                g_z = 0.0
+                g_gauss = 0.0
+                touched = False
+                if live[0, p] and a_s >= alpha_min:
+                    T_s = st[4, p]
+                    t_next = T_s * (1.0 - a_s)
+                    if t_next < t_min:
+                        live[0, p] = False
                     else:
-                        pair_grad[row, G_M + 8] += g_z
-                        pair_grad[row, G_CENTER] += g_rho * lowpass * 2.0 * dx
-                        pair_grad[row, G_CENTER + 1] += g_rho * lowpass * 2.0 * dy
+                        touched = True
+                        w = a_s * T_s
+                        g_dsum = grad_out[pix, fc + 1]
+                        g_dist = grad_out[pix, fc + 3]
+                        A = out[pix, fc]
+                        S1 = stats[pix, 0]
+                        m = ndc_scale * (1.0 - near / z)
+                        q = grad_out[pix, fc] + g_dsum * z + g_dist * (m * m * A - 2.0 * m * S1 + stats[pix, 1])
+                        for c in range(fc):
+                            q += grad_out[pix, c] * feats[i, c]
+                            eg[G_FEAT + c] += grad_out[pix, c] * w
+                        P_s = st[2, p] + q * w
+                        st[2, p] = P_s
+                        g_a = q * T_s - (st[0, p] - P_s) / (1.0 - a_s)
+                        g_z += g_dsum * w + g_dist * 2.0 * w * (m * A - S1) * (ndc_scale * near / (z * z))
+                        if k == median_k[pix]:
+                            g_z += grad_out[pix, fc + 2]
+                        if raw_s <= alpha_max:
+                            eg[G_OCC] += g_a * gauss
+                            g_gauss += g_a * o
+                        st[4, p] = t_next
+                if live[1, p] and a_v >= alpha_min:
+                    T_v = st[5, p]
+                    t_next = T_v * (1.0 - a_v)
+                    if t_next < t_min:
+                        live[1, p] = False
+                    else:
+                        touched = True
+                        w = a_v * T_v
+                        g_c0 = grad_out[pix, fc + 4]
+                        g_c1 = grad_out[pix, fc + 5]
+                        g_c2 = grad_out[pix, fc + 6]
+                        g_dv = grad_out[pix, fc + 8]
+                        q = (
+                            grad_out[pix, fc + 7]
+                            + g_dv * z
+                            + g_c0 * colors[i, 0]
+                            + g_c1 * colors[i, 1]
+                            + g_c2 * colors[i, 2]
+                        )
+                        eg[G_COLOR] += g_c0 * w
+                        eg[G_COLOR + 1] += g_c1 * w
+                        eg[G_COLOR + 2] += g_c2 * w
+                        P_v = st[3, p] + q * w
+                        st[3, p] = P_v
+                        g_a = q * T_v - (st[1, p] - P_v) / (1.0 - a_v)
+                        g_z += g_dv * w
+                        if raw_v <= alpha_max:
+                            g_oo = g_a * gauss
+                            eg[G_OCC] += g_oo * op
+                            eg[G_OPA] += g_oo * o
+                            g_gauss += g_a * oo
+                        st[5, p] = t_next
+                if not touched:
+                    continue
+                any_touched = True
+                g_rho = -0.5 * gauss * g_gauss
+                px = pxs[p]
+                py = pys[p]
+                if plane_b[p]:
+                    if plane_ok_b[p]:
+                        u = u_b[p]
+                        v = v_b[p]
+                        p2 = p2_b[p]
+                        hx0 = m0 - px * m6
+                        hx1 = m1 - px * m7
+                        hx2 = m2 - px * m8
+                        hy0 = m3 - py * m6
+                        hy1 = m4 - py * m7
+                        hy2 = m5 - py * m8
+                        # z = u m6 + v m7 + m8 ; rho = u^2 + v^2
+                        eg[G_M + 6] += g_z * u
+                        eg[G_M + 7] += g_z * v
+                        eg[G_M + 8] += g_z
+                        g_u = g_z * m6 + 2.0 * u * g_rho
+                        g_v = g_z * m7 + 2.0 * v * g_rho
+                        inv_p2 = 1.0 / p2
+                        gp0 = g_u * inv_p2
+                        gp1 = g_v * inv_p2
+                        gp2 = -(g_u * u + g_v * v) * inv_p2
+                        # p = hx x hy: dL/dhx = hy x gp, dL/dhy = gp x hx
+                        ghx0 = hy1 * gp2 - hy2 * gp1
+                        ghx1 = hy2 * gp0 - hy0 * gp2
+                        ghx2 = hy0 * gp1 - hy1 * gp0
+                        ghy0 = gp1 * hx2 - gp2 * hx1
+                        ghy1 = gp2 * hx0 - gp0 * hx2
+                        ghy2 = gp0 * hx1 - gp1 * hx0
+                        eg[G_M + 0] += ghx0
+                        eg[G_M + 1] += ghx1
+                        eg[G_M + 2] += ghx2
+                        eg[G_M + 3] += ghy0
+                        eg[G_M + 4] += ghy1
+                        eg[G_M + 5] += ghy2
+                        eg[G_M + 6] -= px * ghx0 + py * ghy0
+                        eg[G_M + 7] -= px * ghx1 + py * ghy1
+                        eg[G_M + 8] -= px * ghx2 + py * ghy2
+                    else:
+                        eg[G_M + 8] += g_z
+                else:
+                    eg[G_M + 8] += g_z
+                    eg[G_CENTER] += g_rho * lowpass * 2.0 * (centers[i, 0] - px)
+                    eg[G_CENTER + 1] += g_rho * lowpass * 2.0 * (centers[i, 1] - py)
+            if any_touched:
+                for c in range(n_grad):
+                    acc[tid, i, c] += eg[c]
+                    eg[c] = 0.0
+
+
+@njit(parallel=True, **_JIT)
+def sum_threads_kernel(acc):
+    """``acc[0, i] += acc[t, i]`` for every other thread t (the backward's per-thread sums)."""
+    n_threads = acc.shape[0]
+    for i in prange(acc.shape[1]):
+        for th in range(1, n_threads):
+            for c in range(acc.shape[2]):
+                acc[0, i, c] += acc[th, i, c]
