@@ -136,7 +136,10 @@ def _worker(args) -> int:
         start = time.perf_counter()
         state = Path(args.state) if args.state else None
         if state is not None and state.exists():
-            trainer.load_checkpoint(state)
+            try:  # the state may come from a checkout whose config has other keys: load it as it is
+                trainer.load_checkpoint(state, new_config=True)
+            except TypeError:  # a checkout from before load_checkpoint(new_config=...)
+                trainer.load_checkpoint(state)
         else:
             for _ in range(args.warmup):
                 trainer.step()
