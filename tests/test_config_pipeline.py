@@ -41,6 +41,24 @@ def test_repository_config_is_valid_and_matches_defaults():
     assert set(props) == {"sfm", "masks", "prepare", "train", "render", "metrics"}
 
 
+@pytest.mark.parametrize("layer", ["targets.yaml", "targets_quick.yaml"])
+def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
+    """`make targets` layers benchmarks/<layer> over demo/config.yaml: every method must build a valid
+    trainer config on every scene before an hour of training starts."""
+    from rtsplat.config import deep_merge, trainer_options
+
+    data = deep_merge(yaml.safe_load((ROOT / "demo" / "config.yaml").read_text()),
+                      yaml.safe_load((ROOT / "benchmarks" / layer).read_text()))
+    cfg = load_config_dict(data, source=layer)
+    assert {"rtsplat", "2dgs", "rtsplat_x4", "2dgs_x4"} <= set(cfg.methods)
+    trees = {(scene, m): trainer_options(cfg, scene, m) for scene in cfg.scenes for m in cfg.methods}
+    demo_iterations = trees[("dome", "rtsplat")]["schedule"]["iterations"]
+    assert trees[("dome", "rtsplat_x4")]["schedule"]["iterations"] == 4 * demo_iterations
+    assert trees[("cabin", "rtsplat_mlp64")]["model"]["mlp_width"] == 64
+    assert trees[("cabin", "rtsplat_init1")]["densify"]["initial_copies"] == 1
+    assert trees[("dome", "2dgs_x4")]["effects"] == {"transmission": "off", "specular": "off"}
+
+
 def test_schema_also_accepts_what_snakemake_validates():
     import jsonschema
 
