@@ -30,9 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -183,37 +181,6 @@ def _send(data: dict) -> None:
     sys.stdout.flush()
 
 
-# -- parent: interleave the workers ---------------------------------------------------------------
-class _Worker:
-    def __init__(self, checkout: Path, method: str, args):
-        self.checkout, self.method = checkout, method
-        code = ("import runpy, sys; sys.argv = sys.argv[1:]; "
-                f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')")
-        cmd = [sys.executable, "-c", code, "prog", "--worker", "--method", method, "--scene", str(args.scene),
-               "--warmup", str(args.warmup), "--options", args.options,
-               "--state", str(args.state_dir / f"{method}.pt"), "--threads", str(args.threads)]
-        env = {**os.environ, "PYTHONPATH": str(checkout)}
-        self.proc = subprocess.Popen(cmd, cwd=checkout, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     text=True)
-
-    def receive(self) -> dict:
-        for line in self.proc.stdout:
-            if line.startswith("@@"):
-                return json.loads(line[2:])
-        raise RuntimeError(f"worker {self.method} @ {self.checkout} exited with {self.proc.wait()}")
-
-    def ask(self, request: dict) -> dict:
-        self.proc.stdin.write(json.dumps(request) + "\n")
-        self.proc.stdin.flush()
-        return self.receive()
-
-    def close(self):
-        if self.proc.poll() is None:
-            self.proc.stdin.write(json.dumps({"cmd": "quit"}) + "\n")
-            self.proc.stdin.flush()
-            self.proc.wait()
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m rtsplat.bench.iteration", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -243,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--scene is required")
     if args.worker:
         return _worker(args)
+    from rtsplat.bench.workers import CheckoutWorker  # the parent only: a worker's checkout may lack it
     options = json.loads(args.options)
     if any(key in options for key in ("schedule", "model")):
         merged = {k: {**DEMO_OPTIONS.get(k, {}), **v} if isinstance(v, dict) else v for k, v in options.items()}
@@ -250,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
 
     checkouts = [c.resolve() for c in (args.checkout or [Path(__file__).resolve().parents[2]])]
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    workers: dict[tuple[int, str], _Worker] = {}
+    workers: dict[tuple[int, str], CheckoutWorker] = {}
     tmp = None
     if args.state_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="rtsplat_bench_state_")
@@ -259,7 +227,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for method in methods:
             for ci, checkout in enumerate(checkouts):  # warm-ups one at a time: no competition
-                w = _Worker(checkout, method, args)
+                w = CheckoutWorker(__file__, checkout, [
+                    "--worker", "--method", method, "--scene", str(args.scene), "--warmup", str(args.warmup),
+                    "--options", args.options, "--state", str(args.state_dir / f"{method}.pt"),
+                    "--threads", str(args.threads)], f"{method} @ {checkout}")
                 info = w.receive()
                 workers[ci, method] = w
                 print(f"[{method} @ {checkout}] package {info['package']}, at iteration {info['iteration']} "

@@ -17,9 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -82,34 +80,6 @@ def _send(data: dict) -> None:
     sys.stdout.flush()
 
 
-# -- parent: interleave the workers ---------------------------------------------------------------
-class _Worker:
-    def __init__(self, checkout: Path):
-        self.checkout = checkout
-        code = ("import runpy, sys; sys.argv = sys.argv[1:]; "
-                f"runpy.run_path({str(Path(__file__).resolve())!r}, run_name='__main__')")
-        env = {**os.environ, "PYTHONPATH": str(checkout)}
-        self.proc = subprocess.Popen([sys.executable, "-c", code, "prog", "--worker"], cwd=checkout, env=env,
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-
-    def receive(self) -> dict:
-        for line in self.proc.stdout:
-            if line.startswith("@@"):
-                return json.loads(line[2:])
-        raise RuntimeError(f"worker @ {self.checkout} exited with {self.proc.wait()}")
-
-    def ask(self, request: dict) -> dict:
-        self.proc.stdin.write(json.dumps(request) + "\n")
-        self.proc.stdin.flush()
-        return self.receive()
-
-    def close(self):
-        if self.proc.poll() is None:
-            self.proc.stdin.write(json.dumps({"cmd": "quit"}) + "\n")
-            self.proc.stdin.flush()
-            self.proc.wait()
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m rtsplat.bench.raster_cpu", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -124,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.worker:
         return _worker()
+    from rtsplat.bench.workers import CheckoutWorker  # the parent only: a worker's checkout may lack it
     cells = []
     for item in args.cells.split(","):
         size, n = item.split(":")
@@ -134,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     workers = []
     try:
         for checkout in checkouts:  # warm-ups (kernel compilation or cache load) one at a time
-            w = _Worker(checkout)
+            w = CheckoutWorker(__file__, checkout, ["--worker"], f"@ {checkout}")
             info = w.receive()
             workers.append(w)
             print(f"[{len(workers) - 1}] {checkout}: package {info['package']}, warm-up {info['warmup_s']:.1f} s",
