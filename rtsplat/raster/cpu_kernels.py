@@ -237,6 +237,73 @@ def _block_pixels(tx0, ty0, tile_size, bx, by, width, height):
     return pxs, pys, pixs, npx
 
 
+@njit(inline="always", **_JIT)
+def _unit_block(unit, nbx, tiles_x, tile_size, width, height, tile_start, n_keep, keep, ids, boxes):
+    """Work unit ``unit`` (tile-major, nbx x nbx blocks per tile): the tile's first pair, its block's
+    pixels (coordinates, flat indices, count; 0 for an empty tile or block) and entry list."""
+    nb2 = nbx * nbx
+    t = unit // nb2
+    start = tile_start[t]
+    tx0 = (t % tiles_x) * tile_size
+    ty0 = (t // tiles_x) * tile_size
+    by = (unit - t * nb2) // nbx
+    bx = (unit - t * nb2) - by * nbx
+    pxs, pys, pixs, npx = _block_pixels(tx0, ty0, tile_size, bx, by, width, height)
+    nk = n_keep[t]
+    if nk == 0:
+        npx = 0
+    lst, n_scan = _block_list(ids, boxes, start, keep, nk if npx > 0 else 0, tx0, ty0, tile_size, bx, by)
+    return start, pxs, pys, pixs, npx, lst, n_scan
+
+
+@njit(inline="always", **_JIT)
+def _geometry_buffers():
+    """Per-pixel scratch of one block for :func:`_entry_geometry`: rho, z, u, v, p2 (float64) and
+    contributes, use-plane, plane-defined (bool)."""
+    return (np.empty(NPIX, dtype=np.float64), np.empty(NPIX, dtype=np.float64), np.empty(NPIX, dtype=np.float64),
+            np.empty(NPIX, dtype=np.float64), np.empty(NPIX, dtype=np.float64), np.empty(NPIX, dtype=np.bool_),
+            np.empty(NPIX, dtype=np.bool_), np.empty(NPIX, dtype=np.bool_))
+
+
+@njit(inline="always", **_JIT)
+def _entry_geometry(M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
+                    rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b):
+    """The ray-splat geometry of surfel ``i`` at the block's ``npx`` pixels, in one branch-free loop
+    (:func:`_eval_pair`), into the per-pixel buffers; ``ok_b``: inside its box, rho within its cut-off
+    and in front of ``near``. Returns the surfel's ray transform (m0..m8)."""
+    b0 = boxes[i, 0]
+    b1 = boxes[i, 1]
+    b2 = boxes[i, 2]
+    b3 = boxes[i, 3]
+    cut = rho_cut[i]
+    m0 = M[i, 0]
+    m1 = M[i, 1]
+    m2 = M[i, 2]
+    m3 = M[i, 3]
+    m4 = M[i, 4]
+    m5 = M[i, 5]
+    m6 = M[i, 6]
+    m7 = M[i, 7]
+    m8 = M[i, 8]
+    cx = centers[i, 0]
+    cy = centers[i, 1]
+    for p in range(npx):
+        px = pxs[p]
+        py = pys[p]
+        z, rho, use_plane, plane_ok, u, v, p2 = _eval_pair(
+            m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
+        )
+        rho_b[p] = rho
+        z_b[p] = z
+        u_b[p] = u
+        v_b[p] = v
+        p2_b[p] = p2
+        plane_b[p] = use_plane
+        plane_ok_b[p] = plane_ok
+        ok_b[p] = not ((px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near)))
+    return m0, m1, m2, m3, m4, m5, m6, m7, m8
+
+
 @njit(parallel=True, **_JIT)
 def forward_kernel(
     M,
@@ -278,22 +345,12 @@ def forward_kernel(
     nbx = (tile_size + BLOCK - 1) // BLOCK
     nb2 = nbx * nbx
     for unit in prange(n_tiles * nb2):
-        t = unit // nb2
-        nk = n_keep[t]
-        if nk == 0:
-            continue
-        start = tile_start[t]
-        tx0 = (t % tiles_x) * tile_size
-        ty0 = (t // tiles_x) * tile_size
-        by = (unit - t * nb2) // nbx
-        bx = (unit - t * nb2) - by * nbx
-        pxs, pys, pixs, npx = _block_pixels(tx0, ty0, tile_size, bx, by, width, height)
+        start, pxs, pys, pixs, npx, lst, n_scan = _unit_block(
+            unit, nbx, tiles_x, tile_size, width, height, tile_start, n_keep, keep, ids, boxes
+        )
         if npx == 0:
             continue
-        lst, n_scan = _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by)
-        rho_b = np.empty(NPIX, dtype=np.float64)
-        z_b = np.empty(NPIX, dtype=np.float64)
-        ok_b = np.empty(NPIX, dtype=np.bool_)
+        rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b = _geometry_buffers()
         # per pixel: T_s T_v A dsum med dist S1 S2 c0 c1 c2 Av dvsum
         st = np.zeros((13, NPIX), dtype=np.float64)
         medk_b = np.full(NPIX, -1, dtype=np.int64)
@@ -309,33 +366,8 @@ def forward_kernel(
                 break
             k = lst[j]
             i = ids[start + k]
-            b0 = boxes[i, 0]
-            b1 = boxes[i, 1]
-            b2 = boxes[i, 2]
-            b3 = boxes[i, 3]
-            cut = rho_cut[i]
-            m0 = M[i, 0]
-            m1 = M[i, 1]
-            m2 = M[i, 2]
-            m3 = M[i, 3]
-            m4 = M[i, 4]
-            m5 = M[i, 5]
-            m6 = M[i, 6]
-            m7 = M[i, 7]
-            m8 = M[i, 8]
-            cx = centers[i, 0]
-            cy = centers[i, 1]
-            for p in range(npx):
-                px = pxs[p]
-                py = pys[p]
-                z, rho, _, _, _, _, _ = _eval_pair(
-                    m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
-                )
-                rho_b[p] = rho
-                z_b[p] = z
-                ok_b[p] = not (
-                    (px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near))
-                )
+            _entry_geometry(M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
+                            rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b)
             o = occ[i]
             oo = o * opa[i]
             entry_used = False
@@ -457,28 +489,13 @@ def backward_kernel(
     nbx = (tile_size + BLOCK - 1) // BLOCK
     nb2 = nbx * nbx
     for unit in prange(n_tiles * nb2):
-        t = unit // nb2
-        nk = n_keep[t]
-        if nk == 0:
-            continue
-        start = tile_start[t]
-        tx0 = (t % tiles_x) * tile_size
-        ty0 = (t // tiles_x) * tile_size
-        by = (unit - t * nb2) // nbx
-        bx = (unit - t * nb2) - by * nbx
-        pxs, pys, pixs, npx = _block_pixels(tx0, ty0, tile_size, bx, by, width, height)
+        start, pxs, pys, pixs, npx, lst, n_scan = _unit_block(
+            unit, nbx, tiles_x, tile_size, width, height, tile_start, n_keep, keep, ids, boxes
+        )
         if npx == 0:
             continue
-        lst, n_scan = _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by)
         tid = get_thread_id()
-        rho_b = np.empty(NPIX, dtype=np.float64)
-        z_b = np.empty(NPIX, dtype=np.float64)
-        u_b = np.empty(NPIX, dtype=np.float64)
-        v_b = np.empty(NPIX, dtype=np.float64)
-        p2_b = np.empty(NPIX, dtype=np.float64)
-        ok_b = np.empty(NPIX, dtype=np.bool_)
-        plane_b = np.empty(NPIX, dtype=np.bool_)
-        plane_ok_b = np.empty(NPIX, dtype=np.bool_)
+        rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b = _geometry_buffers()
         # per pixel: Q_s Q_v P_s P_v T_s T_v
         st = np.zeros((6, NPIX), dtype=np.float64)
         live = np.ones((2, NPIX), dtype=np.bool_)
@@ -512,38 +529,10 @@ def backward_kernel(
         for j in range(n_run):
             k = lst[j]
             i = ids[start + k]
-            b0 = boxes[i, 0]
-            b1 = boxes[i, 1]
-            b2 = boxes[i, 2]
-            b3 = boxes[i, 3]
-            cut = rho_cut[i]
-            m0 = M[i, 0]
-            m1 = M[i, 1]
-            m2 = M[i, 2]
-            m3 = M[i, 3]
-            m4 = M[i, 4]
-            m5 = M[i, 5]
-            m6 = M[i, 6]
-            m7 = M[i, 7]
-            m8 = M[i, 8]
-            cx = centers[i, 0]
-            cy = centers[i, 1]
-            for p in range(npx):
-                px = pxs[p]
-                py = pys[p]
-                z, rho, use_plane, plane_ok, u, v, p2 = _eval_pair(
-                    m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
-                )
-                rho_b[p] = rho
-                z_b[p] = z
-                u_b[p] = u
-                v_b[p] = v
-                p2_b[p] = p2
-                plane_b[p] = use_plane
-                plane_ok_b[p] = plane_ok
-                ok_b[p] = not (
-                    (px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near))
-                )
+            m0, m1, m2, m3, m4, m5, m6, m7, m8 = _entry_geometry(
+                M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
+                rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b,
+            )
             o = occ[i]
             op = opa[i]
             oo = o * op
