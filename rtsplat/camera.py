@@ -82,12 +82,31 @@ class Camera:
         K[:2] = K[:2] / factor
         return Camera(K, self.world_to_camera, int(self.width // factor), int(self.height // factor))
 
+    def corrected(self, correction: Tensor) -> Camera:
+        """This camera moved by ``correction`` [6] (rotation vector, translation) expressed in its own
+        frame: ``world_to_camera' = rigid_motion(correction) @ world_to_camera``. Differentiable in
+        ``correction``; a zero correction gives this camera's pose exactly."""
+        motion = rigid_motion(correction.to(self.world_to_camera))
+        return Camera(self.K, motion @ self.world_to_camera, int(self.width), int(self.height))
+
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """World points [N, 3] -> (pixel coordinates [N, 2], camera depth z [N])."""
         cam = points @ self.rotation.T + self.translation
         uvw = cam @ self.K.T
         z = cam[:, 2]
         return uvw[:, :2] / z[:, None], z
+
+
+def rigid_motion(correction: Tensor) -> Tensor:
+    """4x4 rigid transform of a [6] vector: rotation ``exp([w]x)`` of the rotation vector ``w =
+    correction[:3]`` (radians) and translation ``correction[3:]``. The matrix exponential is finite,
+    with finite gradients, at and near the zero rotation."""
+    w = correction[:3]
+    zero = w.new_zeros(())
+    skew = torch.stack([zero, -w[2], w[1], w[2], zero, -w[0], -w[1], w[0], zero]).reshape(3, 3)
+    top = torch.cat([torch.linalg.matrix_exp(skew), correction[3:, None]], dim=1)
+    bottom = correction.new_tensor([[0.0, 0.0, 0.0, 1.0]])
+    return torch.cat([top, bottom], dim=0)
 
 
 def pixel_rays(camera: Camera, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:

@@ -9,6 +9,10 @@ Writes, for every view of the chosen split, into ``<out>/``:
 * ``normal/<name>.png``         world normals mapped to [0,1];  ``depth/<name>.png``: inverse depth;
 * ``render.json``               views, device, backend, edits and frames per second.
 
+Each view is rendered from its prepared pose moved by the run's pose correction for that view
+(``train.cameras``, saved in ``model.pt``: learnt for training views, fitted to the image for test
+views), so the renders are those the trainer evaluated.
+
 FPS is measured over the views after ``--warmup`` untimed renders (inference mode, no files written
 while timing), on the device the model is on.
 
@@ -117,6 +121,18 @@ def _depth_image(depth: Tensor, alpha: Tensor) -> Tensor:
     return (inv / top).expand(*inv.shape[:2], 3)
 
 
+def corrected_cameras(records, corrections: dict[str, list[float]], device) -> list:
+    """The cameras of ``records`` moved by the run's pose corrections (view name -> [6], see
+    :mod:`rtsplat.train.cameras`); a view without one keeps its prepared pose."""
+    cameras = []
+    for rec in records:
+        camera = rec.to_camera(device=device)
+        if rec.name in corrections:
+            camera = camera.corrected(torch.as_tensor(corrections[rec.name], device=device))
+        cameras.append(camera)
+    return cameras
+
+
 def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, split: str = "test",
                edits: Edits | None = None, backend: str = "auto", warmup: int = 2, device: str = "auto",
                progress: bool = True) -> dict:
@@ -147,7 +163,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
     model.eval()
     apply_parameter_edits(model, edits)
     raster = checkpoint.raster
-    cameras = [rec.to_camera(device=device) for rec in records]
+    cameras = corrected_cameras(records, checkpoint.training.get("camera_corrections", {}), device)
 
     def render(camera):
         return model.render(camera, stage="full", raster_settings=raster, backend=backend)

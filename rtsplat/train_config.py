@@ -24,8 +24,9 @@ from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.raster import RasterSettings, check_backend_name
 from rtsplat.schema import setting
 
-__all__ = ["Ablations", "Densification", "Effects", "Gating", "ITERATION_COUNTS", "LearningRates", "Losses",
-           "ModelSettings", "RESUME_MAY_CHANGE", "Schedule", "TrainConfig", "resume_differences", "scale_budget"]
+__all__ = ["Ablations", "CameraRefinement", "Densification", "Effects", "Gating", "ITERATION_COUNTS", "LearningRates",
+           "Losses", "ModelSettings", "RESUME_MAY_CHANGE", "Schedule", "TrainConfig", "resume_differences",
+           "scale_budget"]
 
 
 @dataclass
@@ -162,6 +163,32 @@ class Densification:
 
 
 @dataclass
+class CameraRefinement:
+    """Per-view pose corrections (see :mod:`rtsplat.train.cameras`): the training views' are learnt with
+    the model; the test views' are fitted to their images, model fixed, before each evaluation, so that
+    test PSNR measures the reconstruction rather than the error of the test views' SfM poses. The
+    corrections are saved with the model and applied by ``rtsplat render``."""
+
+    refine: bool = setting(
+        True, help="learn a rotation and a translation per training view with the model; false: the prepared poses "
+        "are used as they are, for training and for evaluation (no test-view fitting)"
+    )
+    refine_from: int = setting(100, help="the training views' corrections are learnt after this iteration",
+                               minimum=0)
+    lr_rotation: float = setting(1e-4, help="Adam learning rate of the training views' rotation corrections "
+                                 "(radians)", minimum=0.0)
+    lr_translation: float = setting(1e-4, help="Adam learning rate of their translation corrections (times the "
+                                    "scene extent)", minimum=0.0)
+    test_fit_steps: int = setting(
+        3, help="Adam steps that fit each test view's correction before an evaluation during training, "
+        "continuing from the previous evaluation's", minimum=0
+    )
+    final_fit_steps: int = setting(15, help="the same before the final evaluation", minimum=0)
+    test_fit_lr: float = setting(1e-3, help="learning rate of the test-view fits (radians; translation: times the "
+                                 "scene extent), decayed to a tenth over each fit", minimum=0.0)
+
+
+@dataclass
 class TrainConfig:
     """The trainer's config tree (rtsplat train)."""
 
@@ -189,6 +216,7 @@ class TrainConfig:
     densify: Densification = setting(help="adaptive density control", factory=Densification)
     model: ModelSettings = setting(help="model sizes and initial values", factory=ModelSettings)
     raster: RasterSettings = setting(help="rasterizer constants", factory=RasterSettings)
+    cameras: CameraRefinement = setting(help="per-view pose corrections", factory=CameraRefinement)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -235,6 +263,7 @@ ITERATION_COUNTS = {
                  "eval_every"),
     "lr": ("position_max_steps",),
     "losses": ("perceptual_from", "normal_from"),
+    "cameras": ("refine_from",),
 }
 
 

@@ -45,6 +45,7 @@ from rtsplat.quality.lpips import load_lpips
 from rtsplat.raster import default_backend
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
+from rtsplat.train.cameras import PoseCorrections, fit_corrections
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
@@ -116,6 +117,11 @@ class Trainer:
         self.model = self._new_model(self._init_surfels())
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
         self.density = DensityControl(cfg.densify, cfg.schedule, self.extent)
+        c = cfg.cameras
+        self.poses = PoseCorrections(len(self.train_views), self.extent, c.lr_rotation, c.lr_translation,
+                                     self.device) if c.refine else None
+        self.test_corrections = torch.zeros(len(self.test_views), 6, device=self.device)
+        self.test_fit_seconds = 0.0  # time spent fitting test-view corrections (not in self.elapsed)
         self.frozen = torch.zeros(len(self.model.surfels), dtype=torch.bool, device=self.device)
         self.any_frozen = False  # kept on the host: the step tests it without reading the device
         self.iteration = 0
@@ -182,6 +188,9 @@ class Trainer:
                 group["lr"] = position_lr(it, cfg.lr, self.extent)
         idx = self._next_view()
         camera, target = self.train_views.cameras[idx], self.train_views.images[idx]
+        refine_pose = self.poses is not None and it > cfg.cameras.refine_from
+        if refine_pose:
+            camera = self.poses.camera(idx, camera)
         mask = self.train_views.masks[idx]
         background_phase = self._background_phase()
         stage = "volume" if background_phase else stage_at(it, cfg)
@@ -213,6 +222,8 @@ class Trainer:
         trainable = (~self.frozen).float()
         self.density.observe(result.raster, trainable)
         gradients = self._optimizer_step()
+        if refine_pose:
+            self.poses.step()
         events, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
         self.watch.record(it, loss, gradients, self.optimizer)
         with torch.no_grad():
@@ -252,16 +263,37 @@ class Trainer:
         self.log(f"joint_optimization off: froze {n_old} background surfels, added {len(fresh)} new ones")
 
     # -- evaluation --------------------------------------------------------------------------
+    def _render_for_evaluation(self, camera):
+        return self.model.render(camera, stage=stage_at(max(self.iteration, 1), self.cfg),
+                                 raster_settings=self.cfg.raster, backend=self.cfg.backend)
+
+    def fit_test_cameras(self, steps: int) -> None:
+        """Fit the test views' pose corrections to their images (model fixed), continuing from the
+        current ones; nothing without pose refinement (``cameras.refine``) or test views."""
+        if self.poses is None or steps <= 0 or len(self.test_views) == 0:
+            return
+        start = time.perf_counter()
+        self.test_corrections = fit_corrections(
+            lambda camera: self._render_for_evaluation(camera).color, self.test_views.cameras,
+            self.test_views.images, self.test_corrections, self.extent, steps, self.cfg.cameras.test_fit_lr)
+        self.test_fit_seconds += time.perf_counter() - start
+
+    def test_cameras(self) -> list:
+        """The test views' cameras with their fitted corrections."""
+        return [camera.corrected(correction)
+                for camera, correction in zip(self.test_views.cameras, self.test_corrections, strict=True)]
+
     @torch.no_grad()
     def evaluate(self, views: ViewSet | None = None) -> dict[str, float]:
+        """Test PSNR (entire image, transparent region) of ``views`` (default: the test views, with
+        their fitted pose corrections)."""
+        cameras = views.cameras if views is not None else self.test_cameras()
         views = views or self.test_views
         if len(views) == 0:
             return {}
-        stage = stage_at(max(self.iteration, 1), self.cfg)
         full, region = [], []
-        for camera, image, mask in zip(views.cameras, views.images, views.masks, strict=True):
-            color = self.model.render(camera, stage=stage, raster_settings=self.cfg.raster,
-                                      backend=self.cfg.backend).color.clamp(0, 1)
+        for camera, image, mask in zip(cameras, views.images, views.masks, strict=True):
+            color = self._render_for_evaluation(camera).color.clamp(0, 1)
             full.append(psnr(color, image))
             if mask is not None:  # NaN marks a view without transparent pixels
                 has_region = mask.sum() > 0
@@ -272,6 +304,27 @@ class Trainer:
         out = {"test_psnr": float(np.mean(full_values))}
         if region_values:
             out["test_psnr_transparent"] = float(np.mean(region_values))
+        return out
+
+    def camera_corrections(self) -> dict[str, list[float]]:
+        """Every view's pose correction by name (rotation vector in radians, translation), for
+        :meth:`rtsplat.camera.Camera.corrected`; empty without pose refinement."""
+        if self.poses is None:
+            return {}
+        pairs = [*zip(self.train_views.names, self.poses.values().tolist(), strict=True),
+                 *zip(self.test_views.names, self.test_corrections.tolist(), strict=True)]
+        return dict(pairs)
+
+    def _correction_sizes(self) -> dict[str, float]:
+        """Mean rotation (degrees) and translation (scene units) of the training and test views'
+        corrections, for the run summary."""
+        if self.poses is None:
+            return {}
+        out = {"test_fit_seconds": round(self.test_fit_seconds, 3)}
+        for split, values in (("train", self.poses.values()), ("test", self.test_corrections)):
+            if len(values):
+                out[f"{split}_pose_correction_deg"] = math.degrees(float(values[:, :3].norm(dim=1).mean()))
+                out[f"{split}_pose_correction_translation"] = float(values[:, 3:].norm(dim=1).mean())
         return out
 
     # -- checkpoints ---------------------------------------------------------------------------
@@ -295,6 +348,8 @@ class Trainer:
             "density": self.density.state_dict(),
             "frozen": self.frozen,
             "order": list(self.order),
+            "poses": None if self.poses is None else self.poses.state_dict(),
+            "camera_corrections": self.camera_corrections(),
             "rng": self.rng.get_state(),
             "torch_rng": torch.get_rng_state(),
         }
@@ -343,6 +398,12 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         self.density.load_state_dict(state["density"])
         self.frozen = state["frozen"].to(self.device)
+        if self.poses is not None and state.get("poses") is not None:
+            self.poses.load_state_dict(state["poses"])
+        saved = state.get("camera_corrections", {})
+        for index, name in enumerate(self.test_views.names):
+            if name in saved:
+                self.test_corrections[index] = torch.as_tensor(saved[name], device=self.device)
         self.any_frozen = bool(self.frozen.any())
         self.order = list(state["order"])
         # generator states are CPU byte tensors (the checkpoint was read onto self.device)
@@ -411,6 +472,7 @@ class Trainer:
                     if step.density:
                         record["density"] = step.density
                     if evaluate_now:
+                        self.fit_test_cameras(cfg.cameras.final_fit_steps if last else cfg.cameras.test_fit_steps)
                         record.update(self.evaluate())
                     log_file.write(json.dumps(record) + "\n")
                     log_file.flush()
@@ -422,12 +484,15 @@ class Trainer:
         return self.finish()
 
     def finish(self) -> dict:
+        if not self.cfg.schedule.eval_every:  # otherwise the last step's evaluation fitted them
+            self.fit_test_cameras(self.cfg.cameras.final_fit_steps)
         metrics = self.evaluate()
         self.save_checkpoint(self.out / "model.pt")
         write_surfel_ply(self.out / "point_cloud.ply", self.model.surfels, self.model.uses_opacity)
         summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
                    "surfels": len(self.model.surfels), "effects": self.effects.to_dict(), **metrics,
+                   **self._correction_sizes(),
                    **best_test_psnr(self.out / "train_log.jsonl", self.iteration, metrics)}
         _write_json(self.out / "summary.json", summary)
         self.log(f"done: {json.dumps(summary)}")
