@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -339,6 +340,22 @@ def test_checkpoint_reads_version_1_files_and_names_unreadable_ones(tmp_path):
         read_checkpoint(tmp_path / "bad.pt")
 
 
+def test_checkpoint_of_a_model_without_the_extra_specular_inputs_rebuilds_its_network(tmp_path):
+    """A model written before the specular network had its extra inputs names neither setting; it is read
+    with both off, the shape it was trained with, and renders as before."""
+    model = _model_with(specular_view_angle=False, specular_background=False)
+    write_checkpoint(tmp_path / "old.pt", model, RasterSettings())
+    state = torch.load(tmp_path / "old.pt", weights_only=False)
+    for name in ("specular_view_angle", "specular_background"):
+        del state["model"]["settings"][name]
+    torch.save(state, tmp_path / "old.pt")
+    rebuilt = read_checkpoint(tmp_path / "old.pt").build_model()
+    assert not rebuilt.settings.specular_view_angle and not rebuilt.settings.specular_background
+    assert rebuilt.specular_net.mlp[0].in_features == SMALL.env_channels * 5
+    with torch.no_grad():
+        torch.testing.assert_close(_render(rebuilt).color, _render(model).color, rtol=0, atol=0)
+
+
 def _plain_model(background: str, seed: int = 0) -> RTModel:
     g = torch.Generator().manual_seed(seed)
     xyz = torch.rand(40, 3, generator=g) * 0.4 - 0.2  # a small cluster: most pixels see past it
@@ -421,3 +438,60 @@ def test_quats_with_normal_turn_the_surfel_normal_onto_the_given_one():
     R = quat_to_rotmat(quats_with_normal(normals))
     expected = torch.nn.functional.normalize(normals, dim=-1)
     assert torch.allclose(R[:, :, 2], expected, atol=1e-6)
+
+
+def _inputs_of_the_specular_network(model, monkeypatch):
+    """Render ``model`` and return (its render, the environment features its specular network got)."""
+    seen = []
+    forward = SpecularNetwork.forward
+
+    def spy(net, env_features, material, reflectance):
+        seen.append(env_features)
+        return forward(net, env_features, material, reflectance)
+
+    monkeypatch.setattr(SpecularNetwork, "forward", spy)
+    result = _render(model)
+    assert len(seen) == 1
+    return result, seen[0]
+
+
+def _model_with(**settings):
+    torch.manual_seed(0)
+    model = _model()
+    torch.manual_seed(0)
+    return RTModel(model.surfels, effects=ActiveEffects(), settings=dataclasses.replace(SMALL, **settings),
+                   roi_center=(0.0, 0.0, 0.0), roi_radius=5.0)
+
+
+def test_specular_view_angle_is_the_cosine_between_the_view_ray_and_the_shaded_normal(monkeypatch):
+    model = _model_with(specular_view_angle=True, specular_background=False)
+    assert model.specular_net.mlp[0].in_features == (SMALL.env_channels + 1) * 5
+    result, features = _inputs_of_the_specular_network(model, monkeypatch)
+    L = result.layers
+    shaded = ((L["shade"] > 0) & (L["roi"] > 0)).reshape(-1)
+    rays = rtmodel.image_ray_directions(small_camera(24, 18, torch.float32)).reshape(-1, 3)[shaded]
+    cosine = (rays * L["normal"].reshape(-1, 3)[shaded]).sum(-1).abs().detach()
+    assert shaded.sum() > 10 and features.shape == (int(shaded.sum()), SMALL.env_channels + 1)
+    torch.testing.assert_close(features[:, -1], cosine, rtol=0, atol=1e-5)
+    assert float(cosine.min()) < 0.9 < float(cosine.max())  # a range of angles, not one value
+
+
+def test_specular_background_sees_the_background_at_the_reflected_direction_without_a_gradient_into_it(
+        monkeypatch):
+    model = _model_with(specular_view_angle=False, specular_background=True)
+    assert model.specular_net.mlp[0].in_features == (SMALL.env_channels + 3) * 5
+    before, features = _inputs_of_the_specular_network(model, monkeypatch)
+    L = before.layers
+    shaded = ((L["shade"] > 0) & (L["roi"] > 0)).reshape(-1)
+    rays = rtmodel.image_ray_directions(small_camera(24, 18, torch.float32)).reshape(-1, 3)[shaded]
+    n = L["normal"].reshape(-1, 3)[shaded]
+    reflected = torch.nn.functional.normalize(rays - 2 * (rays * n).sum(-1, keepdim=True) * n, dim=-1)
+    with torch.no_grad():
+        for level in model.background_map.maps:
+            level.normal_()
+    after, features = _inputs_of_the_specular_network(model, monkeypatch)
+    torch.testing.assert_close(features[:, -3:], model.background_map(reflected), rtol=0, atol=1e-5)
+    assert (after.layers["spec"] - before.layers["spec"]).abs().max() > 1e-3  # C_spec follows B(w_r)
+    after.layers["spec"].sum().backward()
+    assert all(level.grad is None for level in model.background_map.maps)
+    assert model.specular_net.mlp[0].weight.grad.abs().sum() > 0

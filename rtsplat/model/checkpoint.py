@@ -33,6 +33,8 @@ from rtsplat.raster import RasterSettings
 CHECKPOINT_VERSION = 2
 # version 1 kept the resume state at the top level, next to the model
 _V1_TRAINING_KEYS = ("iteration", "elapsed", "config", "optimizer", "density", "frozen", "order", "rng", "torch_rng")
+# specular-network inputs added after the first models were written; absent from a model: off
+OPTIONAL_SPECULAR_INPUTS = ("specular_view_angle", "specular_background")
 
 
 class CheckpointError(PipelineError):
@@ -104,7 +106,7 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Che
         model, training = state["model"], state["training"]
     else:
         raise CheckpointError(f"not an rtsplat checkpoint (version {CHECKPOINT_VERSION}); delete it", path=path)
-    model = {**model, "settings": _background_as_mode(dict(model.get("settings", {})))}
+    model = {**model, "settings": _settings_of_older_models(dict(model.get("settings", {})))}
     try:
         return Checkpoint(
             effects=ActiveEffects(**model["effects"]),
@@ -118,9 +120,15 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Che
                               fix="retrain with this version, or use the version that wrote it") from exc
 
 
-def _background_as_mode(settings: dict) -> dict:
-    """Models written before the background became a mode stored a constant RGB colour; black and
-    white map to their modes (other colours are left for the schema to refuse)."""
+def _settings_of_older_models(settings: dict) -> dict:
+    """Model settings as this version reads them, from what older versions wrote:
+
+    * a constant RGB background colour (before the background became a mode): black and white map to
+      their modes (other colours are left for the schema to refuse);
+    * no ``specular_view_angle`` / ``specular_background`` (before the specular network had these
+      inputs): off, which is the network shape such a model was trained with."""
+    for name in OPTIONAL_SPECULAR_INPUTS:
+        settings.setdefault(name, False)
     colour = settings.get("background")
     if isinstance(colour, (list, tuple)) and len(colour) == 3 and len(set(map(float, colour))) == 1:
         mode = {0.0: "black", 1.0: "white"}.get(float(colour[0]))

@@ -7,7 +7,8 @@
 * G-buffers from the surface pass (weights occupancy): normal, roughness, material feature,
   reflectance, tau, C_scatter, region-of-interest membership and the blended opacity;
 * ``C_spec``, ``beta``: specular network fed with the environment feature at the reflected
-  direction. Shading happens only where the surface alpha exceeds 0.05; outside the spherical
+  direction, and by default (beyond the paper) with ``|cos|`` of the angle of incidence and the learned
+  background's radiance at the reflected direction (no gradient into the background through it). Shading happens only where the surface alpha exceeds 0.05; outside the spherical
   region of interest a pixel shows plain volume radiance (blended by ROI membership).
 
 Which branches exist is decided once per scene (:class:`ActiveEffects`): without transmission
@@ -76,11 +77,19 @@ class RTModel(nn.Module):
         self.settings = settings or ModelSettings()
         s = self.settings
         self.env = EnvironmentMap(s.env_channels, s.env_height, s.env_width, s.env_levels) if effects.specular else None
-        self.specular_net = SpecularNetwork(s.env_channels, 4, s.mlp_width) if effects.specular else None
         self.register_buffer("roi_center", torch.as_tensor(roi_center, dtype=torch.float32).reshape(3))
         self.register_buffer("roi_radius", torch.as_tensor(float(roi_radius), dtype=torch.float32))
         self.background_map = (BackgroundMap(s.background_height, s.background_width, s.background_levels)
                                if s.background == "learned" else None)
+        self.specular_net = (SpecularNetwork(s.env_channels + self._extra_specular_channels(), 4, s.mlp_width)
+                             if effects.specular else None)
+
+    def _extra_specular_channels(self) -> int:
+        """Channels the specular network gets beside the environment feature: |cos| of the angle of
+        incidence (``specular_view_angle``) and the background at the reflected direction
+        (``specular_background``, with a learned background)."""
+        s = self.settings
+        return int(s.specular_view_angle) + 3 * int(s.specular_background and self.background_map is not None)
 
     @property
     def uses_opacity(self) -> bool:
@@ -191,6 +200,14 @@ class RTModel(nn.Module):
         material = F.normalize(rows(g["material"].reshape(-1, 4)), dim=-1)
         reflectance = rows((g["reflectance"] / alpha_safe).reshape(-1, 1)).clamp(0, 1)
         env = self.env(reflected, rough)
+        extra = []
+        if self.settings.specular_view_angle:
+            extra.append((incident * n).sum(-1, keepdim=True).abs().clamp(0, 1))
+        if self.settings.specular_background and self.background_map is not None:
+            with torch.no_grad():
+                extra.append(self.background_map(reflected).to(env.dtype))
+        if extra:
+            env = torch.cat([env, *extra], -1)
         s, b = self.specular_net(env, material, reflectance)
         if idx is None:
             spec = torch.where(flat[:, None], s, spec)

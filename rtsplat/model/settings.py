@@ -2,7 +2,8 @@
 and the gradient gating. With the active effects and the rasterizer settings they are everything
 needed to rebuild a trained model (:mod:`rtsplat.model.checkpoint`); the trainer's config
 (:mod:`rtsplat.train_config`) holds them as sections. Every ablation changes only the computation it
-names. Defaults follow METHOD.md sections 1-6.
+names. Defaults follow METHOD.md sections 1-6, except the two extra inputs of the specular network
+(``specular_view_angle``, ``specular_background``; docs/fidelity.md, finding 10).
 """
 
 from __future__ import annotations
@@ -50,6 +51,15 @@ class ModelSettings:
     env_width: int = setting(1024, help="environment map width (finest level)", minimum=2)
     env_levels: int = setting(9, help="mip levels of the environment map (roughness picks the level)", minimum=1)
     mlp_width: int = setting(256, help="hidden width of the specular network", minimum=1)
+    specular_view_angle: bool = setting(
+        True, help="feed |cos| of the angle between the view ray and the surface normal to the specular network "
+        "(with the environment feature), so that C_spec and beta can follow the angle of incidence (Fresnel)"
+    )
+    specular_background: bool = setting(
+        True, help="feed the learned background's radiance B at the reflected direction to the specular network "
+        "(with the environment feature; no gradient into B through it): the sky and distant surroundings that "
+        "the views see directly, as the reflection's detail. Only with background: learned"
+    )
     occupancy_init: float = setting(0.1, help="initial surfel occupancy", minimum=0.0, maximum=1.0)
     opacity_init: float = setting(0.5, help="initial optical opacity", minimum=0.0, maximum=1.0)
     transmissivity_init: float = setting(0.5, help="initial transmissivity tau", minimum=0.0, maximum=1.0)

@@ -13,7 +13,9 @@ MAX_LOG_SPECULAR = 8.0  # exp() argument cap: keeps C_spec finite under any lear
 
 class SpecularNetwork(nn.Module):
     """Input: outer product of the env feature (C) and the blended material feature (4), flattened,
-    concatenated with the env feature: C*4 + C (= 80 for C = 16). MLP 80 -> 256 -> 256 -> 4."""
+    concatenated with the env feature: C*4 + C (= 80 for C = 16). MLP 80 -> 256 -> 256 -> 4.
+    The model may append channels to the env feature (:class:`rtsplat.model.settings.ModelSettings`:
+    the angle of incidence, the background at the reflected direction); C counts them."""
 
     def __init__(self, env_channels: int = 16, material_channels: int = 4, width: int = 256):
         super().__init__()
