@@ -328,6 +328,21 @@ def comparison_pairs(methods, roles: Roles) -> list[tuple[str, str]]:
     return pairs
 
 
+def ablation_reference(ablation: str, methods, roles: Roles) -> str | None:
+    """The full-model run an ablation is compared with: the baseline ``<main>_<suffix>`` for an ablation
+    whose name ends with ``_<suffix>`` (``ablation_gating_x4`` against ``rtsplat_x4``, the same budget), else
+    the main method; None when that run is not among ``methods``."""
+    main, methods = roles.main, set(methods)
+    if main is None:
+        return None
+    for other in sorted(methods, key=len, reverse=True):  # the longest suffix that fits
+        suffix = other[len(main):]
+        if (other.startswith(main + "_") and roles.role.get(other, "baseline") == "baseline"
+                and ablation.endswith(suffix)):
+            return other
+    return main if main in methods else None
+
+
 def _difference(a, b) -> float | None:
     return a - b if isinstance(a, float) and isinstance(b, float) else None
 
@@ -522,16 +537,18 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
         doc.heading("Quality, speed and training time", 3)
         doc.table(header, quality_rows(runs, main))
 
-        ablations = roles.of_role(runs, "ablation")
-        if ablations and main in runs:
+        ablations = [(m, ablation_reference(m, runs, roles)) for m in roles.of_role(runs, "ablation")]
+        ablations = [(m, full) for m, full in ablations if full is not None]
+        if ablations:
             doc.heading("Ablations (transparent-region PSNR)", 3)
-            full = runs[main].mean.get("psnr_transparent")
-            rows = [[main, _fmt(full), "0.00"]]
-            for m in ablations:
-                v = runs[m].mean.get("psnr_transparent")
-                delta = v - full if isinstance(v, float) and isinstance(full, float) else None
-                rows.append([m, _fmt(v), _fmt(delta)])
-            doc.table(["method", "PSNR (transp.)", f"vs {main}"], rows)
+            doc.paragraph("Each ablation against the full model with the same budget (an ablation named "
+                          "`..._<suffix>` against the baseline `<main>_<suffix>`, e.g. `_x4`; otherwise the main "
+                          "method); a positive difference means the ablated term did not help here.")
+            rows = []
+            for m, full in ablations:
+                v, ref = runs[m].mean.get("psnr_transparent"), runs[full].mean.get("psnr_transparent")
+                rows.append([m, full, _fmt(v), _fmt(ref), _fmt(_difference(v, ref))])
+            doc.table(["ablation", "full model", "PSNR (transp.)", "full model", "difference"], rows)
 
         layer_rows = [[m, _fmt(r.mean.get("psnr_reflection_layer")), _fmt(r.mean.get("psnr_transmission_layer"))]
                       for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]

@@ -59,6 +59,29 @@ def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
     assert trees[("dome", "2dgs_x4")]["effects"] == {"transmission": "off", "specular": "off"}
 
 
+def test_the_ablations_at_4x_layer_builds_each_ablation_at_the_budget_of_its_full_model():
+    """benchmarks/ablations_x4.yaml over the demo and the quick subset: the six ablations at 4x on the dome,
+    each switching off its own term, and the report compares each with rtsplat_x4."""
+    from rtsplat.config import deep_merge, roles_json, trainer_options
+    from rtsplat.report import Roles, ablation_reference
+
+    data = yaml.safe_load((ROOT / "demo" / "config.yaml").read_text())
+    for layer in ("targets_quick.yaml", "ablations_x4.yaml"):
+        data = deep_merge(data, yaml.safe_load((ROOT / "benchmarks" / layer).read_text()))
+    cfg = load_config_dict(data, source="ablations_x4.yaml")
+    assert cfg.scenes == ["dome"]
+    roles = Roles.from_dict(json.loads(roles_json(cfg, quote=False)))
+    ablations = [m for m in cfg.methods if m.startswith("ablation_") and m.endswith("_x4")]
+    assert len(ablations) == 6
+    full = trainer_options(cfg, "dome", "rtsplat_x4")
+    for m in ablations:
+        tree = trainer_options(cfg, "dome", m)
+        switched_off = [k for k, on in tree["ablations"].items() if not on]
+        assert switched_off == [m[len("ablation_"):-len("_x4")]]
+        assert tree["schedule"] == full["schedule"]
+        assert ablation_reference(m, cfg.methods, roles) == "rtsplat_x4"
+
+
 def test_schema_also_accepts_what_snakemake_validates():
     import jsonschema
 

@@ -455,6 +455,14 @@ def _inputs_of_the_specular_network(model, monkeypatch):
     return result, seen[0]
 
 
+def _rays_and_normals_of_the_shaded_region(result):
+    """View rays and normals [P,3] of the pixels of ``_render``'s image that the specular network shades."""
+    L = result.layers
+    shaded = ((L["shade"] > 0) & (L["roi"] > 0)).reshape(-1)
+    rays = rtmodel.image_ray_directions(small_camera(24, 18, torch.float32)).reshape(-1, 3)[shaded]
+    return rays, L["normal"].reshape(-1, 3)[shaded]
+
+
 def _model_with(**settings):
     torch.manual_seed(0)
     model = _model()
@@ -467,11 +475,9 @@ def test_specular_view_angle_is_the_cosine_between_the_view_ray_and_the_shaded_n
     model = _model_with(specular_view_angle=True, specular_background=False)
     assert model.specular_net.mlp[0].in_features == (SMALL.env_channels + 1) * 5
     result, features = _inputs_of_the_specular_network(model, monkeypatch)
-    L = result.layers
-    shaded = ((L["shade"] > 0) & (L["roi"] > 0)).reshape(-1)
-    rays = rtmodel.image_ray_directions(small_camera(24, 18, torch.float32)).reshape(-1, 3)[shaded]
-    cosine = (rays * L["normal"].reshape(-1, 3)[shaded]).sum(-1).abs().detach()
-    assert shaded.sum() > 10 and features.shape == (int(shaded.sum()), SMALL.env_channels + 1)
+    rays, n = _rays_and_normals_of_the_shaded_region(result)
+    cosine = (rays * n).sum(-1).abs().detach()
+    assert len(rays) > 10 and features.shape == (len(rays), SMALL.env_channels + 1)
     torch.testing.assert_close(features[:, -1], cosine, rtol=0, atol=1e-5)
     assert float(cosine.min()) < 0.9 < float(cosine.max())  # a range of angles, not one value
 
@@ -481,10 +487,7 @@ def test_specular_background_sees_the_background_at_the_reflected_direction_with
     model = _model_with(specular_view_angle=False, specular_background=True)
     assert model.specular_net.mlp[0].in_features == (SMALL.env_channels + 3) * 5
     before, features = _inputs_of_the_specular_network(model, monkeypatch)
-    L = before.layers
-    shaded = ((L["shade"] > 0) & (L["roi"] > 0)).reshape(-1)
-    rays = rtmodel.image_ray_directions(small_camera(24, 18, torch.float32)).reshape(-1, 3)[shaded]
-    n = L["normal"].reshape(-1, 3)[shaded]
+    rays, n = _rays_and_normals_of_the_shaded_region(before)
     reflected = torch.nn.functional.normalize(rays - 2 * (rays * n).sum(-1, keepdim=True) * n, dim=-1)
     with torch.no_grad():
         for level in model.background_map.maps:

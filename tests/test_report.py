@@ -17,7 +17,7 @@ from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.images import read_image, write_png
 from rtsplat.metrics import compute_metrics
 from rtsplat.render import Edits, render_run
-from rtsplat.report import Roles, build_report, comparison_pairs, pareto_front
+from rtsplat.report import Roles, ablation_reference, build_report, comparison_pairs, pareto_front
 from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
 
@@ -48,6 +48,20 @@ def test_comparison_pairs_by_hand():
     assert comparison_pairs(methods, Roles()) == []  # no main method, nothing to compare with
     unlisted = Roles.from_dict({"rt": {"role": "main"}})
     assert comparison_pairs(["rt", "2dgs", "rt_x4", "2dgs_x4"], unlisted) == [("rt", "2dgs"), ("rt_x4", "2dgs_x4")]
+
+
+def test_ablations_are_compared_with_the_full_model_of_their_budget():
+    roles = Roles.from_dict({"rt": {"role": "main"}, "rt_x4": {"role": "baseline"}, "rt_x16": {"role": "baseline"},
+                             "rt_seed1": {"role": "repeat", "of": "rt"}, "abl_gating": {"role": "ablation"},
+                             "abl_gating_x4": {"role": "ablation"}, "abl_mask_x16": {"role": "ablation"},
+                             "abl_mask_seed1": {"role": "ablation"}})
+    methods = ["rt", "rt_x4", "rt_seed1", "abl_gating", "abl_gating_x4", "abl_mask_x16", "abl_mask_seed1"]
+    assert ablation_reference("abl_gating", methods, roles) == "rt"
+    assert ablation_reference("abl_gating_x4", methods, roles) == "rt_x4"
+    assert ablation_reference("abl_mask_seed1", methods, roles) == "rt"  # a repeat is no full-model budget
+    assert ablation_reference("abl_mask_x16", methods, roles) == "rt"  # rt_x16 did not run: the main method
+    assert ablation_reference("abl_gating_x4", ["abl_gating_x4"], roles) is None
+    assert ablation_reference("abl_gating", methods, Roles()) is None
 
 
 @pytest.fixture(scope="module")
