@@ -8,8 +8,9 @@
   reflectance, tau, C_scatter, region-of-interest membership and the blended opacity;
 * ``C_spec``, ``beta``: specular network fed with the environment feature at the reflected
   direction, and by default (beyond the paper) with ``|cos|`` of the angle of incidence and the learned
-  background's radiance at the reflected direction (no gradient into the background through it). Shading happens only where the surface alpha exceeds 0.05; outside the spherical
-  region of interest a pixel shows plain volume radiance (blended by ROI membership).
+  background's radiance at the reflected direction (no gradient into the background through it).
+  Shading happens only where the surface alpha exceeds 0.05; outside the spherical region of interest
+  a pixel shows plain volume radiance (blended by ROI membership).
 
 Which branches exist is decided once per scene (:class:`ActiveEffects`): without transmission
 there is one opacity (opacity = 1, so both weight sets coincide) and no tau / C_scatter; without
