@@ -548,7 +548,7 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             for m, full in ablations:
                 v, ref = runs[m].mean.get("psnr_transparent"), runs[full].mean.get("psnr_transparent")
                 rows.append([m, full, _fmt(v), _fmt(ref), _fmt(_difference(v, ref))])
-            doc.table(["ablation", "full model", "PSNR (transp.)", "full model", "difference"], rows)
+            doc.table(["ablation", "full model", "PSNR (transp.)", "full model PSNR (transp.)", "difference"], rows)
 
         layer_rows = [[m, _fmt(r.mean.get("psnr_reflection_layer")), _fmt(r.mean.get("psnr_transmission_layer"))]
                       for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]
