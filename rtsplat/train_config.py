@@ -8,7 +8,8 @@ tree holds them as sections next to the training-only ones. Fields are made with
 :func:`rtsplat.schema.setting` (help text and schema keywords), so the tree is checked by the same
 machinery as the pipeline config and is part of its generated JSON schema (``train.options``).
 :class:`Effects` decides which branches run (``auto`` decides from the prepared scene).
-Defaults follow METHOD.md sections 1-6 except the iteration counts, which are sized for a CPU.
+Defaults follow METHOD.md sections 1-6 except the iteration counts, which are sized for a CPU, and the
+mask loss's target outside the mask (`Losses.mask_opaque_target`), which is made for a learned background.
 """
 
 from __future__ import annotations
@@ -119,6 +120,12 @@ class Losses:
     normal_weight: float = setting(0.05, help="normal consistency (2DGS)", minimum=0.0)
     normal_from: int = setting(0, help="the normal term starts after this iteration", minimum=0)
     mask_weight: float = setting(0.01, help="transparent-mask BCE on the blended opacity", minimum=0.0)
+    mask_opaque_target: Literal["surface", "one"] = setting(
+        "surface", help="what the mask BCE asks of the blended opacity on pixels the mask does not mark: surface "
+        "(as opaque as the surface alpha there: whatever surface the pixel has is opaque, and a pixel that sees "
+        "the learned background is not asked to grow one; docs/fidelity.md, finding 11), or one (the paper: an "
+        "opaque surface on every such pixel, the sky included)"
+    )
     distortion_weight: float = setting(0.0, help="2DGS depth distortion", minimum=0.0)
     transmissivity_bce_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)
     occupancy_decay_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)

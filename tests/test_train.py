@@ -138,6 +138,30 @@ def test_mask_loss_switch(glass_scene, tmp_path):
     assert "loss_mask" not in read_log(tmp_path / "off")[-1]
 
 
+def test_mask_loss_asks_a_background_pixel_for_a_surface_only_with_the_paper_target():
+    """Pixels the mask does not mark: the paper's target 1 pulls the surface alpha up even where the
+    view sees the background; the surface target leaves an opaque surface's alpha alone and asks a
+    half-clear one for opacity. See-through pixels get the same loss either way."""
+    from rtsplat.train.losses import transparent_mask_loss
+
+    alpha = torch.tensor([0.02, 0.3, 0.9], dtype=torch.float64).reshape(1, 3, 1).requires_grad_(True)
+    opacity = torch.tensor([1.0, 1.0, 0.5], dtype=torch.float64).reshape(1, 3, 1).requires_grad_(True)
+    clear = torch.zeros(1, 3, 1, dtype=torch.float64)
+
+    def grads(surface_alpha):
+        loss = transparent_mask_loss(alpha * opacity, clear, surface_alpha)
+        return torch.autograd.grad(loss, (alpha, opacity))
+
+    g_alpha, _ = grads(None)
+    assert (g_alpha[0, :, 0] < 0).all()  # descent grows a surface on every pixel, the background's too
+    g_alpha, g_opacity = grads(alpha)
+    assert g_alpha[0, :2, 0].abs().max() < 1e-12  # opaque surfaces: nothing to ask
+    assert g_opacity[0, 2, 0] < 0 and g_alpha[0, 2, 0] < 0  # half-clear: more opacity (its alpha follows)
+    see_through = torch.ones(1, 3, 1, dtype=torch.float64)
+    assert torch.equal(transparent_mask_loss(alpha * opacity, see_through),
+                       transparent_mask_loss(alpha * opacity, see_through, alpha))
+
+
 def test_separate_optimization_freezes_the_background(glass_scene, tmp_path):
     cfg = config(20, ablations={"joint_optimization": False})
     trainer = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)

@@ -50,7 +50,11 @@ def normal_consistency(surface_normal: Tensor, depth: Tensor, alpha: Tensor, cam
     return ((1.0 - (n_surf * n_depth).sum(-1, keepdim=True)) * alpha.detach()).mean()
 
 
-def transparent_mask_loss(blended_opacity: Tensor, mask: Tensor) -> Tensor:
-    """BCE(blended opacity, 1 - M): see-through pixels (M = 1) want a clear first surface."""
+def transparent_mask_loss(blended_opacity: Tensor, mask: Tensor, surface_alpha: Tensor | None = None) -> Tensor:
+    """BCE(blended opacity, target): see-through pixels (M = 1) want a clear first surface (target 0). The
+    other pixels want an opaque one: target 1, or, given ``surface_alpha`` (the surface weight set's alpha,
+    read without gradient), that alpha, so that a pixel which sees the background is not asked to grow a
+    surface."""
     p = blended_opacity.clamp(1e-6, 1 - 1e-6)
-    return F.binary_cross_entropy(p, 1.0 - mask.to(p.dtype))
+    opaque = torch.ones_like(p) if surface_alpha is None else surface_alpha.detach().to(p.dtype).clamp(0, 1)
+    return F.binary_cross_entropy(p, (1.0 - mask.to(p.dtype)) * opaque)

@@ -205,7 +205,9 @@ class Trainer:
             terms["normal"] = L.normal_weight * losses.normal_consistency(
                 result.layers["normal"], result.raster.depth, result.layers["alpha"], camera)
         if (cfg.ablations.mask_loss and L.mask_weight > 0 and mask is not None and self.model.uses_opacity):
-            terms["mask"] = L.mask_weight * losses.transparent_mask_loss(result.layers["blended_opacity"], mask)
+            surface_alpha = result.layers["alpha"] if L.mask_opaque_target == "surface" else None
+            terms["mask"] = L.mask_weight * losses.transparent_mask_loss(
+                result.layers["blended_opacity"], mask, surface_alpha)
         if L.distortion_weight > 0:
             terms["distortion"] = L.distortion_weight * result.raster.distortion.mean()
         if self.perceptual is not None and L.perceptual_weight > 0 and it >= L.perceptual_from:
