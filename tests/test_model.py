@@ -149,6 +149,31 @@ def test_specular_network_shapes_and_ranges():
     assert (spec >= 0).all() and ((beta >= 0) & (beta <= 1)).all()
 
 
+def test_specular_network_in_bfloat16_follows_float32_and_keeps_float32_outputs_and_gradients():
+    torch.manual_seed(0)
+    exact = SpecularNetwork(20, 4, 64, "float32")
+    low = SpecularNetwork(20, 4, 64, "bfloat16")
+    low.load_state_dict(exact.state_dict())
+    env = torch.randn(500, 20)
+    material = torch.nn.functional.normalize(torch.randn(500, 4), dim=-1)
+    reflectance = torch.rand(500, 1)
+    outputs, grads = {}, {}
+    for name, net in (("exact", exact), ("low", low)):
+        spec, beta = net(env, material, reflectance)
+        (spec.square().sum() + beta.sum()).backward()
+        outputs[name] = torch.cat([spec, beta], -1)
+        grads[name] = net.mlp[0].weight.grad
+        assert spec.dtype == beta.dtype == net.mlp[0].weight.grad.dtype == torch.float32
+        assert torch.isfinite(grads[name]).all()
+    assert not torch.equal(outputs["low"], outputs["exact"])  # the products did run in bfloat16
+    torch.testing.assert_close(outputs["low"], outputs["exact"], rtol=0.03, atol=0.01)
+    cosine = torch.nn.functional.cosine_similarity(grads["low"].flatten(), grads["exact"].flatten(), dim=0)
+    assert cosine > 0.99
+    assert SpecularNetwork(20, 4, 8, "auto").uses_bfloat16(torch.device("cuda")) is False
+    with pytest.raises(ValueError, match="precision"):
+        SpecularNetwork(20, 4, 8, "float16")
+
+
 def test_gate_gradient_keeps_the_value_and_scales_the_gradient_exactly():
     x = torch.rand(5, 4, 3, dtype=torch.float64, requires_grad=True)
     g = torch.rand(5, 4, 3, dtype=torch.float64)

@@ -82,7 +82,8 @@ class RTModel(nn.Module):
         self.register_buffer("roi_radius", torch.as_tensor(float(roi_radius), dtype=torch.float32))
         self.background_map = (BackgroundMap(s.background_height, s.background_width, s.background_levels)
                                if s.background == "learned" else None)
-        self.specular_net = (SpecularNetwork(s.env_channels + self._extra_specular_channels(), 4, s.mlp_width)
+        self.specular_net = (SpecularNetwork(s.env_channels + self._extra_specular_channels(), 4, s.mlp_width,
+                                             s.specular_precision)
                              if effects.specular else None)
 
     def _extra_specular_channels(self) -> int:

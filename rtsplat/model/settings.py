@@ -60,6 +60,11 @@ class ModelSettings:
         "(with the environment feature; no gradient into B through it): the sky and distant surroundings that "
         "the views see directly, as the reflection's detail. Only with background: learned"
     )
+    specular_precision: Literal["float32", "bfloat16", "auto"] = setting(
+        "float32", help="dtype of the specular network's matrix products: float32; bfloat16 (float32 weights and "
+        "outputs, bfloat16 products, forward and backward); auto: bfloat16 on a CPU with native bfloat16 products "
+        "(AVX512-BF16), float32 elsewhere. A knob that trades accuracy for time (docs/performance.md)"
+    )
     occupancy_init: float = setting(0.1, help="initial surfel occupancy", minimum=0.0, maximum=1.0)
     opacity_init: float = setting(0.5, help="initial optical opacity", minimum=0.0, maximum=1.0)
     transmissivity_init: float = setting(0.5, help="initial transmissivity tau", minimum=0.0, maximum=1.0)

@@ -11,23 +11,51 @@ LOG_HALF = math.log(0.5)
 MAX_LOG_SPECULAR = 8.0  # exp() argument cap: keeps C_spec finite under any learning rate
 
 
+def cpu_has_bfloat16_matmul() -> bool:
+    """Whether this CPU multiplies bfloat16 matrices natively (AVX512-BF16); elsewhere bfloat16 is emulated
+    and slower than float32."""
+    try:
+        return bool(torch.cpu._is_avx512_bf16_supported())
+    except AttributeError:  # a torch without the probe
+        return False
+
+
 class SpecularNetwork(nn.Module):
     """Input: outer product of the env feature (C) and the blended material feature (4), flattened,
     concatenated with the env feature: C*4 + C (= 80 for C = 16). MLP 80 -> 256 -> 256 -> 4.
     The model may append channels to the env feature (:class:`rtsplat.model.settings.ModelSettings`:
-    the angle of incidence, the background at the reflected direction); C counts them."""
+    the angle of incidence, the background at the reflected direction); C counts them.
 
-    def __init__(self, env_channels: int = 16, material_channels: int = 4, width: int = 256):
+    ``precision``: the dtype of the MLP's matrix products. float32, or bfloat16 (autocast: float32
+    weights and outputs, bfloat16 products; forward and backward), or auto: bfloat16 on a CPU with
+    native bfloat16 products (:func:`cpu_has_bfloat16_matmul`), float32 elsewhere."""
+
+    def __init__(self, env_channels: int = 16, material_channels: int = 4, width: int = 256,
+                 precision: str = "float32"):
         super().__init__()
+        if precision not in ("float32", "bfloat16", "auto"):
+            raise ValueError(f"precision must be float32, bfloat16 or auto, got {precision!r}")
         in_dim = env_channels * material_channels + env_channels
+        self.precision = precision
         self.mlp = nn.Sequential(
             nn.Linear(in_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, 4)
         )
 
+    def uses_bfloat16(self, device: torch.device) -> bool:
+        if self.precision == "auto":
+            return device.type == "cpu" and cpu_has_bfloat16_matmul()
+        return self.precision == "bfloat16"
+
     def forward(self, env_features: Tensor, material: Tensor, reflectance: Tensor) -> tuple[Tensor, Tensor]:
         """[M,C], [M,4] (unit), [M,1] -> (C_spec [M,3], beta [M,1])."""
         outer = (env_features[:, :, None] * material[:, None, :]).flatten(1)
-        out = self.mlp(torch.cat([outer, env_features], -1))
+        x = torch.cat([outer, env_features], -1)
+        if self.uses_bfloat16(x.device):
+            with torch.autocast(x.device.type, dtype=torch.bfloat16):
+                out = self.mlp(x)
+            out = out.to(x.dtype)
+        else:
+            out = self.mlp(x)
         specular = torch.exp((out[:, :3] + LOG_HALF).clamp_max(MAX_LOG_SPECULAR)) * reflectance
         beta = torch.sigmoid(out[:, 3:4])
         return specular, beta
