@@ -230,7 +230,8 @@ def plot_accuracy_time(scene: str, runs: dict[str, Run], out: Path) -> list[str]
             continue
         fig, ax = plt.subplots(figsize=(7, 4.5))
         for method, r in sorted(runs.items()):
-            curve = [(e["seconds"], e[f"test_{key}"]) for e in r.log if f"test_{key}" in e]
+            # the evaluation before the first step (0 s) has no place on the log time axis
+            curve = [(e["seconds"], e[f"test_{key}"]) for e in r.log if f"test_{key}" in e and e["seconds"] > 0]
             if len(curve) > 1:
                 ax.plot(*zip(*curve, strict=True), "-", alpha=0.5, label=f"{method} (during training)")
         flags = pareto_front([(t, q) for _, t, q in points])
