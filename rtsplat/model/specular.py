@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -11,9 +12,10 @@ LOG_HALF = math.log(0.5)
 MAX_LOG_SPECULAR = 8.0  # exp() argument cap: keeps C_spec finite under any learning rate
 
 
+@functools.cache
 def cpu_has_bfloat16_matmul() -> bool:
     """Whether this CPU multiplies bfloat16 matrices natively (AVX512-BF16); elsewhere bfloat16 is emulated
-    and slower than float32."""
+    and slower than float32. Probed once per process: the network asks on every forward."""
     try:
         return bool(torch.cpu._is_avx512_bf16_supported())
     except AttributeError:  # a torch without the probe
