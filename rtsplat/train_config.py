@@ -54,8 +54,9 @@ class Schedule:
     specular_from: int = setting(
         600, help="stage 3 (full model) after this iteration; stage 2 (no specular) in between", minimum=0
     )
-    separate_background_until: int = setting(
-        1000, help="ablations.joint_optimization off: length of the background-only phase", minimum=0
+    separate_background_until: int | None = setting(
+        None, help="ablations.joint_optimization off: the background-only phase lasts up to this iteration; null: "
+        "half the run, so that the phase follows the run's length", minimum=0
     )
     densify_from: int = setting(500, help="densification starts after this iteration", minimum=0)
     densify_until: int | None = setting(
@@ -79,6 +80,10 @@ class Schedule:
     def densify_stop(self) -> int:
         """The iteration at which density control and resets stop (exclusive)."""
         return self.iterations // 2 if self.densify_until is None else self.densify_until
+
+    def background_phase_end(self) -> int:
+        """The last iteration of the background-only phase (joint optimization off)."""
+        return self.iterations // 2 if self.separate_background_until is None else self.separate_background_until
 
 
 @dataclass
@@ -243,6 +248,12 @@ class TrainConfig:
                 "train.schedule: need volume_until <= specular_from "
                 f"(got {s.volume_until}, {s.specular_from})"
             )
+        if not self.ablations.joint_optimization and s.background_phase_end() >= s.iterations:
+            raise ConfigError(
+                f"{source}: train.schedule.separate_background_until ({s.background_phase_end()}) must be below "
+                f"train.schedule.iterations ({s.iterations}) when ablations.joint_optimization is off: the "
+                "background-only phase would take the whole run; lower it, or set it to null (half the run)"
+            )
         return self
 
 
@@ -287,7 +298,7 @@ def scale_budget(cfg: TrainConfig, factor: float) -> TrainConfig:
         changes = {}
         for name in names:
             value = getattr(current, name)
-            if value is not None:  # None: a count that follows the run's length (densify_until)
+            if value is not None:  # None: a count that follows the run's length
                 changes[name] = max(int(round(value * factor)), 1) if value > 0 else value
         sections[section] = dataclasses.replace(current, **changes)
     return dataclasses.replace(cfg, **sections)

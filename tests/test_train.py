@@ -236,6 +236,18 @@ def test_a_truncated_checkpoint_gives_a_clear_error(glass_scene, tmp_path):
         trainer.train(resume=True)
 
 
+def test_the_separate_background_phase_follows_the_run_length_and_must_end_before_it():
+    ablated = {"ablations": {"joint_optimization": False}}
+    for iterations in (600, 2400):
+        cfg = TrainConfig.from_dict({**ablated, "schedule": {"iterations": iterations}}).validate()
+        assert cfg.schedule.background_phase_end() == iterations // 2
+    long_phase = {**ablated, "schedule": {"iterations": 600, "separate_background_until": 600}}
+    with pytest.raises(ConfigError, match="separate_background_until.*must be below.*iterations"):
+        TrainConfig.from_dict(long_phase).validate()
+    # the joint model has no such phase, so the same count is not an error there
+    TrainConfig.from_dict({"schedule": long_phase["schedule"]}).validate()
+
+
 def test_unknown_config_key_is_named(glass_scene, tmp_path):
     with pytest.raises(ConfigError, match="train.schedule.iteration"):
         TrainConfig.from_dict({"schedule": {"iteration": 5}})

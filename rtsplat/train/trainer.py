@@ -175,13 +175,13 @@ class Trainer:
 
     def _background_phase(self) -> bool:
         return (not self.cfg.ablations.joint_optimization
-                and self.iteration <= self.cfg.schedule.separate_background_until)
+                and self.iteration <= self.cfg.schedule.background_phase_end())
 
     def step(self) -> StepResult:
         cfg = self.cfg
         self.iteration += 1
         it = self.iteration
-        if not cfg.ablations.joint_optimization and it == cfg.schedule.separate_background_until + 1:
+        if not cfg.ablations.joint_optimization and it == cfg.schedule.background_phase_end() + 1:
             self._freeze_background()
         for group in self.optimizer.param_groups:
             if group.get("name") == "means":
