@@ -131,6 +131,10 @@ class Losses:
         "the learned background is not asked to grow one; docs/fidelity.md, finding 11), or one (the paper: an "
         "opaque surface on every such pixel, the sky included)"
     )
+    reflection_weight: float = setting(
+        0.0, help="L1 of the reflection layer (roi C_spec, mean over the image): among decompositions that give "
+        "the same image, prefer the one that leaves view-independent light to C_trans and C_scatter", minimum=0.0
+    )
     distortion_weight: float = setting(0.0, help="2DGS depth distortion", minimum=0.0)
     transmissivity_bce_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)
     occupancy_decay_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)

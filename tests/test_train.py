@@ -162,6 +162,21 @@ def test_mask_loss_asks_a_background_pixel_for_a_surface_only_with_the_paper_tar
                        transparent_mask_loss(alpha * opacity, see_through, alpha))
 
 
+def test_the_reflection_prior_dims_the_reflection_layer(glass_scene, tmp_path):
+    def mean_reflection(weight: float) -> float:
+        cfg = config(16, losses={"reflection_weight": weight}, schedule={"volume_until": 2, "specular_from": 4})
+        trainer = Trainer(glass_scene, cfg, tmp_path / f"w{weight}", progress=False, log=lambda m: None)
+        trainer.train()
+        assert ("loss_reflection" in read_log(tmp_path / f"w{weight}")[-1]) == (weight > 0)
+        with torch.no_grad():
+            layers = [trainer._render_for_evaluation(c).layers["reflection"] for c in trainer.train_views.cameras]
+        return float(torch.stack([x.mean() for x in layers]).mean())
+
+    free, dimmed = mean_reflection(0.0), mean_reflection(5.0)
+    assert free > 0.01  # the toy scene's pane does get a reflection without the prior
+    assert dimmed < 0.7 * free
+
+
 def test_separate_optimization_freezes_the_background(glass_scene, tmp_path):
     cfg = config(20, ablations={"joint_optimization": False})
     trainer = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)

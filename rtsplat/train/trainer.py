@@ -215,6 +215,8 @@ class Trainer:
         if L.transmissivity_bce_weight > 0 and "tau" in result.layers and mask is not None:
             terms["tau"] = L.transmissivity_bce_weight * masked_mean(
                 -torch.log((1 - result.layers["tau"]).clamp_min(1e-6)), 1 - mask)
+        if L.reflection_weight > 0 and "spec" in result.layers:
+            terms["reflection"] = L.reflection_weight * result.layers["reflection"].mean()
         if L.occupancy_decay_weight > 0:  # mean occupancy of the visible surfels (0 when none is)
             visible = result.raster.visible.to(self.model.surfels.occupancy.dtype)
             terms["occupancy_decay"] = L.occupancy_decay_weight * (
