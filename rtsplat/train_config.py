@@ -77,13 +77,17 @@ class Schedule:
         "curves; 0: only at the end. Evaluation time is not counted in the log's seconds", minimum=0
     )
 
+    def _or_half_run(self, count: int | None) -> int:
+        """An iteration count whose null means half the run."""
+        return self.iterations // 2 if count is None else count
+
     def densify_stop(self) -> int:
         """The iteration at which density control and resets stop (exclusive)."""
-        return self.iterations // 2 if self.densify_until is None else self.densify_until
+        return self._or_half_run(self.densify_until)
 
     def background_phase_end(self) -> int:
         """The last iteration of the background-only phase (joint optimization off)."""
-        return self.iterations // 2 if self.separate_background_until is None else self.separate_background_until
+        return self._or_half_run(self.separate_background_until)
 
 
 @dataclass

@@ -169,7 +169,8 @@ def test_the_reflection_prior_dims_the_reflection_layer(glass_scene, tmp_path):
         trainer.train()
         assert ("loss_reflection" in read_log(tmp_path / f"w{weight}")[-1]) == (weight > 0)
         with torch.no_grad():
-            layers = [trainer._render_for_evaluation(c).layers["reflection"] for c in trainer.train_views.cameras]
+            layers = [trainer.model.render(c, raster_settings=cfg.raster, backend=cfg.backend).layers["reflection"]
+                      for c in trainer.train_views.cameras]
         return float(torch.stack([x.mean() for x in layers]).mean())
 
     free, dimmed = mean_reflection(0.0), mean_reflection(5.0)
