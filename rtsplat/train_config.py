@@ -102,7 +102,8 @@ class LearningRates:
     sh_dc: float = setting(2e-3, help="SH DC coefficients (the rest: sh_dc / 20)", minimum=0.0)
     occupancy: float = setting(0.05, help="occupancy logits", minimum=0.0)
     opacity: float = setting(0.05, help="optical opacity logits", minimum=0.0)
-    scaling: float = setting(2e-2, help="log scales (4x the 2DGS rate, so that surfels reach their size in a short run)", minimum=0.0)
+    scaling: float = setting(2e-2, help="log scales (4x the 2DGS rate: surfels reach their size in a short run)",
+                             minimum=0.0)
     rotation: float = setting(1e-3, help="rotation quaternions", minimum=0.0)
     reflectance: float = setting(5e-3, help="reflectance logits", minimum=0.0)
     roughness: float = setting(2e-3, help="roughness logits", minimum=0.0)
