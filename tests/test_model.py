@@ -523,3 +523,35 @@ def test_specular_background_sees_the_background_at_the_reflected_direction_with
     after.layers["spec"].sum().backward()
     assert all(level.grad is None for level in model.background_map.maps)
     assert model.specular_net.mlp[0].weight.grad.abs().sum() > 0
+
+
+def test_schlick_fresnel_runs_from_the_normal_reflectance_head_on_to_one_at_grazing_with_finite_gradients():
+    f0 = torch.tensor([0.0, 0.04, 0.5, 1.0], dtype=torch.float64, requires_grad=True)
+    cos = torch.linspace(0, 1, 101, dtype=torch.float64, requires_grad=True)
+    F = rtmodel.schlick_fresnel(f0[:, None], cos[None, :])
+    torch.testing.assert_close(F[:, -1], f0.detach(), rtol=0, atol=1e-12)  # head-on: F0
+    torch.testing.assert_close(F[:, 0], torch.ones(4, dtype=torch.float64), rtol=0, atol=1e-12)  # grazing: 1
+    assert bool((F.diff(dim=1) <= 1e-12).all())  # never brighter head-on than at a more grazing angle
+    assert float(F[1, 50].detach()) < 0.1  # glass (F0 0.04) reflects little at 60 degrees
+    F.sum().backward()
+    assert torch.isfinite(f0.grad).all() and torch.isfinite(cos.grad).all()
+
+
+def test_fresnel_reflectance_reaches_the_network_as_schlick_of_the_surfel_reflectance_and_the_view_angle(
+        monkeypatch):
+    seen = []
+    forward = SpecularNetwork.forward
+
+    def spy(net, env_features, material, reflectance):
+        seen.append((env_features, reflectance))
+        return forward(net, env_features, material, reflectance)
+
+    monkeypatch.setattr(SpecularNetwork, "forward", spy)
+    plain = _render(_model_with(specular_view_angle=True, specular_background=False, specular_fresnel=False))
+    fresnel = _render(_model_with(specular_view_angle=True, specular_background=False, specular_fresnel=True))
+    (features, reflectance), (features_f, reflectance_f) = seen
+    cosine = features[:, -1:]  # |cos| of the angle of incidence (the view-angle input)
+    torch.testing.assert_close(features_f, features)
+    torch.testing.assert_close(reflectance_f, reflectance + (1 - reflectance) * (1 - cosine) ** 5)
+    assert float((reflectance_f - reflectance).detach().max()) > 1e-3  # some shaded pixels are seen at an angle
+    assert (fresnel.layers["spec"] - plain.layers["spec"]).abs().max() > 1e-4

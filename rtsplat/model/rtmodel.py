@@ -202,6 +202,8 @@ class RTModel(nn.Module):
         rough = rows((g["roughness"] / alpha_safe).reshape(-1)).clamp(0, 1)
         material = F.normalize(rows(g["material"].reshape(-1, 4)), dim=-1)
         reflectance = rows((g["reflectance"] / alpha_safe).reshape(-1, 1)).clamp(0, 1)
+        if self.settings.specular_fresnel:
+            reflectance = schlick_fresnel(reflectance, incidence.abs().clamp(0, 1))
         env = self.env(reflected, rough)
         extra = []
         if self.settings.specular_view_angle:
@@ -219,6 +221,12 @@ class RTModel(nn.Module):
             spec = spec.index_copy(0, idx, s)
             beta = beta.index_copy(0, idx, b)
         return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
+
+
+def schlick_fresnel(normal_reflectance: Tensor, cos_incidence: Tensor) -> Tensor:
+    """Schlick's approximation of a dielectric's reflectance: F0 at normal incidence (``cos_incidence``
+    1), rising to 1 at grazing incidence (0)."""
+    return normal_reflectance + (1.0 - normal_reflectance) * (1.0 - cos_incidence) ** 5
 
 
 def image_ray_directions(camera: Camera) -> Tensor:

@@ -60,6 +60,11 @@ class ModelSettings:
         "(with the environment feature; no gradient into B through it): the sky and distant surroundings that "
         "the views see directly, as the reflection's detail. Only with background: learned"
     )
+    specular_fresnel: bool = setting(
+        False, help="the reflectance is the reflectance at normal incidence F0, raised towards 1 at grazing angles by "
+        "Schlick's approximation F0 + (1 - F0)(1 - |cos|)^5, as on a dielectric such as glass: C_spec is weak "
+        "where the view meets the surface head-on and strong at grazing angles (docs/fidelity.md, finding 14)"
+    )
     specular_precision: Literal["float32", "bfloat16", "auto"] = setting(
         "float32", help="dtype of the specular network's matrix products: float32; bfloat16 (float32 weights and "
         "outputs, bfloat16 products, forward and backward); auto: bfloat16 on a CPU with native bfloat16 products "
@@ -69,7 +74,11 @@ class ModelSettings:
     opacity_init: float = setting(0.5, help="initial optical opacity", minimum=0.0, maximum=1.0)
     transmissivity_init: float = setting(0.5, help="initial transmissivity tau", minimum=0.0, maximum=1.0)
     roughness_init: float = setting(0.1, help="initial roughness", minimum=0.0, maximum=1.0)
-    reflectance_init: float = setting(0.5, help="initial reflectance", minimum=0.0, maximum=1.0)
+    reflectance_init: float = setting(
+        0.25, help="initial reflectance. The lower it is, the dimmer C_spec starts, and the more of the light that "
+        "looks the same from every view (a haze, a tint) C_trans and C_scatter learn instead of C_spec "
+        "(docs/fidelity.md, finding 14)", minimum=0.0, maximum=1.0
+    )
     shade_alpha_threshold: float = setting(
         0.05, help="deferred shading only where the surface alpha exceeds this", minimum=0.0, maximum=1.0
     )
