@@ -466,18 +466,20 @@ def test_quats_with_normal_turn_the_surfel_normal_onto_the_given_one():
 
 
 def _inputs_of_the_specular_network(model, monkeypatch):
-    """Render ``model`` and return (its render, the environment features its specular network got)."""
+    """Render ``model`` and return (its render, the environment features and the reflectance its specular
+    network got)."""
     seen = []
     forward = SpecularNetwork.forward
 
     def spy(net, env_features, material, reflectance):
-        seen.append(env_features)
+        seen.append((env_features, reflectance))
         return forward(net, env_features, material, reflectance)
 
-    monkeypatch.setattr(SpecularNetwork, "forward", spy)
-    result = _render(model)
+    with monkeypatch.context() as patch:
+        patch.setattr(SpecularNetwork, "forward", spy)
+        result = _render(model)
     assert len(seen) == 1
-    return result, seen[0]
+    return (result, *seen[0])
 
 
 def _rays_and_normals_of_the_shaded_region(result):
@@ -499,7 +501,7 @@ def _model_with(**settings):
 def test_specular_view_angle_is_the_cosine_between_the_view_ray_and_the_shaded_normal(monkeypatch):
     model = _model_with(specular_view_angle=True, specular_background=False)
     assert model.specular_net.mlp[0].in_features == (SMALL.env_channels + 1) * 5
-    result, features = _inputs_of_the_specular_network(model, monkeypatch)
+    result, features, _ = _inputs_of_the_specular_network(model, monkeypatch)
     rays, n = _rays_and_normals_of_the_shaded_region(result)
     cosine = (rays * n).sum(-1).abs().detach()
     assert len(rays) > 10 and features.shape == (len(rays), SMALL.env_channels + 1)
@@ -511,13 +513,13 @@ def test_specular_background_sees_the_background_at_the_reflected_direction_with
         monkeypatch):
     model = _model_with(specular_view_angle=False, specular_background=True)
     assert model.specular_net.mlp[0].in_features == (SMALL.env_channels + 3) * 5
-    before, features = _inputs_of_the_specular_network(model, monkeypatch)
+    before, features, _ = _inputs_of_the_specular_network(model, monkeypatch)
     rays, n = _rays_and_normals_of_the_shaded_region(before)
     reflected = torch.nn.functional.normalize(rays - 2 * (rays * n).sum(-1, keepdim=True) * n, dim=-1)
     with torch.no_grad():
         for level in model.background_map.maps:
             level.normal_()
-    after, features = _inputs_of_the_specular_network(model, monkeypatch)
+    after, features, _ = _inputs_of_the_specular_network(model, monkeypatch)
     torch.testing.assert_close(features[:, -3:], model.background_map(reflected), rtol=0, atol=1e-5)
     assert (after.layers["spec"] - before.layers["spec"]).abs().max() > 1e-3  # C_spec follows B(w_r)
     after.layers["spec"].sum().backward()
@@ -539,17 +541,10 @@ def test_schlick_fresnel_runs_from_the_normal_reflectance_head_on_to_one_at_graz
 
 def test_fresnel_reflectance_reaches_the_network_as_schlick_of_the_surfel_reflectance_and_the_view_angle(
         monkeypatch):
-    seen = []
-    forward = SpecularNetwork.forward
-
-    def spy(net, env_features, material, reflectance):
-        seen.append((env_features, reflectance))
-        return forward(net, env_features, material, reflectance)
-
-    monkeypatch.setattr(SpecularNetwork, "forward", spy)
-    plain = _render(_model_with(specular_view_angle=True, specular_background=False, specular_fresnel=False))
-    fresnel = _render(_model_with(specular_view_angle=True, specular_background=False, specular_fresnel=True))
-    (features, reflectance), (features_f, reflectance_f) = seen
+    plain, features, reflectance = _inputs_of_the_specular_network(
+        _model_with(specular_view_angle=True, specular_background=False, specular_fresnel=False), monkeypatch)
+    fresnel, features_f, reflectance_f = _inputs_of_the_specular_network(
+        _model_with(specular_view_angle=True, specular_background=False, specular_fresnel=True), monkeypatch)
     cosine = features[:, -1:]  # |cos| of the angle of incidence (the view-angle input)
     torch.testing.assert_close(features_f, features)
     torch.testing.assert_close(reflectance_f, reflectance + (1 - reflectance) * (1 - cosine) ** 5)

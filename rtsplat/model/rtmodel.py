@@ -198,16 +198,17 @@ class RTModel(nn.Module):
         incident = rows(image_ray_directions(camera).reshape(-1, 3))
         n = rows(normal.reshape(-1, 3))
         incidence = (incident * n).sum(-1, keepdim=True)  # cosine of the angle of incidence (signed)
+        cos_incidence = incidence.abs().clamp(0, 1)
         reflected = F.normalize(incident - 2.0 * incidence * n, dim=-1)
         rough = rows((g["roughness"] / alpha_safe).reshape(-1)).clamp(0, 1)
         material = F.normalize(rows(g["material"].reshape(-1, 4)), dim=-1)
         reflectance = rows((g["reflectance"] / alpha_safe).reshape(-1, 1)).clamp(0, 1)
         if self.settings.specular_fresnel:
-            reflectance = schlick_fresnel(reflectance, incidence.abs().clamp(0, 1))
+            reflectance = schlick_fresnel(reflectance, cos_incidence)
         env = self.env(reflected, rough)
         extra = []
         if self.settings.specular_view_angle:
-            extra.append(incidence.abs().clamp(0, 1))
+            extra.append(cos_incidence)
         if self.settings.specular_background and self.background_map is not None:
             with torch.no_grad():
                 extra.append(self.background_map(reflected).to(env.dtype))
