@@ -466,14 +466,14 @@ def test_quats_with_normal_turn_the_surfel_normal_onto_the_given_one():
 
 
 def _inputs_of_the_specular_network(model, monkeypatch):
-    """Render ``model`` and return (its render, the environment features and the reflectance its specular
-    network got)."""
+    """Render ``model`` and return (its render, the environment features, the reflectance and the mirror
+    radiance its specular network got)."""
     seen = []
     forward = SpecularNetwork.forward
 
-    def spy(net, env_features, material, reflectance):
-        seen.append((env_features, reflectance))
-        return forward(net, env_features, material, reflectance)
+    def spy(net, env_features, material, reflectance, mirror=None):
+        seen.append((env_features, reflectance, mirror))
+        return forward(net, env_features, material, reflectance, mirror)
 
     with monkeypatch.context() as patch:
         patch.setattr(SpecularNetwork, "forward", spy)
@@ -501,7 +501,7 @@ def _model_with(**settings):
 def test_specular_view_angle_is_the_cosine_between_the_view_ray_and_the_shaded_normal(monkeypatch):
     model = _model_with(specular_view_angle=True, specular_background=False)
     assert model.specular_net.mlp[0].in_features == (SMALL.env_channels + 1) * 5
-    result, features, _ = _inputs_of_the_specular_network(model, monkeypatch)
+    result, features, _, _ = _inputs_of_the_specular_network(model, monkeypatch)
     rays, n = _rays_and_normals_of_the_shaded_region(result)
     cosine = (rays * n).sum(-1).abs().detach()
     assert len(rays) > 10 and features.shape == (len(rays), SMALL.env_channels + 1)
@@ -513,18 +513,57 @@ def test_specular_background_sees_the_background_at_the_reflected_direction_with
         monkeypatch):
     model = _model_with(specular_view_angle=False, specular_background=True)
     assert model.specular_net.mlp[0].in_features == (SMALL.env_channels + 3) * 5
-    before, features, _ = _inputs_of_the_specular_network(model, monkeypatch)
+    before, features, _, _ = _inputs_of_the_specular_network(model, monkeypatch)
     rays, n = _rays_and_normals_of_the_shaded_region(before)
     reflected = torch.nn.functional.normalize(rays - 2 * (rays * n).sum(-1, keepdim=True) * n, dim=-1)
     with torch.no_grad():
         for level in model.background_map.maps:
             level.normal_()
-    after, features, _ = _inputs_of_the_specular_network(model, monkeypatch)
+    after, features, _, _ = _inputs_of_the_specular_network(model, monkeypatch)
     torch.testing.assert_close(features[:, -3:], model.background_map(reflected), rtol=0, atol=1e-5)
     assert (after.layers["spec"] - before.layers["spec"]).abs().max() > 1e-3  # C_spec follows B(w_r)
     after.layers["spec"].sum().backward()
     assert all(level.grad is None for level in model.background_map.maps)
     assert model.specular_net.mlp[0].weight.grad.abs().sum() > 0
+
+
+def test_specular_mirror_blends_the_background_at_the_reflected_direction_into_c_spec_by_the_fifth_output(
+        monkeypatch):
+    model = _model_with(specular_view_angle=False, specular_background=False, specular_mirror=True)
+    assert model.uses_mirror and model.specular_net.mlp[-1].out_features == 5
+    assert model.specular_net.mlp[0].in_features == SMALL.env_channels * 5  # B(w_r) is not an input here
+    with torch.no_grad():
+        for level in model.background_map.maps:
+            level.normal_()
+    head = model.specular_net.mlp[-1]
+    spec = {}
+    for name, bias in (("mirror", 30.0), ("network", -30.0)):
+        with torch.no_grad():
+            head.bias[4] = bias
+        result, _, reflectance, mirror = _inputs_of_the_specular_network(model, monkeypatch)
+        spec[name] = result.layers["spec"][(result.layers["shade"] > 0)[..., 0] & (result.layers["roi"] > 0)[..., 0]]
+    rays, n = _rays_and_normals_of_the_shaded_region(result)
+    reflected = torch.nn.functional.normalize(rays - 2 * (rays * n).sum(-1, keepdim=True) * n, dim=-1)
+    torch.testing.assert_close(mirror, model.background_map(reflected).detach(), rtol=0, atol=1e-5)
+    # m = 1: a mirror of the background, scaled by the reflectance; m = 0: the network's colour alone
+    torch.testing.assert_close(spec["mirror"], reflectance * mirror, rtol=1e-5, atol=1e-6)
+    plain = _model_with(specular_view_angle=False, specular_background=False, specular_mirror=False)
+    with torch.no_grad():
+        for mine, theirs in zip(model.specular_net.mlp, plain.specular_net.mlp, strict=True):
+            if isinstance(mine, torch.nn.Linear):
+                theirs.weight.copy_(mine.weight[:theirs.out_features])
+                theirs.bias.copy_(mine.bias[:theirs.out_features])
+    alone = _render(plain).layers["spec"]
+    torch.testing.assert_close(spec["network"], alone[(result.layers["shade"] > 0)[..., 0]
+                                                      & (result.layers["roi"] > 0)[..., 0]], rtol=1e-5, atol=1e-6)
+    assert (spec["mirror"] - spec["network"]).abs().max() > 1e-2
+    # the mirror reads B without a gradient; the network's blend weight learns from C_spec
+    with torch.no_grad():
+        head.bias[4] = 0.0
+    blended = _render(model)
+    blended.layers["spec"].sum().backward()
+    assert all(level.grad is None for level in model.background_map.maps)
+    assert float(head.bias.grad[4].abs()) > 0 and torch.isfinite(head.bias.grad).all()
 
 
 def test_schlick_fresnel_runs_from_the_normal_reflectance_head_on_to_one_at_grazing_with_finite_gradients():
@@ -541,9 +580,9 @@ def test_schlick_fresnel_runs_from_the_normal_reflectance_head_on_to_one_at_graz
 
 def test_fresnel_reflectance_reaches_the_network_as_schlick_of_the_surfel_reflectance_and_the_view_angle(
         monkeypatch):
-    plain, features, reflectance = _inputs_of_the_specular_network(
+    plain, features, reflectance, _ = _inputs_of_the_specular_network(
         _model_with(specular_view_angle=True, specular_background=False, specular_fresnel=False), monkeypatch)
-    fresnel, features_f, reflectance_f = _inputs_of_the_specular_network(
+    fresnel, features_f, reflectance_f, _ = _inputs_of_the_specular_network(
         _model_with(specular_view_angle=True, specular_background=False, specular_fresnel=True), monkeypatch)
     cosine = features[:, -1:]  # |cos| of the angle of incidence (the view-angle input)
     torch.testing.assert_close(features_f, features)

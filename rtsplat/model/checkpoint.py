@@ -34,7 +34,7 @@ CHECKPOINT_VERSION = 2
 # version 1 kept the resume state at the top level, next to the model
 _V1_TRAINING_KEYS = ("iteration", "elapsed", "config", "optimizer", "density", "frozen", "order", "rng", "torch_rng")
 # specular-network inputs added after the first models were written; absent from a model: off
-OPTIONAL_SPECULAR_INPUTS = ("specular_view_angle", "specular_background", "specular_fresnel")
+OPTIONAL_SPECULAR_INPUTS = ("specular_view_angle", "specular_background", "specular_fresnel", "specular_mirror")
 
 
 class CheckpointError(PipelineError):

@@ -83,7 +83,7 @@ class RTModel(nn.Module):
         self.background_map = (BackgroundMap(s.background_height, s.background_width, s.background_levels)
                                if s.background == "learned" else None)
         self.specular_net = (SpecularNetwork(s.env_channels + self._extra_specular_channels(), 4, s.mlp_width,
-                                             s.specular_precision)
+                                             s.specular_precision, mirror=self.uses_mirror)
                              if effects.specular else None)
 
     def _extra_specular_channels(self) -> int:
@@ -92,6 +92,11 @@ class RTModel(nn.Module):
         (``specular_background``, with a learned background)."""
         s = self.settings
         return int(s.specular_view_angle) + 3 * int(s.specular_background and self.background_map is not None)
+
+    @property
+    def uses_mirror(self) -> bool:
+        """Whether C_spec blends in the learned background at the reflected direction (``specular_mirror``)."""
+        return self.settings.specular_mirror and self.background_map is not None
 
     @property
     def uses_opacity(self) -> bool:
@@ -206,15 +211,18 @@ class RTModel(nn.Module):
         if self.settings.specular_fresnel:
             reflectance = schlick_fresnel(reflectance, cos_incidence)
         env = self.env(reflected, rough)
+        reflected_background = None
+        if self.background_map is not None and (self.settings.specular_background or self.uses_mirror):
+            with torch.no_grad():  # B learns only from the pixels that see it
+                reflected_background = self.background_map(reflected).to(env.dtype)
         extra = []
         if self.settings.specular_view_angle:
             extra.append(cos_incidence)
-        if self.settings.specular_background and self.background_map is not None:
-            with torch.no_grad():
-                extra.append(self.background_map(reflected).to(env.dtype))
+        if self.settings.specular_background and reflected_background is not None:
+            extra.append(reflected_background)
         if extra:
             env = torch.cat([env, *extra], -1)
-        s, b = self.specular_net(env, material, reflectance)
+        s, b = self.specular_net(env, material, reflectance, reflected_background if self.uses_mirror else None)
         if idx is None:
             spec = torch.where(flat[:, None], s, spec)
             beta = torch.where(flat[:, None], b, beta)

@@ -60,6 +60,13 @@ class ModelSettings:
         "(with the environment feature; no gradient into B through it): the sky and distant surroundings that "
         "the views see directly, as the reflection's detail. Only with background: learned"
     )
+    specular_mirror: bool = setting(
+        False, help="C_spec blends, pixel by pixel, a mirror image of the learned background B at the reflected "
+        "direction with the network's colour: C_spec = reflectance (m B(w_r) + (1 - m) exp(out + log 0.5)), m a "
+        "fifth network output in (0, 1). B holds the sky and the distant surroundings the views see directly, so a "
+        "reflection of them gets their detail at once; m falls where the reflection is of something near. No "
+        "gradient into B through it. Only with background: learned"
+    )
     specular_fresnel: bool = setting(
         False, help="the reflectance is the reflectance at normal incidence F0, raised towards 1 at grazing angles by "
         "Schlick's approximation F0 + (1 - F0)(1 - |cos|)^5, as on a dielectric such as glass: C_spec is weak "

@@ -25,6 +25,8 @@ def cpu_has_bfloat16_matmul() -> bool:
 class SpecularNetwork(nn.Module):
     """Input: outer product of the env feature (C) and the blended material feature (4), flattened,
     concatenated with the env feature: C*4 + C (= 80 for C = 16). MLP 80 -> 256 -> 256 -> 4.
+    With ``mirror`` a fifth output ``m`` (sigmoid) blends a given mirror radiance into C_spec:
+    ``reflectance (m mirror + (1 - m) exp(out + log 0.5))``.
     The model may append channels to the env feature (:class:`rtsplat.model.settings.ModelSettings`:
     the angle of incidence, the background at the reflected direction); C counts them.
 
@@ -33,14 +35,16 @@ class SpecularNetwork(nn.Module):
     native bfloat16 products (:func:`cpu_has_bfloat16_matmul`), float32 elsewhere."""
 
     def __init__(self, env_channels: int = 16, material_channels: int = 4, width: int = 256,
-                 precision: str = "float32"):
+                 precision: str = "float32", mirror: bool = False):
         super().__init__()
         if precision not in ("float32", "bfloat16", "auto"):
             raise ValueError(f"precision must be float32, bfloat16 or auto, got {precision!r}")
         in_dim = env_channels * material_channels + env_channels
         self.precision = precision
+        self.mirror = mirror
+        outputs = 5 if mirror else 4
         self.mlp = nn.Sequential(
-            nn.Linear(in_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, 4)
+            nn.Linear(in_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, outputs)
         )
 
     def uses_bfloat16(self, device: torch.device) -> bool:
@@ -48,8 +52,11 @@ class SpecularNetwork(nn.Module):
             return device.type == "cpu" and cpu_has_bfloat16_matmul()
         return self.precision == "bfloat16"
 
-    def forward(self, env_features: Tensor, material: Tensor, reflectance: Tensor) -> tuple[Tensor, Tensor]:
-        """[M,C], [M,4] (unit), [M,1] -> (C_spec [M,3], beta [M,1])."""
+    def forward(self, env_features: Tensor, material: Tensor, reflectance: Tensor,
+                mirror: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """[M,C], [M,4] (unit), [M,1], [M,3] (a network with ``mirror`` only) -> (C_spec [M,3], beta [M,1])."""
+        if (mirror is None) == self.mirror:
+            raise ValueError("a network with mirror needs the mirror radiance, one without takes none")
         outer = (env_features[:, :, None] * material[:, None, :]).flatten(1)
         x = torch.cat([outer, env_features], -1)
         if self.uses_bfloat16(x.device):
@@ -58,6 +65,10 @@ class SpecularNetwork(nn.Module):
             out = out.to(x.dtype)
         else:
             out = self.mlp(x)
-        specular = torch.exp((out[:, :3] + LOG_HALF).clamp_max(MAX_LOG_SPECULAR)) * reflectance
+        specular = torch.exp((out[:, :3] + LOG_HALF).clamp_max(MAX_LOG_SPECULAR))
+        if mirror is not None:
+            weight = torch.sigmoid(out[:, 4:5])
+            specular = weight * mirror + (1.0 - weight) * specular
+        specular = specular * reflectance
         beta = torch.sigmoid(out[:, 3:4])
         return specular, beta
