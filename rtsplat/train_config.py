@@ -129,6 +129,12 @@ class Losses:
     lpips_weights: str = setting("", help="path to the LPIPS-VGG weights; empty: look in the torch hub cache")
     normal_weight: float = setting(0.05, help="normal consistency (2DGS)", minimum=0.0)
     normal_from: int = setting(0, help="the normal term starts after this iteration", minimum=0)
+    normal_depth: Literal["expected", "median"] = setting(
+        "expected", help="the depth whose normals the surface normals are held to: expected (sum p z / sum p, "
+        "2DGS's choice for unbounded scenes) or median (the surfel where the surface transmittance crosses 0.5, "
+        "2DGS's choice for bounded ones). Behind glass the expected depth mixes the pane with what is seen "
+        "through it; the median depth is the pane's wherever the pane holds most of the surface weight"
+    )
     mask_weight: float = setting(0.01, help="transparent-mask BCE on the blended opacity", minimum=0.0)
     mask_opaque_target: Literal["surface", "one"] = setting(
         "surface", help="what the mask BCE asks of the blended opacity on pixels the mask does not mark: surface "

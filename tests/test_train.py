@@ -430,3 +430,54 @@ def test_checkpoint_dir_keeps_only_a_checkpoint_of_the_same_data_and_config(glas
     assert not (kept / "last.pt").exists() and len(messages) == 2
     with pytest.raises(PipelineError, match="--checkpoint-dir is, contains or lies inside --out"):
         claim_checkpoint_dir(run / "checkpoints", run, data, config(20), messages.append)
+
+
+def test_the_median_depth_gives_a_pane_its_own_normal_where_the_expected_depth_mixes_in_what_is_behind(
+        glass_scene, tmp_path, monkeypatch):
+    """A tilted pane holding most of the surface weight in front of a wall: the normals of the median
+    depth are the pane's, those of the expected depth are bent towards the wall's. The trainer's
+    ``losses.normal_depth`` picks which one the normal term uses."""
+    from raster_scenes import facing_quat, small_camera
+
+    from rtsplat.raster import Surfels, rasterize
+    from rtsplat.train import losses
+
+    camera = small_camera(32, 24, eye=(0.0, -3.0, 0.0))
+    pane_normal = torch.nn.functional.normalize(torch.tensor([0.5, -1.0, 0.0], dtype=torch.float64), dim=0)
+    surfels = Surfels(
+        means=torch.tensor([[0.0, -1.0, 0.0], [0.0, 1.5, 0.0]], dtype=torch.float64),
+        quats=torch.stack([facing_quat(pane_normal), facing_quat((0.0, -1.0, 0.0))]),
+        scales=torch.full((2, 2), 6.0, dtype=torch.float64),
+        occupancy=torch.tensor([0.7, 1.0], dtype=torch.float64), opacity=torch.ones(2, dtype=torch.float64),
+        features=torch.zeros(2, 1, dtype=torch.float64), colors=torch.zeros(2, 3, dtype=torch.float64),
+    )
+    out = rasterize(surfels, camera, backend="reference")
+    inner = (slice(4, -4), slice(4, -4))
+    assert float(out.alpha.detach()[inner].min()) > 0.95
+
+    def degrees_off_the_pane(depth):
+        n = losses.depth_normals(depth, camera)[inner]
+        return torch.rad2deg(torch.arccos((n @ pane_normal).abs().clamp(max=1.0)))
+
+    assert float(degrees_off_the_pane(out.depth_median).max()) < 0.5
+    assert float(degrees_off_the_pane(out.depth).median()) > 5.0
+
+    original = losses.normal_consistency
+    for choice, field in (("median", "depth_median"), ("expected", "depth")):
+        cfg = config(3, losses={"normal_depth": choice})
+        trainer = Trainer(glass_scene, cfg, tmp_path / choice, progress=False, log=lambda m: None)
+        renders, used = [], []
+        render = trainer.model.render
+
+        def remember(*args, render=render, renders=renders, **kwargs):
+            renders.append(render(*args, **kwargs))
+            return renders[-1]
+
+        def spy(normal, depth, alpha, cam, renders=renders, used=used, field=field):
+            used.append(depth is getattr(renders[-1].raster, field))
+            return original(normal, depth, alpha, cam)
+
+        monkeypatch.setattr(trainer.model, "render", remember)
+        monkeypatch.setattr(losses, "normal_consistency", spy)
+        trainer.train()
+        assert used and all(used)

@@ -202,8 +202,9 @@ class Trainer:
         terms = {"image": losses.image_loss(result.color, target, cfg.losses.ssim_weight, weight)}
         L = cfg.losses
         if L.normal_weight > 0 and it > L.normal_from:
+            depth = result.raster.depth_median if L.normal_depth == "median" else result.raster.depth
             terms["normal"] = L.normal_weight * losses.normal_consistency(
-                result.layers["normal"], result.raster.depth, result.layers["alpha"], camera)
+                result.layers["normal"], depth, result.layers["alpha"], camera)
         if (cfg.ablations.mask_loss and L.mask_weight > 0 and mask is not None and self.model.uses_opacity):
             surface_alpha = result.layers["alpha"] if L.mask_opaque_target == "surface" else None
             terms["mask"] = L.mask_weight * losses.transparent_mask_loss(
