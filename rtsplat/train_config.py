@@ -181,6 +181,11 @@ class Densification:
         0.01, help="a reset clamps occupancy (then, next time, opacity) to at most this", minimum=0.0, maximum=1.0
     )
     max_surfels: int = setting(200_000, help="no densification beyond this many surfels", minimum=1)
+    initial_orientation: Literal["random", "point_normals"] = setting(
+        "random", help="how the surfels started at the SfM points face: random (2DGS), or point_normals: along the "
+        "point cloud's local normal (the least-spread axis of each point's 16 nearest points; a point's copies "
+        "share it), so that a surfel starts flat on the surface it samples"
+    )
     initial_copies: int = setting(
         4, help="surfels started per SfM point: the point and copies - 1 more around it, offset by a normal "
         "deviate of half its RMS distance to its 3 nearest points (colour copied); a sparse SfM cloud otherwise "

@@ -95,6 +95,24 @@ def nearest_neighbour_scale(points: Tensor, k: int = 3, chunk: int = 4096) -> Te
     return torch.cat(out).clamp_min(1e-7).sqrt()
 
 
+def point_cloud_normals(points: Tensor, k: int = 16, chunk: int = 4096) -> Tensor:
+    """Unit normals [N,3] of a point cloud [N,3]: per point, the direction of least spread of its ``k``
+    nearest points (itself included), the smallest principal axis of their covariance. The sign is
+    arbitrary (a surfel faces every camera). Fewer than 3 points: the z axis."""
+    n = points.shape[0]
+    if n < 3:
+        return torch.tensor([0.0, 0.0, 1.0], dtype=points.dtype, device=points.device).expand(n, 3).clone()
+    k = min(k, n)
+    out = []
+    for start in range(0, n, chunk):
+        nearest = torch.cdist(points[start : start + chunk], points).topk(k, largest=False).indices
+        neighbours = points[nearest]  # [c, k, 3]
+        centred = neighbours - neighbours.mean(1, keepdim=True)
+        covariance = centred.transpose(1, 2) @ centred
+        out.append(torch.linalg.eigh(covariance.double()).eigenvectors[:, :, 0].to(points.dtype))
+    return torch.cat(out)
+
+
 def scatter_points(xyz: Tensor, rgb: Tensor, copies: int, generator: torch.Generator | None = None
                    ) -> tuple[Tensor, Tensor]:
     """Each point [N,3] followed by ``copies - 1`` more drawn around it: offsets from a normal

@@ -16,6 +16,7 @@ Scenes:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -236,6 +237,19 @@ def build_opaque(params: OpaqueParams, seed: int, workdir: Path, texture_scale: 
     return SceneSpec("opaque", elements, (), dome.orbit, asdict(params))
 
 
+def _cabin_panes(params: CabinParams) -> dict[str, np.ndarray]:
+    """The cabin's four glass panes: 4x4 transforms of Mitsuba's rectangle, which spans [-1, 1]^2 in its
+    local xy plane with normal +z. They reach slightly into body and roof: no cracks."""
+    L, W, B, H = params.half_length, params.half_width, params.body_height, params.window_height
+    zc, hz = B + H / 2, H / 2 + 0.01
+    return {
+        "window_front": _trs((L, 0, zc), 90.0, (W, hz, 1.0), 90.0),
+        "window_back": _trs((-L, 0, zc), 90.0, (W, hz, 1.0), 90.0),
+        "window_left": _trs((0, W, zc), 0.0, (L, hz, 1.0), 90.0),
+        "window_right": _trs((0, -W, zc), 0.0, (L, hz, 1.0), 90.0),
+    }
+
+
 def build_cabin(params: CabinParams, seed: int, workdir: Path, texture_scale: float = 1.0) -> SceneSpec:
     rng = np.random.default_rng(seed)
     c = params.content
@@ -267,14 +281,7 @@ def build_cabin(params: CabinParams, seed: int, workdir: Path, texture_scale: fl
             "to_world": _xf(_trs((sx * L, sy * W, B + H / 2), 0.0, (p, p, H / 2 + 0.01))),
             "bsdf": dark,
         }
-    zc, hz = B + H / 2, H / 2 + 0.01  # panes reach slightly into body and roof: no cracks
-    # A rectangle spans [-1, 1]^2 in its local xy plane with normal +z.
-    panes = {
-        "window_front": _trs((L, 0, zc), 90.0, (W, hz, 1.0), 90.0),
-        "window_back": _trs((-L, 0, zc), 90.0, (W, hz, 1.0), 90.0),
-        "window_left": _trs((0, W, zc), 0.0, (L, hz, 1.0), 90.0),
-        "window_right": _trs((0, -W, zc), 0.0, (L, hz, 1.0), 90.0),
-    }
+    panes = _cabin_panes(params)
     for name, m in panes.items():
         elements[name] = {"type": "rectangle", "to_world": _xf(m), "bsdf": _glass(params.eta)}
     # objects stand on the cabin floor (the body's top) and stay clear of the panes and pillars
@@ -284,23 +291,26 @@ def build_cabin(params: CabinParams, seed: int, workdir: Path, texture_scale: fl
     return SceneSpec("cabin", elements, tuple(panes), orbit, asdict(params))
 
 
+def _film_sheet(params: FilmParams, n_u: int, n_v: int) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices [n_v * n_u, 3] (row by row, rising in z) and unit normals of the film: a cylindrical sheet
+    bulging towards -y, its axis at y = R so that its apex is at y = 0; normals face -y (the cameras'
+    side)."""
+    R, half = params.curvature_radius, math.radians(params.arc_deg) / 2
+    phi = np.tile(np.linspace(-half, half, n_u), n_v)
+    z = np.repeat(np.linspace(0.0, params.height, n_v), n_u)
+    points = np.stack([R * np.sin(phi), R - R * np.cos(phi), z], 1)
+    normals = np.stack([np.sin(phi), -np.cos(phi), np.zeros_like(phi)], 1)
+    return points, normals
+
+
 def _write_film_obj(path: Path, params: FilmParams, n_u: int = 48, n_v: int = 2) -> None:
     """A cylindrical sheet bulging towards -y; normals face -y (the cameras' side)."""
-    R, half = params.curvature_radius, math.radians(params.arc_deg) / 2
-    cy = R  # axis of the cylinder at y = R so the apex of the sheet is at y = 0
-    lines = []
-    for j in range(n_v):
-        z = params.height * j / (n_v - 1)
-        for i in range(n_u):
-            phi = -half + 2 * half * i / (n_u - 1)
-            lines.append(f"v {R * math.sin(phi):.6f} {cy - R * math.cos(phi):.6f} {z:.6f}")
+    points, normals = _film_sheet(params, n_u, n_v)
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in points]
     for j in range(n_v):
         for i in range(n_u):
             lines.append(f"vt {i / (n_u - 1):.6f} {j / (n_v - 1):.6f}")
-    for _j in range(n_v):
-        for i in range(n_u):
-            phi = -half + 2 * half * i / (n_u - 1)
-            lines.append(f"vn {-math.sin(phi):.6f} {-math.cos(phi):.6f} 0.0")
+    lines += [f"vn {x:.6f} {y:.6f} {z:.1f}" for x, y, z in normals]
     for j in range(n_v - 1):
         for i in range(n_u - 1):
             a, b = j * n_u + i + 1, j * n_u + i + 2
@@ -399,3 +409,54 @@ def build_scene(name: str, seed: int, workdir: Path, params=None, texture_scale:
         raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
     kind = SCENES[name]
     return kind.builder(params if params is not None else kind.params(), seed, workdir, texture_scale)
+
+
+def params_from_dict(name: str, data: dict):
+    """Scene ``name``'s parameter dataclass from its ``scene.json`` form (``params``: nested dicts, lists)."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
+    kind = SCENES[name].params
+
+    def build(cls, values: dict):
+        out = {}
+        for f in dataclasses.fields(cls):
+            if f.name not in values:
+                continue
+            v = values[f.name]
+            out[f.name] = build(ContentParams, v) if f.name == "content" else (tuple(v) if isinstance(v, list) else v)
+        return cls(**out)
+
+    return build(kind, data)
+
+
+def see_through_samples(name: str, params=None, spacing: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """Points [N, 3] on scene ``name``'s see-through surfaces, about ``spacing`` apart (world units), and
+    their unit normals: the geometry its transparent masks mark, to measure a reconstruction against.
+    Sign of the normals: outward (dome), the rectangle's +z (cabin), towards the cameras (film); compare
+    them up to sign. ``params``: the scene's parameter dataclass (default: its defaults)."""
+    params = params if params is not None else SCENES[name].params()
+    if name == "dome":
+        r, c = params.dome_radius, np.array([0.0, 0.0, params.dome_center_z])
+        n = int(4 * math.pi * r * r / spacing**2)
+        i = np.arange(n) + 0.5  # a Fibonacci lattice: near-uniform points on the sphere
+        z = 1 - 2 * i / n
+        theta = math.pi * (1 + 5**0.5) * i
+        normals = np.stack([np.sqrt(1 - z * z) * np.cos(theta), np.sqrt(1 - z * z) * np.sin(theta), z], 1)
+        points = c + r * normals
+        above = points[:, 2] > 0  # the dome is the part above the floor
+        return points[above], normals[above]
+    if name == "cabin":
+        points, normals = [], []
+        for m in _cabin_panes(params).values():
+            nu = max(int(2 * np.linalg.norm(m[:3, 0]) / spacing), 2)
+            nv = max(int(2 * np.linalg.norm(m[:3, 1]) / spacing), 2)
+            u, v = np.meshgrid(np.linspace(-1, 1, nu), np.linspace(-1, 1, nv))
+            local = np.stack([u.ravel(), v.ravel(), np.zeros(u.size), np.ones(u.size)], 1)
+            points.append((local @ m.T)[:, :3])
+            normal = np.linalg.inv(m[:3, :3]).T @ np.array([0.0, 0.0, 1.0])
+            normals.append(np.broadcast_to(normal / np.linalg.norm(normal), (u.size, 3)))
+        return np.concatenate(points), np.concatenate(normals)
+    if name == "film":
+        arc = params.curvature_radius * math.radians(params.arc_deg)
+        return _film_sheet(params, max(int(arc / spacing), 2), max(int(params.height / spacing), 2))
+    return np.zeros((0, 3)), np.zeros((0, 3))

@@ -37,6 +37,7 @@ from rtsplat.model.surfels import (
     SurfelParameters,
     concat_surfels,
     init_from_points,
+    point_cloud_normals,
     quats_with_normal,
     scatter_points,
 )
@@ -136,12 +137,16 @@ class Trainer:
     # -- construction ------------------------------------------------------------------------
     def _init_surfels(self) -> SurfelParameters:
         m = self.cfg.model
-        xyz, rgb = scatter_points(*self.points, self.cfg.densify.initial_copies, generator=self.rng)
+        copies = self.cfg.densify.initial_copies
+        xyz, rgb = scatter_points(*self.points, copies, generator=self.rng)
         surfels = init_from_points(
             xyz, rgb, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
             transmissivity=m.transmissivity_init, roughness=m.roughness_init, reflectance=m.reflectance_init,
             generator=self.rng,
         )
+        if self.cfg.densify.initial_orientation == "point_normals" and len(xyz):
+            normals = point_cloud_normals(self.points[0].to(xyz.dtype))
+            surfels.quats.data.copy_(quats_with_normal(normals.repeat(max(copies, 1), 1)))
         surface = self.scene.load_transparent_surface() if self.cfg.seed_transparent_surface else None
         if surface is None or not self.effects.transmission or len(surface[0]) < 4:
             return surfels
