@@ -481,3 +481,21 @@ def test_the_median_depth_gives_a_pane_its_own_normal_where_the_expected_depth_m
         monkeypatch.setattr(losses, "normal_consistency", spy)
         trainer.train()
         assert used and all(used)
+
+
+def test_point_normals_start_each_surfel_and_its_copies_flat_on_the_point_clouds_surface(glass_scene, tmp_path):
+    from rtsplat.model.surfels import point_cloud_normals
+    from rtsplat.raster.projection import quat_to_rotmat
+
+    def initial_normals(orientation):
+        cfg = config(2, densify={"initial_orientation": orientation, "initial_copies": 3})
+        trainer = Trainer(glass_scene, cfg, tmp_path / orientation, progress=False, log=lambda m: None)
+        n_points = trainer.points[0].shape[0]
+        quats = trainer.model.surfels.quats.detach()[: 3 * n_points]
+        return quat_to_rotmat(torch.nn.functional.normalize(quats, dim=-1))[:, :, 2], trainer.points[0]
+
+    normals, points = initial_normals("point_normals")
+    expected = point_cloud_normals(points).repeat(3, 1)
+    assert float((normals * expected).sum(-1).abs().min()) > 1 - 1e-5
+    random_normals, _ = initial_normals("random")
+    assert float((random_normals * expected).sum(-1).abs().median()) < 0.9
