@@ -182,9 +182,10 @@ class Densification:
     )
     max_surfels: int = setting(200_000, help="no densification beyond this many surfels", minimum=1)
     initial_orientation: Literal["random", "point_normals"] = setting(
-        "random", help="how the surfels started at the SfM points face: random (2DGS), or point_normals: along the "
-        "point cloud's local normal (the least-spread axis of each point's 16 nearest points; a point's copies "
-        "share it), so that a surfel starts flat on the surface it samples"
+        "point_normals", help="how the surfels started at the SfM points face: point_normals: along the point "
+        "cloud's local normal (the least-spread axis of each point's 16 nearest points; a point's copies share "
+        "it), so that a surfel starts flat on the surface it samples (docs/fidelity.md, finding 17); or random "
+        "(2DGS)"
     )
     initial_copies: int = setting(
         4, help="surfels started per SfM point: the point and copies - 1 more around it, offset by a normal "
