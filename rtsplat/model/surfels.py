@@ -144,18 +144,22 @@ def concat_surfels(parts: list[SurfelParameters]) -> SurfelParameters:
 def init_from_points(
     xyz: Tensor, rgb: Tensor, *, sh_degree: int = 3, occupancy: float = 0.1, opacity: float = 0.5,
     transmissivity: float = 0.5, roughness: float = 0.1, reflectance: float = 0.5,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | None = None, normals: Tensor | None = None,
 ) -> SurfelParameters:
     """Surfels at the SfM points: colours from the points, scales from neighbour distances.
 
-    ``rgb`` in [0,1]. Rotations are random (as in 2DGS); the material feature starts small and
-    random so that the specular network sees distinct inputs.
+    ``rgb`` in [0,1]. Rotations turn each surfel's normal onto ``normals`` [N,3], or are random (as in
+    2DGS) without them; the random rotations are drawn either way, so that ``generator`` gives the same
+    later draws. The material feature starts small and random so that the specular network sees
+    distinct inputs.
     """
     n = xyz.shape[0]
     dtype = torch.float32
     xyz = xyz.to(dtype)
     scale = nearest_neighbour_scale(xyz)
     quats = F.normalize(torch.rand(n, 4, generator=generator, dtype=dtype), dim=-1)
+    if normals is not None:
+        quats = quats_with_normal(normals.to(dtype))
     full = lambda value, *shape: torch.full((n, *shape), value, dtype=dtype)  # noqa: E731
     tensors = {
         "means": xyz.clone(),

@@ -38,7 +38,6 @@ from rtsplat.model.surfels import (
     concat_surfels,
     init_from_points,
     point_cloud_normals,
-    quats_with_normal,
     scatter_points,
 )
 from rtsplat.quality import masked_mean, psnr
@@ -139,14 +138,14 @@ class Trainer:
         m = self.cfg.model
         copies = self.cfg.densify.initial_copies
         xyz, rgb = scatter_points(*self.points, copies, generator=self.rng)
+        # a point's scattered copies follow it block by block (scatter_points), and share its normal
+        normals = (point_cloud_normals(self.points[0]).repeat(copies, 1)
+                   if self.cfg.densify.initial_orientation == "point_normals" else None)
         surfels = init_from_points(
             xyz, rgb, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
             transmissivity=m.transmissivity_init, roughness=m.roughness_init, reflectance=m.reflectance_init,
-            generator=self.rng,
+            generator=self.rng, normals=normals,
         )
-        if self.cfg.densify.initial_orientation == "point_normals" and len(xyz):
-            normals = point_cloud_normals(self.points[0].to(xyz.dtype))
-            surfels.quats.data.copy_(quats_with_normal(normals.repeat(max(copies, 1), 1)))
         surface = self.scene.load_transparent_surface() if self.cfg.seed_transparent_surface else None
         if surface is None or not self.effects.transmission or len(surface[0]) < 4:
             return surfels
@@ -161,8 +160,8 @@ class Trainer:
         seeds = init_from_points(
             xyz_t, torch.zeros_like(xyz_t), sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=0.1,
             transmissivity=0.9, roughness=m.roughness_init, reflectance=m.reflectance_init, generator=self.rng,
+            normals=torch.as_tensor(normal, dtype=torch.float32),
         )
-        seeds.quats.data.copy_(quats_with_normal(torch.as_tensor(normal, dtype=torch.float32)))
         return seeds
 
     def _new_model(self, surfels: SurfelParameters) -> RTModel:
