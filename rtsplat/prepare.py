@@ -192,32 +192,44 @@ def roi_from_masks(
 
 
 def hull_surface(
-    hull: MaskHull, views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], min_facing: float = 0.25
+    hull: MaskHull,
+    views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    min_facing: float = 0.25,
+    neighbours: int = 64,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Points on the hull's boundary that face the cameras, with their outward normals.
 
-    The boundary is the hull's grid points with a neighbour outside; the normal is the direction in
-    which the smoothed hull indicator falls. A point is kept when at least ``min_facing`` of the views
-    that have it in frame lie on the side its normal points to, so the faces no camera looks at (the
-    underside that the carving cannot close) are dropped. For a see-through object the facing
+    The boundary is the hull's grid points with a neighbour outside; outward is the direction in which
+    the smoothed hull indicator falls. A point is kept when at least ``min_facing`` of the views that
+    have it in frame lie on its outward side, so the faces no camera looks at (the underside that the
+    carving cannot close) are dropped. The normal of a kept point is the least-spread axis of the
+    ``neighbours`` nearest kept points (:func:`rtsplat.model.surfels.point_cloud_normals`, a plane fitted
+    over about 4.5 grid steps for 64), turned outward: the grid's staircase bends the indicator's
+    gradient by several degrees, the fitted plane averages it out. For a see-through object the facing
     boundary is where its surface is: the dome of a glass case, the panes of a window.
     """
+    import torch
     from scipy import ndimage
+
+    from rtsplat.model.surfels import point_cloud_normals
 
     inside = hull.inside
     boundary = inside & ~ndimage.binary_erosion(inside)
     smooth = ndimage.gaussian_filter(inside.astype(np.float64), 1.0)
     gradient = np.stack(np.gradient(smooth, hull.step), -1).reshape(-1, 3)
     idx = np.flatnonzero(boundary.ravel())
-    normals = -gradient[idx]
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     points = hull.points[idx]
+    outward = -gradient[idx]
     facing = np.zeros(len(points))
     in_frame, _ = _mask_votes(views, points)
     for _, world_to_camera, _ in views:
-        facing += ((camera_center(world_to_camera) - points) * normals).sum(1) > 0
+        facing += ((camera_center(world_to_camera) - points) * outward).sum(1) > 0
     keep = (in_frame > 0) & (facing >= min_facing * len(views))
-    return points[keep], normals[keep]
+    points, outward = points[keep], outward[keep]
+    if len(points) < 3:
+        return points, outward / np.maximum(np.linalg.norm(outward, axis=1, keepdims=True), 1e-12)
+    normals = point_cloud_normals(torch.from_numpy(points), k=neighbours).numpy()
+    return points, normals * np.where((normals * outward).sum(1) < 0, -1.0, 1.0)[:, None]
 
 
 def undistort_mask(mask: np.ndarray, distorted: ColmapView, size: tuple[int, int]) -> np.ndarray:
