@@ -32,6 +32,36 @@ def test_sh_degree_zero_reproduces_the_point_colour():
     torch.testing.assert_close(eval_sh(coeffs, torch.nn.functional.normalize(torch.randn(10, 3), dim=-1), 3), rgb)
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_sh_kernels_give_the_torch_references_colours_and_gradients(degree, dtype):
+    from rtsplat.model.sh import eval_sh_reference
+
+    generator = torch.Generator().manual_seed(degree)
+    n = 400
+    coefficients = (torch.randn(n, 16, 3, generator=generator, dtype=dtype) * 0.5).requires_grad_(True)
+    directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=generator, dtype=dtype), dim=-1)
+    directions.requires_grad_(True)
+    grad_colour = torch.randn(n, 3, generator=generator, dtype=dtype)
+
+    fast = eval_sh(coefficients, directions, degree)
+    assert type(fast.grad_fn).__name__.startswith("_ShColour")  # the numba kernels, not the reference
+    reference = eval_sh_reference(coefficients, directions, degree)
+    fast_grads = torch.autograd.grad(fast, [coefficients, directions], grad_colour)
+    reference_grads = torch.autograd.grad(reference, [coefficients, directions], grad_colour, allow_unused=True)
+    reference_grads = [torch.zeros_like(t) if g is None else g
+                       for g, t in zip(reference_grads, (coefficients, directions), strict=True)]
+
+    tolerance = dict(rtol=1e-12, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-5, atol=2e-6)
+    if degree > 0:
+        assert 0.01 < float((reference == 0).float().mean()) < 0.5  # some colours are clamped at 0
+    torch.testing.assert_close(fast, reference, **tolerance)
+    for name, actual, expected in zip(("coefficients", "directions"), fast_grads, reference_grads, strict=True):
+        torch.testing.assert_close(actual, expected, **tolerance, msg=lambda m, name=name: f"{name}: {m}")
+    k = (degree + 1) ** 2
+    assert not fast_grads[0][:, k:].any()  # no gradient for the coefficients beyond the degree
+
+
 def test_environment_map_wraps_around_in_longitude():
     env = EnvironmentMap(channels=2, height=8, width=16, levels=3)
     with torch.no_grad():

@@ -348,11 +348,11 @@ def _python(code: str, env: dict | None = None) -> subprocess.CompletedProcess:
 
 def test_import_does_not_load_numba_and_without_numba_cpu_falls_back_to_reference():
     """One fresh interpreter: importing the package loads no numba; with numba unimportable the cpu backend
-    warns and returns exactly the reference's result."""
+    warns and returns exactly the reference's result, and the SH colours are the torch reference's."""
     result = _python("""
         import sys, warnings
-        import rtsplat, rtsplat.raster, rtsplat.raster.cpu
-        print('numba' in sys.modules, 'rtsplat.raster.cpu_kernels' in sys.modules)
+        import rtsplat, rtsplat.raster, rtsplat.raster.cpu, rtsplat.model.rtmodel
+        print(*(m in sys.modules for m in ('numba', 'rtsplat.raster.cpu_kernels', 'rtsplat.model.sh_kernels')))
         import torch
         sys.modules["numba"] = None  # import numba -> ImportError
         from raster_scenes import random_surfels, small_camera
@@ -363,11 +363,15 @@ def test_import_does_not_load_numba_and_without_numba_cpu_falls_back_to_referenc
             a = rasterize(surfels, camera, backend="cpu").color
         b = rasterize(surfels, camera, backend="reference").color
         print(torch.equal(a, b), [str(w.message)[:40] for w in caught if w.category is RuntimeWarning])
+        from rtsplat.model.sh import eval_sh, eval_sh_reference
+        coefficients, directions = torch.randn(20, 16, 3), torch.nn.functional.normalize(torch.randn(20, 3), dim=-1)
+        print(torch.equal(eval_sh(coefficients, directions, 3), eval_sh_reference(coefficients, directions, 3)))
     """)
     assert result.returncode == 0, result.stderr
-    first, second = result.stdout.splitlines()
-    assert first.split() == ["False", "False"]
+    first, second, third = result.stdout.splitlines()
+    assert first.split() == ["False", "False", "False"]
     assert second.startswith("True ['rtsplat: numba is not available"), second
+    assert third == "True"  # the SH colours fall back to the torch reference too
 
 
 def test_compile_cache_goes_to_the_user_cache(monkeypatch, tmp_path):

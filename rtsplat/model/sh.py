@@ -43,11 +43,68 @@ def sh_basis(directions: Tensor, degree: int) -> Tensor:
 
 
 def eval_sh(coefficients: Tensor, directions: Tensor, degree: int) -> Tensor:
-    """Colour [N,3] from SH ``coefficients`` [N, K, 3] at unit ``directions`` [N,3] (+0.5 offset, >= 0)."""
+    """Colour [N,3] from SH ``coefficients`` [N, K, 3] at unit ``directions`` [N,3] (+0.5 offset, >= 0).
+
+    On CPU tensors of float32 or float64 the numba kernels of :mod:`rtsplat.model.sh_kernels` compute it
+    (one pass per surfel, forward and backward; :func:`eval_sh_reference` is their oracle), elsewhere
+    :func:`eval_sh_reference`."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+    if (coefficients.device.type == "cpu" and directions.device.type == "cpu"
+            and coefficients.dtype in (torch.float32, torch.float64) and directions.dtype == coefficients.dtype
+            and coefficients.dim() == 3 and coefficients.shape[1:] == (16, 3) and _kernels() is not None):
+        return _ShColour.apply(coefficients, directions, degree)
+    return eval_sh_reference(coefficients, directions, degree)
+
+
+def eval_sh_reference(coefficients: Tensor, directions: Tensor, degree: int) -> Tensor:
+    """:func:`eval_sh` in plain torch (autograd; any device)."""
     k = num_coefficients(degree)
     basis = sh_basis(directions, degree)  # [N,k]
     rgb = (basis[..., None] * coefficients[:, :k]).sum(-2)
     return (rgb + 0.5).clamp_min(0.0)
+
+
+def _kernels():
+    from rtsplat.raster.cpu import load_numba_module
+
+    return load_numba_module("rtsplat.model.sh_kernels")
+
+
+SH_CHUNK = 256  # surfels per dynamic chunk of the parallel SH kernels
+
+
+class _ShColour(torch.autograd.Function):
+    """:func:`eval_sh_reference`'s values and gradients from the numba kernels."""
+
+    @staticmethod
+    def forward(ctx, coefficients, directions, degree):
+        from rtsplat.raster.cpu import numba_threads
+
+        sh = coefficients.detach().contiguous()
+        dirs = directions.detach().contiguous()
+        rgb = torch.empty(sh.shape[0], 3, dtype=sh.dtype)
+        basis = torch.empty(sh.shape[0], 16, dtype=torch.float64)
+        with numba_threads(SH_CHUNK):
+            _kernels().sh_forward_kernel(sh.numpy(), dirs.numpy(), int(degree), rgb.numpy(), basis.numpy())
+        ctx.save_for_backward(sh, dirs, rgb, basis)
+        ctx.degree = int(degree)
+        return rgb
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_rgb):
+        from rtsplat.raster.cpu import numba_threads
+
+        sh, dirs, rgb, basis = ctx.saved_tensors
+        grad = grad_rgb.detach().to(sh.dtype).contiguous()
+        grad_sh = torch.empty_like(sh)
+        grad_dirs = torch.empty_like(dirs)
+        scratch = torch.empty_like(basis)
+        with numba_threads(SH_CHUNK):
+            _kernels().sh_backward_kernel(sh.numpy(), dirs.numpy(), ctx.degree, rgb.numpy(), basis.numpy(),
+                                          grad.numpy(), grad_sh.numpy(), grad_dirs.numpy(), scratch.numpy())
+        return (grad_sh if ctx.needs_input_grad[0] else None, grad_dirs if ctx.needs_input_grad[1] else None, None)
 
 
 def rgb_to_sh_dc(rgb: Tensor) -> Tensor:

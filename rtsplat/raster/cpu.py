@@ -51,6 +51,7 @@ once and falls back to the reference.
 
 from __future__ import annotations
 
+import importlib
 import os
 import threading
 import warnings
@@ -65,10 +66,11 @@ from rtsplat.raster.binning import TileBins
 from rtsplat.raster.reference import EDGE_ON_RATIO, rasterize_reference, rasterize_tiled
 from rtsplat.raster.types import RasterOutput, RasterSettings, Surfels
 
-__all__ = ["rasterize_cpu", "cache_dir", "kernels_available"]
+__all__ = ["rasterize_cpu", "cache_dir", "kernels_available", "load_numba_module", "numba_threads"]
 
 _lock = threading.Lock()
 _kernels = None
+_modules: dict[str, object] = {}
 _unavailable: str | None = None
 
 
@@ -80,12 +82,15 @@ def cache_dir() -> Path:
     return Path(base) / "rtsplat" / "numba"
 
 
-def _load_kernels():
-    """Import (and configure the cache of) the numba kernels; None when numba is missing."""
-    global _kernels, _unavailable
+def load_numba_module(name: str):
+    """Import the numba kernel module ``name`` (compile cache and threading layer configured first);
+    None when numba is missing, after one warning."""
+    global _unavailable
     with _lock:
-        if _kernels is not None or _unavailable is not None:
-            return _kernels
+        if name in _modules:
+            return _modules[name]
+        if _unavailable is not None:
+            return None
         path = cache_dir()
         try:
             path.mkdir(parents=True, exist_ok=True)
@@ -103,18 +108,25 @@ def _load_kernels():
             # sleeps when idle. NUMBA_THREADING_LAYER still wins when a user sets it.
             if "NUMBA_THREADING_LAYER" not in os.environ:
                 numba.config.THREADING_LAYER = "workqueue"
-            from rtsplat.raster import cpu_kernels
+            module = importlib.import_module(name)
         except ImportError as exc:  # pragma: no cover - exercised only without numba
             _unavailable = str(exc)
             warnings.warn(
-                f"rtsplat: numba is not available ({exc}); the 'cpu' rasterizer falls back to the slow "
-                "'reference' backend. Install numba (see README).",
+                f"rtsplat: numba is not available ({exc}); the CPU kernels (the 'cpu' rasterizer, the SH "
+                "colours) fall back to the slow torch code. Install numba (see README).",
                 RuntimeWarning,
                 stacklevel=3,
             )
             return None
-        _kernels = cpu_kernels
-        return _kernels
+        _modules[name] = module
+        return module
+
+
+def _load_kernels():
+    """The rasterizer's numba kernels (:mod:`rtsplat.raster.cpu_kernels`); None when numba is missing."""
+    global _kernels
+    _kernels = load_numba_module("rtsplat.raster.cpu_kernels")
+    return _kernels
 
 
 def kernels_available() -> bool:
@@ -183,7 +195,7 @@ class _Composite(torch.autograd.Function):
         keep = np.empty(arrays[6].shape[0], dtype=np.int64)
         n_keep = np.zeros(arrays[8].shape[0], dtype=np.int64)
         lists = (cut, boxes, keep, n_keep)
-        with _threads():
+        with numba_threads():
             kernels.surfel_bounds_kernel(*arrays[:4], scalars[7], scalars[9], cut, boxes)
             kernels.tile_entries_kernel(arrays[6], boxes, arrays[7], arrays[8], scalars[0], scalars[1], keep, n_keep)
             kernels.forward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, used)
@@ -204,7 +216,7 @@ class _Composite(torch.autograd.Function):
         if grad_image is None or not any(ctx.needs_input_grad[:6]):
             return (None,) * 8
         grad = _np_float(grad_image.reshape(width * height, fc + 9))
-        with _threads() as threads:
+        with numba_threads() as threads:
             acc = np.zeros((threads, n, 16 + fc), dtype=np.float64)
             _kernels.backward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, grad, acc)
             if threads > 1:
@@ -227,15 +239,18 @@ class _Composite(torch.autograd.Function):
 CHUNK = 4  # loop iterations (4x4 pixel blocks, surfels) per dynamic chunk of the parallel kernels
 
 
-class _threads:
-    """Run the kernels with torch's thread count and dynamic chunks of ``CHUNK`` iterations."""
+class numba_threads:
+    """Run numba kernels with torch's thread count and dynamic chunks of ``chunk`` parallel iterations."""
+
+    def __init__(self, chunk: int = CHUNK):
+        self.chunk = chunk
 
     def __enter__(self):
         import numba
 
         self._threads = numba.get_num_threads()
         numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-        self._chunk = numba.set_parallel_chunksize(CHUNK)
+        self._chunk = numba.set_parallel_chunksize(self.chunk)
         return numba.get_num_threads()
 
     def __exit__(self, *exc):
