@@ -2,12 +2,13 @@
 
 Trains rtsplat and 2dgs (transmission and specular off) on a prepared scene at the demo's
 settings (demo/config.yaml: 600 iterations, 128x256 environment map with 7 levels, volume until
-100, specular from 200, densification every 50 from 150). Each (checkout, method) pair runs in
-its own worker process: it first trains ``--warmup`` iterations (default 300: past
-``specular_from``, so the full model runs, after two densifications, so the surfel count is a
-trained one), then times ``--iterations`` iterations per round. Rounds are interleaved over the
-workers (the order alternates), so every worker sees the same load; the median over the rounds is
-reported, and with two checkouts the median of the per-round ratios first / last.
+100, specular from 200, densification every 50 from 150, SH degree up by one every 100). Each
+(checkout, method) pair runs in its own worker process: it first trains ``--warmup`` iterations
+(default 300: past ``specular_from``, so the full model runs, at SH degree 3, after two
+densifications, so the surfel count is a trained one), then times ``--iterations`` iterations per
+round. Rounds are interleaved over the workers (the order alternates), so every worker sees the same
+load; the median over the rounds is reported, and with two checkouts the median of the per-round
+ratios first / last.
 
 ``--checkout DIR`` (repeatable; default: the checkout this script belongs to) names source trees
 whose ``rtsplat`` package is timed: the worker runs this file with ``PYTHONPATH=DIR``, so a second
@@ -40,7 +41,7 @@ DEMO_OPTIONS = {
     "model": {"env_height": 128, "env_width": 256, "env_levels": 7},
     "schedule": {"iterations": 600, "volume_until": 100, "specular_from": 200, "densify_from": 150,
                  "densify_every": 50, "reset_every": 0, "eval_every": 0, "checkpoint_every": 0,
-                 "log_every": 10**9},
+                 "sh_degree_every": 100, "log_every": 10**9},
 }
 METHODS = {
     "rtsplat": {},
