@@ -14,14 +14,21 @@ C3 = (
 )
 
 
+MAX_DEGREE = 3
+
+
 def num_coefficients(degree: int) -> int:
     return (degree + 1) ** 2
 
 
+def check_degree(degree: int) -> None:
+    if not 0 <= degree <= MAX_DEGREE:
+        raise ValueError(f"SH degree must be in 0..{MAX_DEGREE}, got {degree}")
+
+
 def sh_basis(directions: Tensor, degree: int) -> Tensor:
     """Basis values [..., (degree+1)^2] at unit ``directions`` [..., 3]."""
-    if not 0 <= degree <= 3:
-        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+    check_degree(degree)
     x, y, z = directions.unbind(-1)
     out = [torch.full_like(x, C0)]
     if degree >= 1:
@@ -48,11 +55,11 @@ def eval_sh(coefficients: Tensor, directions: Tensor, degree: int) -> Tensor:
     On CPU tensors of float32 or float64 the numba kernels of :mod:`rtsplat.model.sh_kernels` compute it
     (one pass per surfel, forward and backward; :func:`eval_sh_reference` is their oracle), elsewhere
     :func:`eval_sh_reference`."""
-    if not 0 <= degree <= 3:
-        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+    check_degree(degree)  # here too: the kernels do not call sh_basis
     if (coefficients.device.type == "cpu" and directions.device.type == "cpu"
             and coefficients.dtype in (torch.float32, torch.float64) and directions.dtype == coefficients.dtype
-            and coefficients.dim() == 3 and coefficients.shape[1:] == (16, 3) and _kernels() is not None):
+            and coefficients.dim() == 3 and coefficients.shape[1:] == (num_coefficients(MAX_DEGREE), 3)
+            and _kernels() is not None):
         return _ShColour.apply(coefficients, directions, degree)
     return eval_sh_reference(coefficients, directions, degree)
 
@@ -84,7 +91,7 @@ class _ShColour(torch.autograd.Function):
         sh = coefficients.detach().contiguous()
         dirs = directions.detach().contiguous()
         rgb = torch.empty(sh.shape[0], 3, dtype=sh.dtype)
-        basis = torch.empty(sh.shape[0], 16, dtype=torch.float64)
+        basis = torch.empty(sh.shape[0], num_coefficients(MAX_DEGREE), dtype=torch.float64)
         with numba_threads(SH_CHUNK):
             _kernels().sh_forward_kernel(sh.numpy(), dirs.numpy(), int(degree), rgb.numpy(), basis.numpy())
         ctx.save_for_backward(sh, dirs, rgb, basis)
