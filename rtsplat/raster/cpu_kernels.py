@@ -16,7 +16,10 @@ inputs (projected by :mod:`rtsplat.raster.projection`):
   :func:`tile_entries_kernel` keeps per tile the entries whose box meets it (``keep``/``n_keep``),
   then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
   positions in that block list), and each pixel skips entries whose box it is outside of. The
-  parallel work unit is one 4x4 block.
+  parallel work unit is one 4x4 block. The forward skips the block's entries whose cut-off ellipse
+  and disc cannot reach it (:func:`_block_may_contribute`, tighter than the box for a tilted
+  surfel) before their geometry; the backward replays only the entries that changed some pixel of
+  the block in the forward (``block_touched``).
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
@@ -195,14 +198,110 @@ BLOCK = 4  # pixels per side of the sub-tile blocks whose entry lists each pixel
 
 
 @njit(inline="always", **_JIT)
+def _segment_distance2(ax, ay, bx, by):
+    """Squared distance from the origin to the segment from (ax, ay) to (bx, by)."""
+    ex = bx - ax
+    ey = by - ay
+    length2 = ex * ex + ey * ey
+    t = 0.0
+    if length2 > 0.0:
+        t = -(ax * ex + ay * ey) / length2
+        t = min(max(t, 0.0), 1.0)
+    dx = ax + t * ex
+    dy = ay + t * ey
+    return dx * dx + dy * dy
+
+
+@njit(inline="always", **_JIT)
+def _plane_point(q0, q1, q2, px, py, a0, a1, a2, b0, b1, b2):
+    """Homogeneous surfel-plane coordinates ``q - px a - py b`` of the ray through pixel (px, py), and
+    the size of the terms summed into the weight h2 (what its rounding scales with)."""
+    h0 = q0 - px * a0 - py * b0
+    h1 = q1 - px * a1 - py * b1
+    h2 = q2 - px * a2 - py * b2
+    scale = abs(q2) + abs(px * a2) + abs(py * b2)
+    return h0, h1, h2, scale
+
+
+@njit(inline="always", **_JIT)
+def _block_may_contribute(M, centers, rho_cut, lowpass, i, lo_x, hi_x, lo_y, hi_y):
+    """False only when no pixel centre in [lo_x, hi_x] x [lo_y, hi_y] can have rho within surfel
+    ``i``'s cut-off: a tighter test than its box, which bounds a tilted ellipse loosely.
+
+    rho = min(rho_3d, rho_2d). rho_2d <= cut is a disc around the projected centre: its distance to
+    the rectangle decides. rho_3d = u^2 + v^2 with (u, v) the ray's point on the surfel plane, whose
+    homogeneous coordinates ``hx x hy`` are affine in the pixel (the px py term is w x w = 0): when
+    the homogeneous weight keeps one sign over the rectangle (the plane's horizon does not cross it),
+    the rectangle maps onto the convex quadrilateral of its corners' images, and rho_3d <= cut needs
+    that quadrilateral to meet the disc of radius sqrt(cut). Everything else (a horizon crossing, a
+    weight too small for its rounding, NaN or infinite values) keeps the entry; a margin keeps pairs
+    near the cut-off for the exact test."""
+    cut = rho_cut[i]
+    if not (cut - cut == 0.0):
+        return True
+    r2 = cut if cut > 0.0 else 0.0
+    r2 = r2 + 1e-6 + 1e-6 * r2
+    if not (lowpass > 0.0):
+        return True
+    cx = centers[i, 0]
+    cy = centers[i, 1]
+    dx = max(lo_x - cx, cx - hi_x, 0.0)
+    dy = max(lo_y - cy, cy - hi_y, 0.0)
+    if not (lowpass * (dx * dx + dy * dy) > r2):
+        return True
+    a0 = M[i, 0]
+    a1 = M[i, 1]
+    a2 = M[i, 2]
+    b0 = M[i, 3]
+    b1 = M[i, 4]
+    b2 = M[i, 5]
+    w0 = M[i, 6]
+    w1 = M[i, 7]
+    w2 = M[i, 8]
+    # hx x hy = (a - px w) x (b - py w) = a x b - px (w x b) - py (a x w)
+    q0 = a1 * b2 - a2 * b1
+    q1 = a2 * b0 - a0 * b2
+    q2 = a0 * b1 - a1 * b0
+    s0 = w1 * b2 - w2 * b1
+    s1 = w2 * b0 - w0 * b2
+    s2 = w0 * b1 - w1 * b0
+    t0 = a1 * w2 - a2 * w1
+    t1 = a2 * w0 - a0 * w2
+    t2 = a0 * w1 - a1 * w0
+    h0a, h1a, h2a, sa = _plane_point(q0, q1, q2, lo_x, lo_y, s0, s1, s2, t0, t1, t2)
+    h0b, h1b, h2b, sb = _plane_point(q0, q1, q2, hi_x, lo_y, s0, s1, s2, t0, t1, t2)
+    h0c, h1c, h2c, sc = _plane_point(q0, q1, q2, hi_x, hi_y, s0, s1, s2, t0, t1, t2)
+    h0d, h1d, h2d, sd = _plane_point(q0, q1, q2, lo_x, hi_y, s0, s1, s2, t0, t1, t2)
+    positive = h2a > 1e-6 * sa and h2b > 1e-6 * sb and h2c > 1e-6 * sc and h2d > 1e-6 * sd
+    negative = h2a < -1e-6 * sa and h2b < -1e-6 * sb and h2c < -1e-6 * sc and h2d < -1e-6 * sd
+    if not (positive or negative):
+        return True
+    ua = h0a / h2a
+    va = h1a / h2a
+    ub = h0b / h2b
+    vb = h1b / h2b
+    uc = h0c / h2c
+    vc = h1c / h2c
+    ud = h0d / h2d
+    vd = h1d / h2d
+    # the origin inside the quadrilateral: on one side of all four edges
+    e0 = ua * vb - va * ub
+    e1 = ub * vc - vb * uc
+    e2 = uc * vd - vc * ud
+    e3 = ud * va - vd * ua
+    if (e0 >= 0.0 and e1 >= 0.0 and e2 >= 0.0 and e3 >= 0.0) or (e0 <= 0.0 and e1 <= 0.0 and e2 <= 0.0 and e3 <= 0.0):
+        return True
+    d2 = min(_segment_distance2(ua, va, ub, vb), _segment_distance2(ub, vb, uc, vc),
+             _segment_distance2(uc, vc, ud, vd), _segment_distance2(ud, vd, ua, va))
+    return not (d2 > r2)
+
+
+@njit(inline="always", **_JIT)
 def _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by):
     """The tile entries (list positions relative to ``start``, depth order kept) whose box meets pixel
     block (bx, by) of the tile, and their count. A pixel scans only its block's list, so the long lists of
     small tiles full of small surfels are not walked once per pixel."""
-    lo_y = ty0 + by * BLOCK + 0.5
-    hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
-    lo_x = tx0 + bx * BLOCK + 0.5
-    hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
+    lo_x, hi_x, lo_y, hi_y = _block_rectangle(tx0, ty0, tile_size, bx, by)
     lst = np.empty(max(nk, 1), dtype=np.int64)
     n = 0
     for j in range(nk):
@@ -212,6 +311,13 @@ def _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by):
             lst[n] = k
             n += 1
     return lst, n
+
+
+@njit(inline="always", **_JIT)
+def _block_rectangle(tx0, ty0, tile_size, bx, by):
+    """(x_min, x_max, y_min, y_max) of the pixel centres of block (bx, by) of the tile at (tx0, ty0)."""
+    return (tx0 + bx * BLOCK + 0.5, tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5,
+            ty0 + by * BLOCK + 0.5, ty0 + min((by + 1) * BLOCK, tile_size) - 0.5)
 
 
 NPIX = BLOCK * BLOCK
@@ -335,10 +441,14 @@ def forward_kernel(
     n_done,
     median_k,
     used,
+    block_touched,
 ):
     """Composite every pixel front to back; one 4x4 block per work unit, entry by entry: the
     geometry of an entry is evaluated for all pixels of the block in one branch-free loop, then
-    each pixel that is still traversing composites it."""
+    each pixel that is still traversing composites it. ``block_touched[(start + k) * blocks + b]`` records
+    whether entry ``k`` of a tile changed the state of any pixel of its block ``b`` (an alpha of
+    either set at least ``alpha_min`` while that set was live), for every entry the block scanned:
+    the backward replays only those."""
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
     ndc_scale = far / (far - near)
@@ -361,16 +471,24 @@ def forward_kernel(
             st[1, p] = 1.0
             n_done[pixs[p]] = n_scan
         alive = npx
+        tile = unit // nb2
+        block_base = unit - tile * nb2
+        lo_x, hi_x, lo_y, hi_y = _block_rectangle((tile % tiles_x) * tile_size, (tile // tiles_x) * tile_size,
+                                                  tile_size, block_base % nbx, block_base // nbx)
         for j in range(n_scan):
             if alive == 0:
                 break
             k = lst[j]
             i = ids[start + k]
+            if not _block_may_contribute(M, centers, rho_cut, lowpass, i, lo_x, hi_x, lo_y, hi_y):
+                block_touched[(start + k) * nb2 + block_base] = False
+                continue
             _entry_geometry(M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
                             rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b)
             o = occ[i]
             oo = o * opa[i]
             entry_used = False
+            entry_touched = False
             for p in range(npx):
                 if not ok_b[p] or not running[p]:
                     continue
@@ -384,6 +502,7 @@ def forward_kernel(
                 if a_v > alpha_max:
                     a_v = alpha_max
                 if live[0, p] and a_s >= alpha_min:
+                    entry_touched = True
                     T_s = st[0, p]
                     t_next = T_s * (1.0 - a_s)
                     if t_next < t_min:
@@ -407,6 +526,7 @@ def forward_kernel(
                         st[0, p] = t_next
                         entry_used = True
                 if live[1, p] and a_v >= alpha_min:
+                    entry_touched = True
                     T_v = st[1, p]
                     t_next = T_v * (1.0 - a_v)
                     if t_next < t_min:
@@ -426,6 +546,7 @@ def forward_kernel(
                     alive -= 1
             if entry_used and used[start + k] == 0:  # read first: blocks of one tile share the flags
                 used[start + k] = 1
+            block_touched[(start + k) * nb2 + block_base] = entry_touched
         for p in range(npx):
             pix = pixs[p]
             median_k[pix] = medk_b[p]
@@ -472,6 +593,7 @@ def backward_kernel(
     stats,
     n_done,
     median_k,
+    block_touched,
     grad_out,
     acc,
 ):
@@ -481,6 +603,8 @@ def backward_kernel(
     with respect to w_k is q_k, dL/da_i = q_i T_i - (sum_{k>i} q_k w_k) / (1 - a_i); the suffix sum
     is Q - (prefix incl. i), with Q = sum_k q_k w_k computed from the forward totals. The gradient
     of one entry is summed over the pixels of the block first, then added to the thread's row.
+    Entries that changed no pixel of the block in the forward (``block_touched``) change nothing here either
+    and are skipped before their geometry.
     """
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
@@ -526,8 +650,11 @@ def backward_kernel(
             st[5, p] = 1.0
             limit[p] = n_done[pix]
             n_run = max(n_run, limit[p])
+        block_base = unit - (unit // nb2) * nb2
         for j in range(n_run):
             k = lst[j]
+            if not block_touched[(start + k) * nb2 + block_base]:
+                continue
             i = ids[start + k]
             m0, m1, m2, m3, m4, m5, m6, m7, m8 = _entry_geometry(
                 M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
