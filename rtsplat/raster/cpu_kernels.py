@@ -42,6 +42,12 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 
 
 @njit(inline="always", **_JIT)
+def _cross(a0, a1, a2, b0, b1, b2):
+    """The cross product a x b of two 3-vectors given by components."""
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@njit(inline="always", **_JIT)
 def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio):
     """Ray-splat intersection at pixel centre (px, py) of the surfel with ray transform rows
     (m0 m1 m2 | m3 m4 m5 | m6 m7 m8) and projected centre (cx, cy): reference semantics."""
@@ -51,9 +57,7 @@ def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge
     hy0 = m3 - py * m6
     hy1 = m4 - py * m7
     hy2 = m5 - py * m8
-    p0 = hx1 * hy2 - hx2 * hy1
-    p1 = hx2 * hy0 - hx0 * hy2
-    p2 = hx0 * hy1 - hx1 * hy0
+    p0, p1, p2 = _cross(hx0, hx1, hx2, hy0, hy1, hy2)
     plane_ok = abs(p2) > edge_on_ratio * max(abs(p0), abs(p1))
     if plane_ok:
         u = p0 / p2
@@ -259,15 +263,9 @@ def _block_may_contribute(M, centers, rho_cut, lowpass, i, lo_x, hi_x, lo_y, hi_
     w1 = M[i, 7]
     w2 = M[i, 8]
     # hx x hy = (a - px w) x (b - py w) = a x b - px (w x b) - py (a x w)
-    q0 = a1 * b2 - a2 * b1
-    q1 = a2 * b0 - a0 * b2
-    q2 = a0 * b1 - a1 * b0
-    s0 = w1 * b2 - w2 * b1
-    s1 = w2 * b0 - w0 * b2
-    s2 = w0 * b1 - w1 * b0
-    t0 = a1 * w2 - a2 * w1
-    t1 = a2 * w0 - a0 * w2
-    t2 = a0 * w1 - a1 * w0
+    q0, q1, q2 = _cross(a0, a1, a2, b0, b1, b2)
+    s0, s1, s2 = _cross(w0, w1, w2, b0, b1, b2)
+    t0, t1, t2 = _cross(a0, a1, a2, w0, w1, w2)
     h0a, h1a, h2a, sa = _plane_point(q0, q1, q2, lo_x, lo_y, s0, s1, s2, t0, t1, t2)
     h0b, h1b, h2b, sb = _plane_point(q0, q1, q2, hi_x, lo_y, s0, s1, s2, t0, t1, t2)
     h0c, h1c, h2c, sc = _plane_point(q0, q1, q2, hi_x, hi_y, s0, s1, s2, t0, t1, t2)
@@ -768,12 +766,8 @@ def backward_kernel(
                         gp1 = g_v * inv_p2
                         gp2 = -(g_u * u + g_v * v) * inv_p2
                         # p = hx x hy: dL/dhx = hy x gp, dL/dhy = gp x hx
-                        ghx0 = hy1 * gp2 - hy2 * gp1
-                        ghx1 = hy2 * gp0 - hy0 * gp2
-                        ghx2 = hy0 * gp1 - hy1 * gp0
-                        ghy0 = gp1 * hx2 - gp2 * hx1
-                        ghy1 = gp2 * hx0 - gp0 * hx2
-                        ghy2 = gp0 * hx1 - gp1 * hx0
+                        ghx0, ghx1, ghx2 = _cross(hy0, hy1, hy2, gp0, gp1, gp2)
+                        ghy0, ghy1, ghy2 = _cross(gp0, gp1, gp2, hx0, hx1, hx2)
                         eg[G_M + 0] += ghx0
                         eg[G_M + 1] += ghx1
                         eg[G_M + 2] += ghx2
