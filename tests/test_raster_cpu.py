@@ -30,7 +30,6 @@ import sys
 import textwrap
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from raster_scenes import SURFEL_FIELDS, random_surfels, replace, small_camera, with_grad
@@ -143,53 +142,6 @@ def test_random_scenes_float64(seed, n_features):
 def test_random_scenes_float32(seed):
     camera = small_camera(48, 32, torch.float32)
     assert_parity(random_surfels(150, seed, dtype=torch.float32, n_features=12), camera, **F32)
-
-
-def test_block_test_drops_only_blocks_beyond_the_cut_off_and_most_of_the_loose_ones():
-    """The kernels' per-block test (``_block_may_contribute``) against the exact pair geometry: where it
-    says no, no point of the block's rectangle (a 9x9 grid, corners included) has rho within the
-    surfel's cut-off, for tilted, grazing, huge and behind-the-camera surfels; and it says no to most
-    of the (block, surfel) pairs whose boxes meet but whose ellipses miss."""
-    from rtsplat.raster.projection import project_surfels
-    from rtsplat.raster.reference import EDGE_ON_RATIO
-
-    kernels = cpu_backend._load_kernels()
-    settings = RasterSettings()
-    camera = small_camera(64, 48)
-    tilted = random_surfels(300, 5, spread=1.2, scale_range=(0.02, 0.6), n_features=3)
-    hard = surfels_at([[0.0, -3.0 + d, 0.0] for d in (-1.0, 0.1, 0.21, 1.0, 2.0)], (1.0, 0.0, 0.0), 0.5, torch.float64)
-    edge_on = (math.sin(math.pi / 2 - 1e-7), -math.cos(math.pi / 2 - 1e-7), 0.0)
-    grazing = surfels_at([[0.1 * k, 0.0, 0.0] for k in range(5)], edge_on, 1e3, torch.float64)
-    surfels = Surfels(*[torch.cat([getattr(x, f) for x in (tilted, hard, grazing)]) for f in SURFEL_FIELDS])
-    with torch.no_grad():
-        proj = project_surfels(surfels, camera, settings, None)
-    n = surfels.means.shape[0]
-    M = proj.ray_transform.reshape(n, 9).numpy().copy()
-    centers = proj.centers.numpy().copy()
-    occ, opa = surfels.occupancy.numpy().copy(), surfels.opacity.numpy().copy()
-    cut, boxes = np.empty(n), np.empty((n, 4))
-    kernels.surfel_bounds_kernel(M, centers, occ, opa, settings.alpha_min, settings.lowpass_inv_var, cut, boxes)
-    grid = np.linspace(0.0, 1.0, 9)
-    loose = dropped = 0
-    for by in range(0, 48, 4):
-        for bx in range(0, 64, 4):
-            lo_x, hi_x, lo_y, hi_y = bx + 0.5, bx + 3.5, by + 0.5, by + 3.5
-            for i in range(n):
-                if not (boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y):
-                    continue
-                within = False
-                for fy in grid:
-                    for fx in grid:
-                        z, rho, *_ = kernels._eval_pair(*M[i], *centers[i], lo_x + 3 * fx, lo_y + 3 * fy,
-                                                        settings.lowpass_inv_var, EDGE_ON_RATIO)
-                        within = within or rho <= cut[i]
-                may = kernels._block_may_contribute(M, centers, cut, settings.lowpass_inv_var, i,
-                                                    lo_x, hi_x, lo_y, hi_y)
-                assert may or not within, f"surfel {i}: block ({bx}, {by}) dropped with a pixel within the cut-off"
-                loose += not within
-                dropped += not may
-    assert loose > 1000
-    assert dropped >= 0.8 * loose, f"the block test dropped {dropped} of {loose} pairs beyond the cut-off"
 
 
 @pytest.mark.parametrize("n", [1200, 2000])

@@ -16,10 +16,8 @@ inputs (projected by :mod:`rtsplat.raster.projection`):
   :func:`tile_entries_kernel` keeps per tile the entries whose box meets it (``keep``/``n_keep``),
   then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
   positions in that block list), and each pixel skips entries whose box it is outside of. The
-  parallel work unit is one 4x4 block. The forward skips the block's entries whose cut-off ellipse
-  and disc cannot reach it (:func:`_block_may_contribute`, tighter than the box for a tilted
-  surfel) before their geometry; the backward replays only the entries that changed some pixel of
-  the block in the forward (``block_touched``).
+  parallel work unit is one 4x4 block. The backward replays only the entries that changed some
+  pixel of the block in the forward (``block_touched``).
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
@@ -202,104 +200,14 @@ BLOCK = 4  # pixels per side of the sub-tile blocks whose entry lists each pixel
 
 
 @njit(inline="always", **_JIT)
-def _segment_distance2(ax, ay, bx, by):
-    """Squared distance from the origin to the segment from (ax, ay) to (bx, by)."""
-    ex = bx - ax
-    ey = by - ay
-    length2 = ex * ex + ey * ey
-    t = 0.0
-    if length2 > 0.0:
-        t = -(ax * ex + ay * ey) / length2
-        t = min(max(t, 0.0), 1.0)
-    dx = ax + t * ex
-    dy = ay + t * ey
-    return dx * dx + dy * dy
-
-
-@njit(inline="always", **_JIT)
-def _plane_point(q0, q1, q2, px, py, a0, a1, a2, b0, b1, b2):
-    """Homogeneous surfel-plane coordinates ``q - px a - py b`` of the ray through pixel (px, py), and
-    the size of the terms summed into the weight h2 (what its rounding scales with)."""
-    h0 = q0 - px * a0 - py * b0
-    h1 = q1 - px * a1 - py * b1
-    h2 = q2 - px * a2 - py * b2
-    scale = abs(q2) + abs(px * a2) + abs(py * b2)
-    return h0, h1, h2, scale
-
-
-@njit(inline="always", **_JIT)
-def _block_may_contribute(M, centers, rho_cut, lowpass, i, lo_x, hi_x, lo_y, hi_y):
-    """False only when no pixel centre in [lo_x, hi_x] x [lo_y, hi_y] can have rho within surfel
-    ``i``'s cut-off: a tighter test than its box, which bounds a tilted ellipse loosely.
-
-    rho = min(rho_3d, rho_2d). rho_2d <= cut is a disc around the projected centre: its distance to
-    the rectangle decides. rho_3d = u^2 + v^2 with (u, v) the ray's point on the surfel plane, whose
-    homogeneous coordinates ``hx x hy`` are affine in the pixel (the px py term is w x w = 0): when
-    the homogeneous weight keeps one sign over the rectangle (the plane's horizon does not cross it),
-    the rectangle maps onto the convex quadrilateral of its corners' images, and rho_3d <= cut needs
-    that quadrilateral to meet the disc of radius sqrt(cut). Everything else (a horizon crossing, a
-    weight too small for its rounding, NaN or infinite values) keeps the entry; a margin keeps pairs
-    near the cut-off for the exact test."""
-    cut = rho_cut[i]
-    if not (cut - cut == 0.0):
-        return True
-    r2 = cut if cut > 0.0 else 0.0
-    r2 = r2 + 1e-6 + 1e-6 * r2
-    if not (lowpass > 0.0):
-        return True
-    cx = centers[i, 0]
-    cy = centers[i, 1]
-    dx = max(lo_x - cx, cx - hi_x, 0.0)
-    dy = max(lo_y - cy, cy - hi_y, 0.0)
-    if not (lowpass * (dx * dx + dy * dy) > r2):
-        return True
-    a0 = M[i, 0]
-    a1 = M[i, 1]
-    a2 = M[i, 2]
-    b0 = M[i, 3]
-    b1 = M[i, 4]
-    b2 = M[i, 5]
-    w0 = M[i, 6]
-    w1 = M[i, 7]
-    w2 = M[i, 8]
-    # hx x hy = (a - px w) x (b - py w) = a x b - px (w x b) - py (a x w)
-    q0, q1, q2 = _cross(a0, a1, a2, b0, b1, b2)
-    s0, s1, s2 = _cross(w0, w1, w2, b0, b1, b2)
-    t0, t1, t2 = _cross(a0, a1, a2, w0, w1, w2)
-    h0a, h1a, h2a, sa = _plane_point(q0, q1, q2, lo_x, lo_y, s0, s1, s2, t0, t1, t2)
-    h0b, h1b, h2b, sb = _plane_point(q0, q1, q2, hi_x, lo_y, s0, s1, s2, t0, t1, t2)
-    h0c, h1c, h2c, sc = _plane_point(q0, q1, q2, hi_x, hi_y, s0, s1, s2, t0, t1, t2)
-    h0d, h1d, h2d, sd = _plane_point(q0, q1, q2, lo_x, hi_y, s0, s1, s2, t0, t1, t2)
-    positive = h2a > 1e-6 * sa and h2b > 1e-6 * sb and h2c > 1e-6 * sc and h2d > 1e-6 * sd
-    negative = h2a < -1e-6 * sa and h2b < -1e-6 * sb and h2c < -1e-6 * sc and h2d < -1e-6 * sd
-    if not (positive or negative):
-        return True
-    ua = h0a / h2a
-    va = h1a / h2a
-    ub = h0b / h2b
-    vb = h1b / h2b
-    uc = h0c / h2c
-    vc = h1c / h2c
-    ud = h0d / h2d
-    vd = h1d / h2d
-    # the origin inside the quadrilateral: on one side of all four edges
-    e0 = ua * vb - va * ub
-    e1 = ub * vc - vb * uc
-    e2 = uc * vd - vc * ud
-    e3 = ud * va - vd * ua
-    if (e0 >= 0.0 and e1 >= 0.0 and e2 >= 0.0 and e3 >= 0.0) or (e0 <= 0.0 and e1 <= 0.0 and e2 <= 0.0 and e3 <= 0.0):
-        return True
-    d2 = min(_segment_distance2(ua, va, ub, vb), _segment_distance2(ub, vb, uc, vc),
-             _segment_distance2(uc, vc, ud, vd), _segment_distance2(ud, vd, ua, va))
-    return not (d2 > r2)
-
-
-@njit(inline="always", **_JIT)
 def _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by):
     """The tile entries (list positions relative to ``start``, depth order kept) whose box meets pixel
     block (bx, by) of the tile, and their count. A pixel scans only its block's list, so the long lists of
     small tiles full of small surfels are not walked once per pixel."""
-    lo_x, hi_x, lo_y, hi_y = _block_rectangle(tx0, ty0, tile_size, bx, by)
+    lo_y = ty0 + by * BLOCK + 0.5
+    hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
+    lo_x = tx0 + bx * BLOCK + 0.5
+    hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
     lst = np.empty(max(nk, 1), dtype=np.int64)
     n = 0
     for j in range(nk):
@@ -309,13 +217,6 @@ def _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by):
             lst[n] = k
             n += 1
     return lst, n
-
-
-@njit(inline="always", **_JIT)
-def _block_rectangle(tx0, ty0, tile_size, bx, by):
-    """(x_min, x_max, y_min, y_max) of the pixel centres of block (bx, by) of the tile at (tx0, ty0)."""
-    return (tx0 + bx * BLOCK + 0.5, tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5,
-            ty0 + by * BLOCK + 0.5, ty0 + min((by + 1) * BLOCK, tile_size) - 0.5)
 
 
 NPIX = BLOCK * BLOCK
@@ -469,18 +370,12 @@ def forward_kernel(
             st[1, p] = 1.0
             n_done[pixs[p]] = n_scan
         alive = npx
-        tile = unit // nb2
-        block_base = unit - tile * nb2
-        lo_x, hi_x, lo_y, hi_y = _block_rectangle((tile % tiles_x) * tile_size, (tile // tiles_x) * tile_size,
-                                                  tile_size, block_base % nbx, block_base // nbx)
+        block_base = unit - (unit // nb2) * nb2
         for j in range(n_scan):
             if alive == 0:
                 break
             k = lst[j]
             i = ids[start + k]
-            if not _block_may_contribute(M, centers, rho_cut, lowpass, i, lo_x, hi_x, lo_y, hi_y):
-                block_touched[(start + k) * nb2 + block_base] = False
-                continue
             _entry_geometry(M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
                             rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b)
             o = occ[i]
