@@ -194,15 +194,12 @@ class _Composite(torch.autograd.Function):
         used = np.zeros(arrays[6].shape[0], dtype=np.uint8)
         keep = np.empty(arrays[6].shape[0], dtype=np.int64)
         n_keep = np.zeros(arrays[8].shape[0], dtype=np.int64)
-        # per (tile entry, pixel block of its tile); the forward writes every flag the backward reads
-        blocks = ((int(bins.tile_size) + _kernels.BLOCK - 1) // _kernels.BLOCK) ** 2
-        touched = np.empty(arrays[6].shape[0] * blocks, dtype=np.bool_)
         lists = (cut, boxes, keep, n_keep)
         with numba_threads():
             kernels.surfel_bounds_kernel(*arrays[:4], scalars[7], scalars[9], cut, boxes)
             kernels.tile_entries_kernel(arrays[6], boxes, arrays[7], arrays[8], scalars[0], scalars[1], keep, n_keep)
-            kernels.forward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, used, touched)
-        ctx.saved = (arrays, scalars, lists, out, stats, n_done, median_k, touched)
+            kernels.forward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, used)
+        ctx.saved = (arrays, scalars, lists, out, stats, n_done, median_k)
         ctx.meta = (n, fc, width, height, M.dtype)
         visible = torch.zeros(n, dtype=torch.bool)
         if used.size:
@@ -214,15 +211,14 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_image, grad_visible):
-        arrays, scalars, lists, out, stats, n_done, median_k, touched = ctx.saved
+        arrays, scalars, lists, out, stats, n_done, median_k = ctx.saved
         n, fc, width, height, dtype = ctx.meta
         if grad_image is None or not any(ctx.needs_input_grad[:6]):
             return (None,) * 8
         grad = _np_float(grad_image.reshape(width * height, fc + 9))
         with numba_threads() as threads:
             acc = np.zeros((threads, n, 16 + fc), dtype=np.float64)
-            _kernels.backward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, touched, grad,
-                                     acc)
+            _kernels.backward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, grad, acc)
             if threads > 1:
                 _kernels.sum_threads_kernel(acc)
         per_surfel = torch.from_numpy(acc[0])

@@ -16,8 +16,7 @@ inputs (projected by :mod:`rtsplat.raster.projection`):
   :func:`tile_entries_kernel` keeps per tile the entries whose box meets it (``keep``/``n_keep``),
   then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
   positions in that block list), and each pixel skips entries whose box it is outside of. The
-  parallel work unit is one 4x4 block. The backward replays only the entries that changed some
-  pixel of the block in the forward (``block_touched``).
+  parallel work unit is one 4x4 block.
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
@@ -40,12 +39,6 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 
 
 @njit(inline="always", **_JIT)
-def _cross(a0, a1, a2, b0, b1, b2):
-    """The cross product a x b of two 3-vectors given by components."""
-    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-
-
-@njit(inline="always", **_JIT)
 def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio):
     """Ray-splat intersection at pixel centre (px, py) of the surfel with ray transform rows
     (m0 m1 m2 | m3 m4 m5 | m6 m7 m8) and projected centre (cx, cy): reference semantics."""
@@ -55,7 +48,9 @@ def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge
     hy0 = m3 - py * m6
     hy1 = m4 - py * m7
     hy2 = m5 - py * m8
-    p0, p1, p2 = _cross(hx0, hx1, hx2, hy0, hy1, hy2)
+    p0 = hx1 * hy2 - hx2 * hy1
+    p1 = hx2 * hy0 - hx0 * hy2
+    p2 = hx0 * hy1 - hx1 * hy0
     plane_ok = abs(p2) > edge_on_ratio * max(abs(p0), abs(p1))
     if plane_ok:
         u = p0 / p2
@@ -340,14 +335,10 @@ def forward_kernel(
     n_done,
     median_k,
     used,
-    block_touched,
 ):
     """Composite every pixel front to back; one 4x4 block per work unit, entry by entry: the
     geometry of an entry is evaluated for all pixels of the block in one branch-free loop, then
-    each pixel that is still traversing composites it. ``block_touched[(start + k) * blocks + b]`` records
-    whether entry ``k`` of a tile changed the state of any pixel of its block ``b`` (an alpha of
-    either set at least ``alpha_min`` while that set was live), for every entry the block scanned:
-    the backward replays only those."""
+    each pixel that is still traversing composites it."""
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
     ndc_scale = far / (far - near)
@@ -370,7 +361,6 @@ def forward_kernel(
             st[1, p] = 1.0
             n_done[pixs[p]] = n_scan
         alive = npx
-        block_base = unit - (unit // nb2) * nb2
         for j in range(n_scan):
             if alive == 0:
                 break
@@ -381,7 +371,6 @@ def forward_kernel(
             o = occ[i]
             oo = o * opa[i]
             entry_used = False
-            entry_touched = False
             for p in range(npx):
                 if not ok_b[p] or not running[p]:
                     continue
@@ -395,7 +384,6 @@ def forward_kernel(
                 if a_v > alpha_max:
                     a_v = alpha_max
                 if live[0, p] and a_s >= alpha_min:
-                    entry_touched = True
                     T_s = st[0, p]
                     t_next = T_s * (1.0 - a_s)
                     if t_next < t_min:
@@ -419,7 +407,6 @@ def forward_kernel(
                         st[0, p] = t_next
                         entry_used = True
                 if live[1, p] and a_v >= alpha_min:
-                    entry_touched = True
                     T_v = st[1, p]
                     t_next = T_v * (1.0 - a_v)
                     if t_next < t_min:
@@ -439,7 +426,6 @@ def forward_kernel(
                     alive -= 1
             if entry_used and used[start + k] == 0:  # read first: blocks of one tile share the flags
                 used[start + k] = 1
-            block_touched[(start + k) * nb2 + block_base] = entry_touched
         for p in range(npx):
             pix = pixs[p]
             median_k[pix] = medk_b[p]
@@ -486,7 +472,6 @@ def backward_kernel(
     stats,
     n_done,
     median_k,
-    block_touched,
     grad_out,
     acc,
 ):
@@ -496,8 +481,6 @@ def backward_kernel(
     with respect to w_k is q_k, dL/da_i = q_i T_i - (sum_{k>i} q_k w_k) / (1 - a_i); the suffix sum
     is Q - (prefix incl. i), with Q = sum_k q_k w_k computed from the forward totals. The gradient
     of one entry is summed over the pixels of the block first, then added to the thread's row.
-    Entries that changed no pixel of the block in the forward (``block_touched``) change nothing here either
-    and are skipped before their geometry.
     """
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
@@ -543,11 +526,8 @@ def backward_kernel(
             st[5, p] = 1.0
             limit[p] = n_done[pix]
             n_run = max(n_run, limit[p])
-        block_base = unit - (unit // nb2) * nb2
         for j in range(n_run):
             k = lst[j]
-            if not block_touched[(start + k) * nb2 + block_base]:
-                continue
             i = ids[start + k]
             m0, m1, m2, m3, m4, m5, m6, m7, m8 = _entry_geometry(
                 M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
@@ -661,8 +641,12 @@ def backward_kernel(
                         gp1 = g_v * inv_p2
                         gp2 = -(g_u * u + g_v * v) * inv_p2
                         # p = hx x hy: dL/dhx = hy x gp, dL/dhy = gp x hx
-                        ghx0, ghx1, ghx2 = _cross(hy0, hy1, hy2, gp0, gp1, gp2)
-                        ghy0, ghy1, ghy2 = _cross(gp0, gp1, gp2, hx0, hx1, hx2)
+                        ghx0 = hy1 * gp2 - hy2 * gp1
+                        ghx1 = hy2 * gp0 - hy0 * gp2
+                        ghx2 = hy0 * gp1 - hy1 * gp0
+                        ghy0 = gp1 * hx2 - gp2 * hx1
+                        ghy1 = gp2 * hx0 - gp0 * hx2
+                        ghy2 = gp0 * hx1 - gp1 * hx0
                         eg[G_M + 0] += ghx0
                         eg[G_M + 1] += ghx1
                         eg[G_M + 2] += ghx2
