@@ -27,16 +27,19 @@ $(STAMP): pyproject.toml
 # images, masks, prepare, train the methods of demo/config.yaml, render, metrics, report).
 # Result: demo/results/report/index.html. Reruns only redo what changed.
 DEMO_VIEWS ?= 80
+# One thread per training and rendering job, two jobs at a time: on 2 cores the CPU kernels gain less
+# from a second thread than a second job does (README, "Two commands", has the times of both).
+JOB_THREADS ?= --set-threads train=1 render=1 render_edit=1
 demo: $(STAMP)
 	@test -f demo/data/dome/scene.json || $(BIN)/rtsplat synth --scene dome --out demo/data/dome --views $(DEMO_VIEWS) --layers-every 8
-	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake -s Snakefile -d demo --cores 2
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake -s Snakefile -d demo --cores 2 $(JOB_THREADS)
 	@echo "report: demo/results/report/index.html"
 
 # the benchmark targets: dome + cabin, demo budget and 4x, ablations, half resolution, noise reruns (reuses the demo's jobs)
 targets: $(STAMP)
 	@test -f demo/data/dome/scene.json || $(BIN)/rtsplat synth --scene dome --out demo/data/dome --views $(DEMO_VIEWS) --layers-every 8
 	@test -f demo/data/cabin/scene.json || $(BIN)/rtsplat synth --scene cabin --out demo/data/cabin --views $(DEMO_VIEWS) --layers-every 8
-	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake -s Snakefile -d demo --configfile demo/config.yaml benchmarks/targets.yaml --cores 2
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake -s Snakefile -d demo --configfile demo/config.yaml benchmarks/targets.yaml --cores 2 $(JOB_THREADS)
 	@echo "report: demo/results/report/index.html"
 
 # the rasterizer alone: a small procedural surfel scene rendered to PNGs in demo_out/
