@@ -90,7 +90,7 @@ def dataset_reach(dataset: Path, stride: int = 1) -> ReflectionReach:
 
     from rtsplat.camera import Camera
     from rtsplat.io.images import read_image, read_mask, srgb_to_linear
-    from rtsplat.synth.render import load_scene
+    from rtsplat.synth.render import load_scene, set_variant
     from rtsplat.synth.scenes import build_scene, params_from_dict
 
     description_file = dataset / "scene.json"
@@ -113,6 +113,7 @@ def dataset_reach(dataset: Path, stride: int = 1) -> ReflectionReach:
         masks.append(read_mask(dataset / "transparent_masks" / f"{stem}.png"))
         reflection = read_image(dataset / "layers" / "reflection" / f"{stem}.png")[..., :3]
         weights.append(srgb_to_linear(reflection) @ np.array([0.2126, 0.7152, 0.0722]))  # luminance
+    set_variant()
     with tempfile.TemporaryDirectory() as workdir:
         spec = build_scene(name, int(description["seed"]), Path(workdir), params_from_dict(name, description["params"]),
                            float(description.get("texture_scale", 1.0)))
