@@ -89,7 +89,7 @@ def dataset_reach(dataset: Path, stride: int = 1) -> ReflectionReach:
     import torch
 
     from rtsplat.camera import Camera
-    from rtsplat.io.images import read_image, read_mask, srgb_to_linear
+    from rtsplat.io.images import read_mask
     from rtsplat.synth.render import load_scene, set_variant
     from rtsplat.synth.scenes import build_scene, params_from_dict
 
@@ -100,9 +100,10 @@ def dataset_reach(dataset: Path, stride: int = 1) -> ReflectionReach:
     description = json.loads(description_file.read_text())
     name = description["scene"]
     records = {Path(c["name"]).stem: c for c in json.loads((dataset / "cameras.json").read_text())["cameras"]}
-    views = [stem for stem in sorted(records) if (dataset / "layers" / "reflection" / f"{stem}.png").is_file()]
+    layers = dataset / "layers" / "linear"
+    views = [stem for stem in sorted(records) if (layers / f"{stem}.npz").is_file()]
     if not views:
-        raise PipelineError("no view has ground-truth layers", path=dataset / "layers",
+        raise PipelineError("no view has ground-truth layers", path=layers,
                             fix="synthesize with --layers-every N")
     cameras, masks, weights = [], [], []
     for stem in views:
@@ -111,8 +112,9 @@ def dataset_reach(dataset: Path, stride: int = 1) -> ReflectionReach:
                               world_to_camera=torch.tensor(c["world_to_camera"], dtype=torch.float64),
                               width=int(c["width"]), height=int(c["height"])))
         masks.append(read_mask(dataset / "transparent_masks" / f"{stem}.png"))
-        reflection = read_image(dataset / "layers" / "reflection" / f"{stem}.png")[..., :3]
-        weights.append(srgb_to_linear(reflection) @ np.array([0.2126, 0.7152, 0.0722]))  # luminance
+        with np.load(layers / f"{stem}.npz") as z:
+            reflection = z["reflection"].astype(np.float64)
+        weights.append(reflection @ np.array([0.2126, 0.7152, 0.0722]))  # luminance, linear RGB
     set_variant()
     with tempfile.TemporaryDirectory() as workdir:
         spec = build_scene(name, int(description["seed"]), Path(workdir), params_from_dict(name, description["params"]),
