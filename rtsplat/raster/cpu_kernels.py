@@ -39,6 +39,12 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 
 
 @njit(inline="always", **_JIT)
+def _cross(a0, a1, a2, b0, b1, b2):
+    """The cross product a x b of two 3-vectors given by components."""
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@njit(inline="always", **_JIT)
 def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio):
     """Ray-splat intersection at pixel centre (px, py) of the surfel with ray transform rows
     (m0 m1 m2 | m3 m4 m5 | m6 m7 m8) and projected centre (cx, cy): reference semantics."""
@@ -48,9 +54,7 @@ def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge
     hy0 = m3 - py * m6
     hy1 = m4 - py * m7
     hy2 = m5 - py * m8
-    p0 = hx1 * hy2 - hx2 * hy1
-    p1 = hx2 * hy0 - hx0 * hy2
-    p2 = hx0 * hy1 - hx1 * hy0
+    p0, p1, p2 = _cross(hx0, hx1, hx2, hy0, hy1, hy2)
     plane_ok = abs(p2) > edge_on_ratio * max(abs(p0), abs(p1))
     if plane_ok:
         u = p0 / p2
@@ -641,12 +645,8 @@ def backward_kernel(
                         gp1 = g_v * inv_p2
                         gp2 = -(g_u * u + g_v * v) * inv_p2
                         # p = hx x hy: dL/dhx = hy x gp, dL/dhy = gp x hx
-                        ghx0 = hy1 * gp2 - hy2 * gp1
-                        ghx1 = hy2 * gp0 - hy0 * gp2
-                        ghx2 = hy0 * gp1 - hy1 * gp0
-                        ghy0 = gp1 * hx2 - gp2 * hx1
-                        ghy1 = gp2 * hx0 - gp0 * hx2
-                        ghy2 = gp0 * hx1 - gp1 * hx0
+                        ghx0, ghx1, ghx2 = _cross(hy0, hy1, hy2, gp0, gp1, gp2)
+                        ghy0, ghy1, ghy2 = _cross(gp0, gp1, gp2, hx0, hx1, hx2)
                         eg[G_M + 0] += ghx0
                         eg[G_M + 1] += ghx1
                         eg[G_M + 2] += ghx2
