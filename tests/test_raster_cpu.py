@@ -3,7 +3,8 @@
 Both backends composite the same depth-sorted lists in the same order with the same tests, and
 each weight set stops on its own at the same surfel (the cpu traversal of a pixel only *ends*
 once both sets have stopped, which changes no result). The cpu kernels work in float64
-internally; projection and binning are the reference's own torch code. Checked: every image
+internally, projection included (:mod:`rtsplat.raster.cpu_frame`; the reference projects in the
+surfels' dtype), and bin the same lists (checked on their own below). Checked: every image
 output, ``visible``/``radii``/``means2d``, and the gradient of a random mix of every output with
 respect to every surfel parameter and to the screen probe (the densification signal).
 Tolerances (``max|g|`` is the largest reference gradient of that parameter, floored at 1):
@@ -113,8 +114,12 @@ def assert_parity(
         loose = None if grad_outlier_atol is None else OUTPUT_FLIP_ATOL * _scale(expected)
         assert_mostly_close(actual, expected, name, rtol=out_rtol, atol=out_atol, loose_atol=loose, fraction=1e-3)
     assert torch.equal(fast.visible, ref.visible)
-    assert torch.equal(fast.radii, ref.radii)
-    torch.testing.assert_close(fast.means2d, ref.means2d, rtol=0, atol=0)
+    # the backend projects in float64 (the reference in the surfels' dtype): equal up to its rounding,
+    # which can move a radius (the ceiling of the box's half extent) by one pixel
+    assert torch.equal(fast.radii == 0, ref.radii == 0)
+    off = (fast.radii - ref.radii).abs()
+    assert off.numel() == 0 or int(off.max()) <= (0 if ref.means2d.dtype == torch.float64 else 1)
+    torch.testing.assert_close(fast.means2d, ref.means2d)
     # with nothing visible the reference's loss has no graph at all; the backend's gradients must then be 0
     for name in set(ref_grads) | set(fast_grads):
         actual, expected = fast_grads.get(name), ref_grads.get(name)
@@ -250,9 +255,10 @@ def test_hard_cases_float64(name, camera, surfels):
 
 
 # float32 rounding dominates here (ray transforms of ~1e4): both backends are off the float64 result by up to
-# ~1% of max|g| on single entries, so they are compared with each other loosely, and with float64
+# ~1% of max|g| on single entries (the reference's depths by up to 1.1e-4 relative; the cpu backend, which
+# projects in float64, by less), so they are compared with each other loosely, and with float64
 ILL_CONDITIONED_FLOAT32 = {"scale_10000.0", "depth_1e4"}
-F32_ILL = dict(out_atol=5e-5, out_rtol=1e-4, grad_rtol=1e-2, grad_atol=1e-2)
+F32_ILL = dict(out_atol=5e-5, out_rtol=3e-4, grad_rtol=1e-2, grad_atol=1e-2)
 
 
 @_hard_cases(torch.float32)

@@ -38,12 +38,10 @@ def bin_tiles(
     tiles_y = (height + tile_size - 1) // tile_size
     n = depths.shape[0]
     ids = torch.nonzero(valid, as_tuple=False).flatten()
-    lo = torch.floor(bbox_min[ids] / tile_size).long()
-    hi = torch.floor(bbox_max[ids] / tile_size).long()
-    lo[:, 0].clamp_(0, tiles_x - 1)
-    lo[:, 1].clamp_(0, tiles_y - 1)
-    hi[:, 0].clamp_(0, tiles_x - 1)
-    hi[:, 1].clamp_(0, tiles_y - 1)
+    # clamped while still floats: a box edge beyond the int64 range must not wrap around
+    last = bbox_min.new_tensor([tiles_x - 1, tiles_y - 1])
+    lo = torch.minimum(torch.floor(bbox_min[ids] / tile_size).clamp_min(0), last).long()
+    hi = torch.minimum(torch.floor(bbox_max[ids] / tile_size).clamp_min(0), last).long()
     span = hi - lo + 1
     counts = span[:, 0] * span[:, 1]
     pair_surfel = torch.repeat_interleave(ids, counts)

@@ -63,6 +63,7 @@ from torch import Tensor
 
 from rtsplat.camera import Camera
 from rtsplat.raster.binning import TileBins
+from rtsplat.raster.cpu_frame import bin_tiles, project_surfels
 from rtsplat.raster.reference import EDGE_ON_RATIO, rasterize_reference, rasterize_tiled
 from rtsplat.raster.types import RasterOutput, RasterSettings, Surfels
 
@@ -195,8 +196,9 @@ class _Composite(torch.autograd.Function):
         keep = np.empty(arrays[6].shape[0], dtype=np.int64)
         n_keep = np.zeros(arrays[8].shape[0], dtype=np.int64)
         lists = (cut, boxes, keep, n_keep)
-        with numba_threads():
+        with numba_threads(SURFEL_CHUNK):
             kernels.surfel_bounds_kernel(*arrays[:4], scalars[7], scalars[9], cut, boxes)
+        with numba_threads():
             kernels.tile_entries_kernel(arrays[6], boxes, arrays[7], arrays[8], scalars[0], scalars[1], keep, n_keep)
             kernels.forward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, used)
         ctx.saved = (arrays, scalars, lists, out, stats, n_done, median_k)
@@ -219,7 +221,8 @@ class _Composite(torch.autograd.Function):
         with numba_threads() as threads:
             acc = np.zeros((threads, n, 16 + fc), dtype=np.float64)
             _kernels.backward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, grad, acc)
-            if threads > 1:
+        if threads > 1:
+            with numba_threads(SURFEL_CHUNK):
                 _kernels.sum_threads_kernel(acc)
         per_surfel = torch.from_numpy(acc[0])
         per_surfel = per_surfel.to(dtype)
@@ -236,7 +239,8 @@ class _Composite(torch.autograd.Function):
         )
 
 
-CHUNK = 4  # loop iterations (4x4 pixel blocks, surfels) per dynamic chunk of the parallel kernels
+CHUNK = 4  # 4x4 pixel blocks per dynamic chunk of the parallel compositing kernels (uneven work)
+SURFEL_CHUNK = 256  # surfels per dynamic chunk of the per-surfel kernels (even, cheap work: ~1 us per chunk saved)
 
 
 class numba_threads:
@@ -269,4 +273,4 @@ def rasterize_cpu(
         raise ValueError(f"the 'cpu' rasterizer backend needs CPU tensors, got {surfels.device}")
     if _load_kernels() is None:
         return rasterize_reference(surfels, camera, settings, screen_probe)
-    return rasterize_tiled(_Composite.apply, surfels, camera, settings, screen_probe)
+    return rasterize_tiled(_Composite.apply, surfels, camera, settings, screen_probe, project_surfels, bin_tiles)

@@ -239,17 +239,18 @@ def split_image(image: Tensor, num_features: int, proj: Projection, visible: Ten
 
 
 def rasterize_tiled(composite, surfels: Surfels, camera: Camera, settings: RasterSettings,
-                    screen_probe: Tensor | None) -> RasterOutput:
-    """The frame the fast backends share: the screen probe, projection and tile binning (torch, on the
-    surfels' device), then ``composite`` (an autograd Function's ``apply`` taking the ray transforms,
-    centres, occupancy, opacity, G-buffer features with the normals appended, colours, the bins and
-    ``(W, H, settings)``, returning the image in :func:`split_image`'s layout and the visibility)."""
+                    screen_probe: Tensor | None, project=project_surfels, binner=bin_tiles) -> RasterOutput:
+    """The frame the fast backends share: the screen probe, projection and tile binning (``project`` and
+    ``binner``: by default the torch functions, on the surfels' device), then ``composite`` (an autograd
+    Function's ``apply`` taking the ray transforms, centres, occupancy, opacity, G-buffer features with
+    the normals appended, colours, the bins and ``(W, H, settings)``, returning the image in
+    :func:`split_image`'s layout and the visibility)."""
     n = len(surfels)
     if screen_probe is None and torch.is_grad_enabled():
         screen_probe = torch.zeros(n, 2, device=surfels.device, dtype=surfels.dtype, requires_grad=True)
-    proj = project_surfels(surfels, camera, settings, screen_probe)
+    proj = project(surfels, camera, settings, screen_probe)
     W, H = int(camera.width), int(camera.height)
-    bins = bin_tiles(proj.bbox_min, proj.bbox_max, proj.depths, proj.valid, W, H, settings.tile_size)
+    bins = binner(proj.bbox_min, proj.bbox_max, proj.depths, proj.valid, W, H, settings.tile_size)
     feats = torch.cat([surfels.features, proj.normals], -1)
     image, visible = composite(proj.ray_transform, proj.centers, surfels.occupancy, surfels.opacity, feats,
                                surfels.colors, bins, (W, H, settings))
