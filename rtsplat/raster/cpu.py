@@ -1,10 +1,11 @@
 """Fast CPU rasterizer backend (``backend="cpu"``, the default on CPU).
 
 Same semantics as :mod:`rtsplat.raster.reference` (the oracle, still selectable with
-``backend="reference"``); only the per-pixel compositing, the O(pixels x surfels) part, is
-replaced. Projection (:func:`project_surfels`) and tile binning (:func:`bin_tiles`) are the
-reference's own torch code, so autograd still carries gradients from the per-surfel projected
-quantities to means/quats/scales and to the screen probe.
+``backend="reference"``). The per-pixel compositing, the O(pixels x surfels) part, is replaced by
+the kernels below; projection and tile binning by :mod:`rtsplat.raster.cpu_frame` (numba versions
+of the reference's torch :func:`~rtsplat.raster.projection.project_surfels` and
+:func:`~rtsplat.raster.binning.bin_tiles`, with their own backward: gradients reach
+means/quats/scales, the screen probe and the camera's pose).
 
 The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
 
@@ -21,8 +22,9 @@ The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
   sums (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); the gradient of one entry is summed over
   the block's pixels, then added to one per-surfel buffer per thread (threads never race), and the
   buffers are summed over threads at the end;
-* all kernels run in parallel (numba ``prange`` over 4x4 pixel blocks or surfels, dynamic chunks
-  of ``CHUNK`` iterations), with as many threads as ``torch.get_num_threads()``; all arithmetic is
+* all kernels run in parallel (numba ``prange`` over 4x4 pixel blocks in dynamic chunks of
+  ``CHUNK``, over surfels in chunks of ``SURFEL_CHUNK``: with chunks of 4, scheduling cost the
+  per-surfel kernels more than their work), with as many threads as ``torch.get_num_threads()``; all arithmetic is
   float64 (per-surfel inputs of any float dtype are converted; the image gradient is read as
   float32 or float64 as it comes; outputs and gradients are returned in the input dtype).
 
