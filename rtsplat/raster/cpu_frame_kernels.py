@@ -52,6 +52,23 @@ def _unit_quat(quats, n):
     return qw / den, qx / den, qy / den, qz / den, den, norm
 
 
+@njit(inline="always", **_JIT)
+def _camera_centre(means, R, t, n):
+    """Surfel ``n``'s centre in camera space, R mean + t."""
+    p0 = means[n, 0]
+    p1 = means[n, 1]
+    p2 = means[n, 2]
+    return (R[0, 0] * p0 + R[0, 1] * p1 + R[0, 2] * p2 + t[0], R[1, 0] * p0 + R[1, 1] * p1 + R[1, 2] * p2 + t[1],
+            R[2, 0] * p0 + R[2, 1] * p1 + R[2, 2] * p2 + t[2])
+
+
+@njit(inline="always", **_JIT)
+def _rotate(R, a0, a1, a2):
+    """R (a0, a1, a2): a surfel axis in camera space."""
+    return (R[0, 0] * a0 + R[0, 1] * a1 + R[0, 2] * a2, R[1, 0] * a0 + R[1, 1] * a1 + R[1, 2] * a2,
+            R[2, 0] * a0 + R[2, 1] * a1 + R[2, 2] * a2)
+
+
 @njit(parallel=True, **_JIT)
 def project_forward_kernel(means, quats, scales, probe, R, t, K, cutoff, lowpass_radius, near, width, height,
                            M, centers, depths, normals, bbox_min, bbox_max, radii, valid, flip):
@@ -63,24 +80,19 @@ def project_forward_kernel(means, quats, scales, probe, R, t, K, cutoff, lowpass
     for n in prange(means.shape[0]):
         qw, qx, qy, qz, den, norm = _unit_quat(quats, n)
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(qw, qx, qy, qz)
-        p0 = means[n, 0]
-        p1 = means[n, 1]
-        p2 = means[n, 2]
-        c0 = R[0, 0] * p0 + R[0, 1] * p1 + R[0, 2] * p2 + t[0]
-        c1 = R[1, 0] * p0 + R[1, 1] * p1 + R[1, 2] * p2 + t[1]
-        d = R[2, 0] * p0 + R[2, 1] * p1 + R[2, 2] * p2 + t[2]
+        c0, c1, d = _camera_centre(means, R, t, n)
         su = scales[n, 0]
         sv = scales[n, 1]
         # camera-space tangents (scaled) and normal
-        u0 = (R[0, 0] * r00 + R[0, 1] * r10 + R[0, 2] * r20) * su
-        u1 = (R[1, 0] * r00 + R[1, 1] * r10 + R[1, 2] * r20) * su
-        u2 = (R[2, 0] * r00 + R[2, 1] * r10 + R[2, 2] * r20) * su
-        v0 = (R[0, 0] * r01 + R[0, 1] * r11 + R[0, 2] * r21) * sv
-        v1 = (R[1, 0] * r01 + R[1, 1] * r11 + R[1, 2] * r21) * sv
-        v2 = (R[2, 0] * r01 + R[2, 1] * r11 + R[2, 2] * r21) * sv
-        a0 = R[0, 0] * r02 + R[0, 1] * r12 + R[0, 2] * r22
-        a1 = R[1, 0] * r02 + R[1, 1] * r12 + R[1, 2] * r22
-        a2 = R[2, 0] * r02 + R[2, 1] * r12 + R[2, 2] * r22
+        au0, au1, au2 = _rotate(R, r00, r10, r20)
+        av0, av1, av2 = _rotate(R, r01, r11, r21)
+        a0, a1, a2 = _rotate(R, r02, r12, r22)
+        u0 = au0 * su
+        u1 = au1 * su
+        u2 = au2 * su
+        v0 = av0 * sv
+        v1 = av1 * sv
+        v2 = av2 * sv
         for row in range(3):
             M[n, 3 * row] = K[row, 0] * u0 + K[row, 1] * u1 + K[row, 2] * u2
             M[n, 3 * row + 1] = K[row, 0] * v0 + K[row, 1] * v1 + K[row, 2] * v2
@@ -148,15 +160,13 @@ def project_backward_kernel(means, quats, scales, probe, R, t, K, flip, g_M, g_c
     for n in prange(means.shape[0]):
         qw, qx, qy, qz, den, norm = _unit_quat(quats, n)
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(qw, qx, qy, qz)
+        c0, c1, d = _camera_centre(means, R, t, n)
         p0 = means[n, 0]
         p1 = means[n, 1]
         p2 = means[n, 2]
-        d = R[2, 0] * p0 + R[2, 1] * p1 + R[2, 2] * p2 + t[2]
         su = scales[n, 0]
         sv = scales[n, 1]
         # homogeneous centre after the probe: the centre's gradient needs it
-        c0 = R[0, 0] * p0 + R[0, 1] * p1 + R[0, 2] * p2 + t[0]
-        c1 = R[1, 0] * p0 + R[1, 1] * p1 + R[1, 2] * p2 + t[1]
         hx = K[0, 0] * c0 + K[0, 1] * c1 + K[0, 2] * d + probe[n, 0] * d
         hy = K[1, 0] * c0 + K[1, 1] * c1 + K[1, 2] * d + probe[n, 1] * d
         # gradient of the homogeneous centre (M's last column) and of the depth
@@ -188,12 +198,8 @@ def project_backward_kernel(means, quats, scales, probe, R, t, K, flip, g_M, g_c
         gtv0 = K[0, 0] * g_M[n, 1] + K[1, 0] * g_M[n, 4] + K[2, 0] * g_M[n, 7]
         gtv1 = K[0, 1] * g_M[n, 1] + K[1, 1] * g_M[n, 4] + K[2, 1] * g_M[n, 7]
         gtv2 = K[0, 2] * g_M[n, 1] + K[1, 2] * g_M[n, 4] + K[2, 2] * g_M[n, 7]
-        au0 = R[0, 0] * r00 + R[0, 1] * r10 + R[0, 2] * r20
-        au1 = R[1, 0] * r00 + R[1, 1] * r10 + R[1, 2] * r20
-        au2 = R[2, 0] * r00 + R[2, 1] * r10 + R[2, 2] * r20
-        av0 = R[0, 0] * r01 + R[0, 1] * r11 + R[0, 2] * r21
-        av1 = R[1, 0] * r01 + R[1, 1] * r11 + R[1, 2] * r21
-        av2 = R[2, 0] * r01 + R[2, 1] * r11 + R[2, 2] * r21
+        au0, au1, au2 = _rotate(R, r00, r10, r20)
+        av0, av1, av2 = _rotate(R, r01, r11, r21)
         g_scales[n, 0] = au0 * gtu0 + au1 * gtu1 + au2 * gtu2
         g_scales[n, 1] = av0 * gtv0 + av1 * gtv1 + av2 * gtv2
         gau0 = gtu0 * su
