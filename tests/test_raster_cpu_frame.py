@@ -159,3 +159,18 @@ def test_edge_on_and_degenerate_surfels_stay_finite():
         assert torch.isfinite(getattr(proj, name)[proj.valid]).all(), name
     for name, grad in grads.items():
         assert torch.isfinite(grad).all(), name
+
+
+def test_projection_without_a_probe_backpropagates_to_the_surfels():
+    surfels = hard_surfels(40, 5)
+    means = surfels.means.clone().requires_grad_(True)
+    s = Surfels(means, surfels.quats, surfels.scales, surfels.occupancy, surfels.opacity, surfels.features,
+                surfels.colors)
+    camera = camera_from_fov((3.0, 0.5, 0.8), (0.0, 0.0, 0.0), width=57, height=41, dtype=torch.float64)
+    grads = []
+    for project in (cpu_frame.project_surfels, projection.project_surfels):
+        means.grad = None
+        proj = project(s, camera, RasterSettings())
+        proj.centers[proj.valid].sum().backward()
+        grads.append(means.grad.clone())
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-10, atol=1e-12)

@@ -97,9 +97,11 @@ class _Project(torch.autograd.Function):
                                                g_camera)
         dtype = ctx.dtype
         camera = torch.from_numpy(g_camera).sum(0).to(dtype)
-        return (torch.from_numpy(g_means).to(dtype), torch.from_numpy(g_quats).to(dtype),
-                torch.from_numpy(g_scales).to(dtype), torch.from_numpy(g_probe).to(dtype),
-                camera[:9].reshape(3, 3), camera[9:], None, None)
+        grads = (torch.from_numpy(g_means).to(dtype), torch.from_numpy(g_quats).to(dtype),
+                 torch.from_numpy(g_scales).to(dtype), torch.from_numpy(g_probe).to(dtype),
+                 camera[:9].reshape(3, 3), camera[9:])
+        # None where the input needs none (a probe may be absent altogether)
+        return (*(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad, strict=False)), None, None)
 
 
 def project_surfels(surfels: Surfels, camera: Camera, settings: RasterSettings,
