@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from rtsplat.raster.numba_runtime import SURFEL_CHUNK, load_numba_module, numba_threads
+
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
 C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -73,12 +75,7 @@ def eval_sh_reference(coefficients: Tensor, directions: Tensor, degree: int) -> 
 
 
 def _kernels():
-    from rtsplat.raster.cpu import load_numba_module
-
     return load_numba_module("rtsplat.model.sh_kernels")
-
-
-SH_CHUNK = 256  # surfels per dynamic chunk of the parallel SH kernels
 
 
 class _ShColour(torch.autograd.Function):
@@ -86,13 +83,11 @@ class _ShColour(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, coefficients, directions, degree):
-        from rtsplat.raster.cpu import numba_threads
-
         sh = coefficients.detach().contiguous()
         dirs = directions.detach().contiguous()
         rgb = torch.empty(sh.shape[0], 3, dtype=sh.dtype)
         basis = torch.empty(sh.shape[0], num_coefficients(MAX_DEGREE), dtype=torch.float64)
-        with numba_threads(SH_CHUNK):
+        with numba_threads(SURFEL_CHUNK):
             _kernels().sh_forward_kernel(sh.numpy(), dirs.numpy(), int(degree), rgb.numpy(), basis.numpy())
         ctx.save_for_backward(sh, dirs, rgb, basis)
         ctx.degree = int(degree)
@@ -101,14 +96,12 @@ class _ShColour(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_rgb):
-        from rtsplat.raster.cpu import numba_threads
-
         sh, dirs, rgb, basis = ctx.saved_tensors
         grad = grad_rgb.detach().to(sh.dtype).contiguous()
         grad_sh = torch.empty_like(sh)
         grad_dirs = torch.empty_like(dirs)
         scratch = torch.empty_like(basis)
-        with numba_threads(SH_CHUNK):
+        with numba_threads(SURFEL_CHUNK):
             _kernels().sh_backward_kernel(sh.numpy(), dirs.numpy(), ctx.degree, rgb.numpy(), basis.numpy(),
                                           grad.numpy(), grad_sh.numpy(), grad_dirs.numpy(), scratch.numpy())
         return (grad_sh if ctx.needs_input_grad[0] else None, grad_dirs if ctx.needs_input_grad[1] else None, None)

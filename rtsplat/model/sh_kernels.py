@@ -1,6 +1,6 @@
 """Numba kernels of the spherical-harmonics colour (:func:`rtsplat.model.sh.eval_sh` on CPU tensors).
 
-Imported lazily (through :func:`rtsplat.raster.cpu.load_numba_module`, which sets up the compile cache),
+Imported lazily (through :func:`rtsplat.raster.numba_runtime.load_numba_module`, which sets up the compile cache),
 never by ``import rtsplat``. One surfel per parallel iteration, computed in float64 and stored in the
 arrays' float type. The basis is :func:`rtsplat.model.sh.sh_basis`'s, with x, y, z the direction's
 components taken as independent variables (the caller normalises the direction, and autograd carries

@@ -23,7 +23,8 @@ The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
   the block's pixels, then added to one per-surfel buffer per thread (threads never race), and the
   buffers are summed over threads at the end;
 * all kernels run in parallel (numba ``prange`` over 4x4 pixel blocks in dynamic chunks of
-  ``CHUNK``, over surfels in chunks of ``SURFEL_CHUNK``: with chunks of 4, scheduling cost the
+  ``CHUNK``, over surfels in chunks of ``SURFEL_CHUNK``, both in :mod:`rtsplat.raster.numba_runtime`,
+  with the compile cache and the kernel-module import: with chunks of 4, scheduling cost the
   per-surfel kernels more than their work), with as many threads as ``torch.get_num_threads()``; all arithmetic is
   float64 (per-surfel inputs of any float dtype are converted; the image gradient is read as
   float32 or float64 as it comes; outputs and gradients are returned in the input dtype).
@@ -53,12 +54,6 @@ once and falls back to the reference.
 
 from __future__ import annotations
 
-import importlib
-import os
-import threading
-import warnings
-from pathlib import Path
-
 import numpy as np
 import torch
 from torch import Tensor
@@ -66,63 +61,19 @@ from torch import Tensor
 from rtsplat.camera import Camera
 from rtsplat.raster.binning import TileBins
 from rtsplat.raster.cpu_frame import bin_tiles, project_surfels
+from rtsplat.raster.numba_runtime import (
+    SURFEL_CHUNK,
+    cache_dir,
+    load_numba_module,
+    numba_threads,
+    to_float64_array,
+)
 from rtsplat.raster.reference import EDGE_ON_RATIO, rasterize_reference, rasterize_tiled
 from rtsplat.raster.types import RasterOutput, RasterSettings, Surfels
 
 __all__ = ["rasterize_cpu", "cache_dir", "kernels_available", "load_numba_module", "numba_threads"]
 
-_lock = threading.Lock()
 _kernels = None
-_modules: dict[str, object] = {}
-_unavailable: str | None = None
-
-
-def cache_dir() -> Path:
-    """Where the compiled kernels are cached (user cache directory, not the repository)."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return Path(os.environ["NUMBA_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "rtsplat" / "numba"
-
-
-def load_numba_module(name: str):
-    """Import the numba kernel module ``name`` (compile cache and threading layer configured first);
-    None when numba is missing, after one warning."""
-    global _unavailable
-    with _lock:
-        if name in _modules:
-            return _modules[name]
-        if _unavailable is not None:
-            return None
-        path = cache_dir()
-        try:
-            path.mkdir(parents=True, exist_ok=True)
-        except OSError:
-            pass
-        os.environ.setdefault("NUMBA_CACHE_DIR", str(path))
-        try:
-            import numba
-
-            # numba reads NUMBA_CACHE_DIR when it is first imported; it may have been imported
-            # before us, so set the live config too (read when the kernels are decorated)
-            numba.config.CACHE_DIR = str(path)
-            # numba's OpenMP threading layer and torch's own OpenMP runtime both spin-wait for work,
-            # and in one process on few cores they can starve each other; the workqueue layer
-            # sleeps when idle. NUMBA_THREADING_LAYER still wins when a user sets it.
-            if "NUMBA_THREADING_LAYER" not in os.environ:
-                numba.config.THREADING_LAYER = "workqueue"
-            module = importlib.import_module(name)
-        except ImportError as exc:  # pragma: no cover - exercised only without numba
-            _unavailable = str(exc)
-            warnings.warn(
-                f"rtsplat: numba is not available ({exc}); the CPU kernels (the 'cpu' rasterizer, the SH "
-                "colours) fall back to the slow torch code. Install numba (see README).",
-                RuntimeWarning,
-                stacklevel=3,
-            )
-            return None
-        _modules[name] = module
-        return module
 
 
 def _load_kernels():
@@ -134,10 +85,6 @@ def _load_kernels():
 
 def kernels_available() -> bool:
     return _load_kernels() is not None
-
-
-def _np64(x: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.float64).numpy())
 
 
 def _np_float(x: Tensor) -> np.ndarray:
@@ -164,12 +111,12 @@ class _Composite(torch.autograd.Function):
         fc = feats.shape[1]
         n_channels = fc + 9
         arrays = (
-            _np64(M.reshape(n, 9)),
-            _np64(centers),
-            _np64(occupancy),
-            _np64(opacity),
-            _np64(feats),
-            _np64(colors),
+            to_float64_array(M.reshape(n, 9)),
+            to_float64_array(centers),
+            to_float64_array(occupancy),
+            to_float64_array(opacity),
+            to_float64_array(feats),
+            to_float64_array(colors),
             _np_i64(bins.surfel_ids),
             _np_i64(bins.tile_start),
             _np_i64(bins.tile_count),
@@ -239,32 +186,6 @@ class _Composite(torch.autograd.Function):
             None,
             None,
         )
-
-
-CHUNK = 4  # 4x4 pixel blocks per dynamic chunk of the parallel compositing kernels (uneven work)
-SURFEL_CHUNK = 256  # surfels per dynamic chunk of the per-surfel kernels (even, cheap work: ~1 us per chunk saved)
-
-
-class numba_threads:
-    """Run numba kernels with torch's thread count and dynamic chunks of ``chunk`` parallel iterations."""
-
-    def __init__(self, chunk: int = CHUNK):
-        self.chunk = chunk
-
-    def __enter__(self):
-        import numba
-
-        self._threads = numba.get_num_threads()
-        numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-        self._chunk = numba.set_parallel_chunksize(self.chunk)
-        return numba.get_num_threads()
-
-    def __exit__(self, *exc):
-        import numba
-
-        numba.set_parallel_chunksize(self._chunk)
-        numba.set_num_threads(self._threads)
-        return False
 
 
 def rasterize_cpu(

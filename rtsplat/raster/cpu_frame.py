@@ -22,6 +22,7 @@ from torch import Tensor
 from rtsplat.camera import Camera
 from rtsplat.raster import binning, projection
 from rtsplat.raster.binning import TileBins
+from rtsplat.raster.numba_runtime import SURFEL_CHUNK, load_numba_module, numba_threads, to_float64_array
 from rtsplat.raster.projection import Projection
 from rtsplat.raster.types import RasterSettings, Surfels
 
@@ -29,17 +30,11 @@ __all__ = ["project_surfels", "bin_tiles"]
 
 
 def _kernels():
-    from rtsplat.raster.cpu import load_numba_module
-
     return load_numba_module("rtsplat.raster.cpu_frame_kernels")
 
 
-def _np64(x: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.float64).numpy())
-
-
 def _np64_or_zeros(x: Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
-    return np.zeros(shape, dtype=np.float64) if x is None else _np64(x)
+    return np.zeros(shape, dtype=np.float64) if x is None else to_float64_array(x)
 
 
 class _Project(torch.autograd.Function):
@@ -50,8 +45,8 @@ class _Project(torch.autograd.Function):
         kernels = _kernels()
         settings, width, height = geometry
         n = means.shape[0]
-        inputs = (_np64(means), _np64(quats), _np64(scales), _np64_or_zeros(probe, (n, 2)), _np64(rotation),
-                  _np64(translation), _np64(K))
+        inputs = (*map(to_float64_array, (means, quats, scales)), _np64_or_zeros(probe, (n, 2)),
+                  *map(to_float64_array, (rotation, translation, K)))
         M = np.empty((n, 9))
         centers = np.empty((n, 2))
         depths = np.empty(n)
@@ -61,8 +56,6 @@ class _Project(torch.autograd.Function):
         radii = np.empty((n, 2), dtype=np.int32)
         valid = np.empty(n, dtype=np.bool_)
         flip = np.empty(n, dtype=np.bool_)
-        from rtsplat.raster.cpu import SURFEL_CHUNK, numba_threads
-
         with numba_threads(SURFEL_CHUNK):
             kernels.project_forward_kernel(*inputs, float(settings.extent_sigma), float(settings.lowpass_radius),
                                            float(settings.near), int(width), int(height), M, centers, depths,
@@ -90,8 +83,6 @@ class _Project(torch.autograd.Function):
         g_scales = np.empty((n, 2))
         g_probe = np.empty((n, 2))
         g_camera = np.empty((n, 12))
-        from rtsplat.raster.cpu import SURFEL_CHUNK, numba_threads
-
         with numba_threads(SURFEL_CHUNK):
             _kernels().project_backward_kernel(*inputs, flip, *grads, g_means, g_quats, g_scales, g_probe,
                                                g_camera)
@@ -125,10 +116,10 @@ def bin_tiles(bbox_min: Tensor, bbox_max: Tensor, depths: Tensor, valid: Tensor,
         return binning.bin_tiles(bbox_min, bbox_max, depths, valid, width, height, tile_size)
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    order = kernels.depth_order_kernel(_np64(depths), valid.numpy())
+    order = kernels.depth_order_kernel(to_float64_array(depths), valid.numpy())
     tile_count = np.empty(tiles_x * tiles_y, dtype=np.int64)
     tile_start = np.empty(tiles_x * tiles_y, dtype=np.int64)
-    ids = kernels.bin_tiles_kernel(order, _np64(bbox_min), _np64(bbox_max), int(tile_size), tiles_x, tiles_y,
-                                   tile_count, tile_start)
+    ids = kernels.bin_tiles_kernel(order, to_float64_array(bbox_min), to_float64_array(bbox_max), int(tile_size),
+                                   tiles_x, tiles_y, tile_count, tile_start)
     return TileBins(tiles_x, tiles_y, tile_size, torch.from_numpy(ids), torch.from_numpy(tile_start),
                     torch.from_numpy(tile_count), width, height)
