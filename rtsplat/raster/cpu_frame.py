@@ -2,15 +2,15 @@
 
 :func:`project_surfels` and :func:`bin_tiles` have the signatures and results of
 :func:`rtsplat.raster.projection.project_surfels` and :func:`rtsplat.raster.binning.bin_tiles`
-(the torch oracle, tested against them in ``tests/test_raster_cpu.py``), computed by one numba pass
+(the torch oracle, tested against them in ``tests/test_raster_cpu_frame.py``), computed by one numba pass
 per surfel (:mod:`rtsplat.raster.cpu_frame_kernels`) instead of some fifty tensor operations, with
 a hand-written backward (one autograd node instead of a graph of them). At the demo's settings
 (30k surfels) the torch projection forward, its backward and the binning take about 14, 14 and
 12 ms per iteration on 2 cores (``docs/performance.md``).
 
-Both fall back to the torch code when numba is missing, on a non-CPU device, or when the camera's
-intrinsics need a gradient (the kernels return gradients for the surfels, the screen probe and the
-camera's rotation and translation, which pose refinement learns).
+Both fall back to the torch code when numba is missing or on a non-CPU device; the projection also
+when the camera's intrinsics need a gradient (the kernels return gradients for the surfels, the screen
+probe and the camera's rotation and translation, which pose refinement learns).
 """
 
 from __future__ import annotations
