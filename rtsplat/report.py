@@ -398,6 +398,18 @@ def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -
             for d in _repeat_differences(scene, runs, roles, results)]
 
 
+def near_reflection_rows(runs: dict[str, Run]) -> list[list[str]]:
+    """One row per run whose model asked for near reflections: on/off, planes, planar share, why, s/it."""
+    rows = []
+    for m, r in sorted(runs.items()):
+        fit = r.summary.get("near_reflection")
+        if not r.summary.get("effects", {}).get("near_reflection") or not isinstance(fit, dict):
+            continue
+        rows.append([m, "on" if fit.get("on") else "off", _fmt(fit.get("planes"), 0), _fmt(fit.get("planar_share")),
+                     str(fit.get("reason", "")), _fmt(r.summary.get("seconds_per_iteration"), 3)])
+    return rows
+
+
 def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
     """(paragraph, header, rows) of a scene's SfM table from the sfm stage's summary.json."""
     total = summary.get("total", "?")
@@ -562,6 +574,14 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
         if layer_rows:
             doc.heading("Decomposition against the ground-truth layers (PSNR in the transparent region, test views)", 3)
             doc.table(["method", "reflection", "transmission"], layer_rows)
+
+        near_rows = near_reflection_rows(runs)
+        if near_rows:
+            doc.heading("Near reflections (mirror planes of the glass)", 3)
+            doc.paragraph("Whether each run reflected its own surfels in planes fitted to the see-through surface "
+                          "(effects.near_reflection; auto keeps them where planes explain enough of it), and the "
+                          "seconds per training iteration it paid.")
+            doc.table(["method", "near reflection", "planes", "planar share", "why", "s / iteration"], near_rows)
 
         doc.heading("Accuracy against training time", 3)
         for name in plot_accuracy_time(scene, runs, out):

@@ -43,6 +43,11 @@ class Effects:
         "auto", help="environment map and specular network; auto: on iff the scene has transparent pixels or "
         "a region of interest given in the config"
     )
+    near_reflection: Literal["auto", "on", "off"] = setting(
+        "auto", help="reflections of the scene's own surfels in planar glass (mirror planes fitted to the "
+        "transparent surface that prepare finds; one more rasterization per plane in view); auto: on iff "
+        "transmission and specular are on and planes explain most of the transparent surface (planar glass)"
+    )
 
 
 @dataclass

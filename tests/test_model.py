@@ -277,9 +277,9 @@ def test_composite_equation_with_every_branch_on():
 class _EveryShadedPixel(RTModel):
     """Runs the specular network on every shaded pixel, region of interest or not."""
 
-    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None):
+    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None, near=None):
         return super()._specular(camera, normal, g, alpha_safe, alpha_safe > self.settings.shade_alpha_threshold,
-                                 every_pixel)
+                                 every_pixel, near)
 
 
 def test_specular_runs_only_where_the_roi_weighs_and_the_image_and_gradients_do_not_change():
@@ -358,10 +358,14 @@ def test_effects_auto_decides_from_masks_and_roi():
     assert decide_effects(Effects(), 0.0, "estimated")[0] == ActiveEffects(False, False)
     effects, why = decide_effects(Effects(), 0.0, "config")
     assert effects == ActiveEffects(False, True) and "config" in why["specular"]
-    effects, _ = decide_effects(Effects(), transparent_fraction=0.1, roi_source="estimated")
-    assert effects == ActiveEffects(True, True)
+    effects, why = decide_effects(Effects(), transparent_fraction=0.1, roi_source="estimated")
+    # near reflections are asked for with both branches; the glass's planes decide later
+    assert effects == ActiveEffects(True, True, near_reflection=True) and "planes decide" in why["near_reflection"]
     effects, why = decide_effects(Effects(transmission="on", specular="off"), 0.0, "config")
     assert effects == ActiveEffects(True, False) and why["specular"] == "config: off"
+    assert "needs transmission and specular" in why["near_reflection"]
+    assert not decide_effects(Effects(near_reflection="off"), 0.1, None)[0].near_reflection
+    assert not decide_effects(Effects(specular="off", near_reflection="on"), 0.1, None)[0].near_reflection
 
 
 def test_checkpoint_rebuilds_the_model_without_the_trainer_config(tmp_path):

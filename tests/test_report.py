@@ -232,3 +232,18 @@ def test_images_are_nearest_upscaled_and_error_maps_show_zero_for_a_perfect_rend
         layer_error = read_image(images / f"toy_{view}_rtsplat_{layer}_error.png")
         np.testing.assert_allclose(layer_error, np.broadcast_to(zero, layer_error.shape), atol=1e-6)
         assert read_image(images / f"toy_{view}_rtsplat_gt_{layer}.png").shape == (300, 400, 3)
+
+
+def test_near_reflection_rows_list_the_runs_that_asked_for_them():
+    from rtsplat.report import Run, near_reflection_rows
+
+    fit = {"iteration": 201, "planes": 4, "planar_share": 0.92, "on": True, "reason": "auto: planar glass"}
+    runs = {
+        "rtsplat": Run("film", "rtsplat", summary={"effects": {"near_reflection": True}, "near_reflection": fit,
+                                                   "seconds_per_iteration": 0.61}),
+        "2dgs": Run("film", "2dgs", summary={"effects": {"near_reflection": False}, "near_reflection": None,
+                                             "seconds_per_iteration": 0.3}),
+        "old": Run("film", "old", summary={"effects": {"transmission": True}}),  # written before the term
+    }
+    rows = near_reflection_rows(runs)
+    assert rows == [["rtsplat", "on", "4", "0.92", "auto: planar glass", "0.610"]]

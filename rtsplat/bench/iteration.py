@@ -45,6 +45,9 @@ DEMO_OPTIONS = {
 }
 METHODS = {
     "rtsplat": {},
+    # near reflections forced on (their planes fitted at specular_from, inside the warm-up) and off
+    "rtsplat_near": {"effects": {"near_reflection": "on"}},
+    "rtsplat_no_near": {"effects": {"near_reflection": "off"}},
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
 }
 PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",

@@ -62,6 +62,8 @@ class Checkpoint:
         model = RTModel(surfels, effects=self.effects, ablations=ablations or self.ablations,
                         settings=settings or self.settings, roi_center=roi_center,
                         roi_radius=float(roi_radius)).to(device)
+        if "mirror_planes" in self.buffers:  # its row count is the scene's: size the buffer before loading
+            model.set_mirror_planes(self.buffers["mirror_planes"])
         model.load_state_dict(self.buffers, strict=False)
         return model
 

@@ -14,7 +14,11 @@
 
 Which branches exist is decided once per scene (:class:`ActiveEffects`): without transmission
 there is one opacity (opacity = 1, so both weight sets coincide) and no tau / C_scatter; without
-specular there is no environment map and no specular network (plain 2DGS radiance).
+specular there is no environment map and no specular network (plain 2DGS radiance). With near
+reflections (planar glass, :mod:`rtsplat.model.mirror`) the specular light of a pixel on a pane is the
+model's own surfels rendered through the pane's mirror image, over the environment lookup, weighed by
+how see-through the surface is (1 - its blended optical opacity): opaque parts coplanar with a pane
+(a car's body under its window) keep the environment lookup alone.
 """
 
 from __future__ import annotations
@@ -36,6 +40,14 @@ from rtsplat.model.composite import (
 )
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient
+from rtsplat.model.mirror import (
+    empty_planes,
+    mirror_points,
+    mirror_quats,
+    plane_assignment,
+    plane_parts,
+    signed_distance,
+)
 from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh
 from rtsplat.model.specular import SpecularNetwork
@@ -54,6 +66,7 @@ GBUFFER_CHANNELS = 12
 class ActiveEffects:
     transmission: bool = True  # occupancy/opacity factorization, tau and C_scatter
     specular: bool = True  # environment map + specular network
+    near_reflection: bool = False  # planar glass reflects the model's own surfels (mirror planes)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -80,6 +93,7 @@ class RTModel(nn.Module):
         self.env = EnvironmentMap(s.env_channels, s.env_height, s.env_width, s.env_levels) if effects.specular else None
         self.register_buffer("roi_center", torch.as_tensor(roi_center, dtype=torch.float32).reshape(3))
         self.register_buffer("roi_radius", torch.as_tensor(float(roi_radius), dtype=torch.float32))
+        self.register_buffer("mirror_planes", empty_planes())
         self.background_map = (BackgroundMap(s.background_height, s.background_width, s.background_levels)
                                if s.background == "learned" else None)
         self.specular_net = (SpecularNetwork(s.env_channels + self._extra_specular_channels(), 4, s.mlp_width,
@@ -97,6 +111,15 @@ class RTModel(nn.Module):
     def uses_mirror(self) -> bool:
         """Whether C_spec blends in the learned background at the reflected direction (``specular_mirror``)."""
         return self.settings.specular_mirror and self.background_map is not None
+
+    def set_mirror_planes(self, planes: Tensor) -> None:
+        """The planes of the glass (:func:`rtsplat.model.mirror.fit_planes` rows) that near reflections use."""
+        self.mirror_planes = planes.detach().to(device=self.roi_center.device, dtype=torch.float32).reshape(
+            -1, self.mirror_planes.shape[1]).contiguous()
+
+    @property
+    def uses_near_reflection(self) -> bool:
+        return self.effects.specular and self.effects.near_reflection and self.mirror_planes.shape[0] > 0
 
     @property
     def uses_opacity(self) -> bool:
@@ -151,7 +174,17 @@ class RTModel(nn.Module):
         if specular_on:
             # a pixel with no region-of-interest weight shows C_trans alone (region_blend and the layers
             # weigh C_spec and beta by roi), so the network runs only where roi > 0
-            spec, beta = self._specular(camera, normal, g, alpha_safe, shade & (roi > 0))
+            wanted = shade & (roi > 0)
+            near = None
+            if self.uses_near_reflection:
+                near_color, near_alpha = self._near_reflection(camera, wanted[..., 0], raster_settings, backend,
+                                                               sh_degree)
+                if self.uses_opacity:  # a mirror of the glass: weighed by how see-through the surface is
+                    clear = (1.0 - g["opacity"] / alpha_safe).clamp(0, 1)
+                    near_color, near_alpha = clear * near_color, clear * near_alpha
+                near = (near_color, near_alpha)
+                layers.update(near=near_color, near_alpha=near_alpha)
+            spec, beta = self._specular(camera, normal, g, alpha_safe, wanted, near=near)
             if not self.ablations.attenuation:
                 beta = torch.ones_like(beta)
             layers.update(spec=spec, beta=beta)
@@ -185,8 +218,50 @@ class RTModel(nn.Module):
         value = 1.0 if self.settings.background == "white" else 0.0
         return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
+    def _near_reflection(self, camera: Camera, wanted: Tensor, raster_settings: RasterSettings | None,
+                         backend: str, sh_degree: int | None) -> tuple[Tensor, Tensor]:
+        """C_near [H,W,3] (premultiplied) and its coverage A_near [H,W,1]: for the ``wanted`` pixels [H,W]
+        whose ray hits a mirror plane, the volume colour of the surfels on the camera's side of the
+        first plane hit, reflected in it (:mod:`rtsplat.model.mirror`); zero elsewhere. At most
+        ``near_reflection_planes`` planes are rendered per view, those that cover the most pixels."""
+        H, W = wanted.shape
+        p = self.surfels
+        index, _ = plane_assignment(camera, self.mirror_planes, image_ray_directions(camera))
+        index = torch.where(wanted, index, torch.full_like(index, -1))
+        K = self.mirror_planes.shape[0]
+        counts = torch.bincount((index + 1).flatten(), minlength=K + 1)[1:].tolist()
+        order = sorted(range(K), key=lambda k: -counts[k])[: self.settings.near_reflection_planes]
+        color = torch.zeros(H, W, 3, dtype=p.means.dtype, device=p.means.device)
+        alpha = torch.zeros(H, W, 1, dtype=p.means.dtype, device=p.means.device)
+        normals, centres, _, _, _, thickness = plane_parts(self.mirror_planes.to(p.means.dtype))
+        center = camera.center.to(p.means.dtype)
+        degree = p.sh_degree if sh_degree is None else sh_degree
+        for k in order:
+            if counts[k] == 0:
+                break
+            n, c = normals[k], centres[k]
+            camera_side = signed_distance(center, n, c)
+            if float(camera_side.abs()) <= float(thickness[k]):
+                continue  # the camera is inside the pane's slab: no side to mirror
+            side = signed_distance(p.means, n, c) * torch.sign(camera_side)
+            keep = torch.nonzero(side > thickness[k], as_tuple=False).flatten()
+            if keep.numel() == 0:
+                continue
+            mirrored_center = mirror_points(center, n, c)
+            means = p.means[keep]
+            colors = eval_sh(p.sh[keep], F.normalize(means - mirrored_center, dim=-1), degree)
+            occupancy = p.occupancy[keep]
+            opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)
+            mirrored = Surfels(mirror_points(means, n, c), mirror_quats(p.quats[keep], n), p.scales[keep],
+                               occupancy, opacity, means.new_zeros(keep.numel(), 0), colors)
+            out = rasterize(mirrored, camera, raster_settings, backend=backend)
+            on_plane = (index == k)[..., None]
+            color = torch.where(on_plane, out.color, color)
+            alpha = torch.where(on_plane, out.volume_alpha, alpha)
+        return color, alpha
+
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
-                  every_pixel: bool | None = None):
+                  every_pixel: bool | None = None, near: tuple[Tensor, Tensor] | None = None):
         """C_spec and beta where ``shade`` (the render passes the shaded pixels with region-of-interest
         weight); 0 and 1 elsewhere. On the CPU only those pixels are evaluated; on other devices
         (``every_pixel``, default: not on the CPU) every pixel is and the others are masked out, because
@@ -222,7 +297,9 @@ class RTModel(nn.Module):
             extra.append(reflected_background)
         if extra:
             env = torch.cat([env, *extra], -1)
-        s, b = self.specular_net(env, material, reflectance, reflected_background if self.uses_mirror else None)
+        near_rows = None if near is None else (rows(near[0].reshape(-1, 3)), rows(near[1].reshape(-1, 1)))
+        s, b = self.specular_net(env, material, reflectance, reflected_background if self.uses_mirror else None,
+                                 near=near_rows)
         if idx is None:
             spec = torch.where(flat[:, None], s, spec)
             beta = torch.where(flat[:, None], b, beta)

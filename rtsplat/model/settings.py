@@ -77,6 +77,11 @@ class ModelSettings:
         "outputs, bfloat16 products, forward and backward); auto: bfloat16 on a CPU with native bfloat16 products "
         "(AVX512-BF16), float32 elsewhere. A knob that trades accuracy for time (docs/performance.md)"
     )
+    near_reflection_planes: int = setting(
+        2, help="with near reflections (effects.near_reflection), the most mirror planes rendered per view (those "
+        "whose rectangles the view's shaded pixels hit most): each costs one more rasterization of the scene",
+        minimum=1,
+    )
     occupancy_init: float = setting(0.1, help="initial surfel occupancy", minimum=0.0, maximum=1.0)
     opacity_init: float = setting(0.5, help="initial optical opacity", minimum=0.0, maximum=1.0)
     transmissivity_init: float = setting(0.5, help="initial transmissivity tau", minimum=0.0, maximum=1.0)

@@ -53,8 +53,10 @@ class SpecularNetwork(nn.Module):
         return self.precision == "bfloat16"
 
     def forward(self, env_features: Tensor, material: Tensor, reflectance: Tensor,
-                mirror: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """[M,C], [M,4] (unit), [M,1], [M,3] (a network with ``mirror`` only) -> (C_spec [M,3], beta [M,1])."""
+                mirror: Tensor | None = None, near: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+        """[M,C], [M,4] (unit), [M,1], [M,3] (a network with ``mirror`` only) -> (C_spec [M,3], beta [M,1]).
+        ``near``: the near reflection's premultiplied colour [M,3] and coverage [M,1], composited over the
+        network's (far) light before the reflectance scales it: ``reflectance (C_near + (1 - A_near) L)``."""
         if (mirror is None) == self.mirror:
             raise ValueError("a network with mirror needs the mirror radiance, one without takes none")
         outer = (env_features[:, :, None] * material[:, None, :]).flatten(1)
@@ -69,6 +71,8 @@ class SpecularNetwork(nn.Module):
         if mirror is not None:
             weight = torch.sigmoid(out[:, 4:5])
             specular = weight * mirror + (1.0 - weight) * specular
+        if near is not None:
+            specular = near[0] + (1.0 - near[1]) * specular
         specular = specular * reflectance
         beta = torch.sigmoid(out[:, 3:4])
         return specular, beta

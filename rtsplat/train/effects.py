@@ -5,6 +5,12 @@ from __future__ import annotations
 from rtsplat.model.rtmodel import ActiveEffects
 from rtsplat.train_config import Effects
 
+# near_reflection auto: the share of the see-through points that planes must explain. The points are the
+# surface depth of the masked pixels, which is the glass where the glass is opaque enough to hold it and
+# what lies behind the glass elsewhere (about a third of them on the cabin half-way through its demo
+# training): planar panes explain 40-50% there, curved glass (the dome) no plane at all (docs/fidelity.md, 23)
+PLANAR_SHARE = 0.3
+
 
 def decide_effects(
     config: Effects, transparent_fraction: float, roi_source: str | None
@@ -16,6 +22,9 @@ def decide_effects(
     (``roi_source == "config"``). A region of interest that ``prepare`` merely estimated from the
     SfM points (``"estimated"``) on a scene without glass does not ask for reflections: that scene
     is trained as plain 2DGS radiance, without environment map or specular network.
+
+    Near reflection (auto): asked for iff transmission and specular are on; whether the glass is
+    planar enough is decided once the model has its shape (:func:`decide_near_planes`).
     """
     reasons = {}
     if config.transmission == "auto":
@@ -40,4 +49,28 @@ def decide_effects(
     else:
         specular = config.specular == "on"
         reasons["specular"] = f"config: {config.specular}"
-    return ActiveEffects(transmission=transmission, specular=specular), reasons
+    if config.near_reflection == "auto":
+        near = transmission and specular
+        why = ("auto: the glass's planes decide, as the reflections start" if near
+               else "auto: needs transmission and specular")
+    elif config.near_reflection == "on":
+        near, why = specular, "config: on" if specular else "config: on, but specular is off"
+    else:
+        near, why = False, "config: off"
+    reasons["near_reflection"] = why
+    return ActiveEffects(transmission=transmission, specular=specular, near_reflection=near), reasons
+
+
+def decide_near_planes(mode: str, planes: int, planar_share: float | None) -> tuple[bool, str]:
+    """Whether the fitted mirror planes are used: ``auto`` iff they explain at least :data:`PLANAR_SHARE`
+    of the glass's points (planar glass, whose reflections of the scene a mirrored render places; curved
+    glass such as a dome reflects mostly what is far, and the environment lookup stays alone); ``on``
+    iff any plane was found."""
+    if planar_share is None or planes == 0:
+        return False, "no plane found in the see-through surface"
+    share = f"{planes} plane(s) explain {planar_share:.0%} of the see-through surface"
+    if mode == "on":
+        return True, f"config: on; {share}"
+    if planar_share >= PLANAR_SHARE:
+        return True, f"auto: planar glass; {share}"
+    return False, f"auto: the glass is not planar; {share}, needs {PLANAR_SHARE:.0%}"

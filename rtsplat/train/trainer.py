@@ -31,7 +31,8 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_text_atomic
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
-from rtsplat.model.rtmodel import RTModel
+from rtsplat.model.mirror import empty_planes, fit_planes
+from rtsplat.model.rtmodel import RTModel, image_ray_directions
 from rtsplat.model.surfels import (
     PARAMETERS,
     SurfelParameters,
@@ -42,16 +43,19 @@ from rtsplat.model.surfels import (
 )
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
-from rtsplat.raster import default_backend
+from rtsplat.raster import default_backend, rasterize
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.cameras import PoseCorrections, fit_corrections
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
-from rtsplat.train.effects import decide_effects
+from rtsplat.train.effects import decide_effects, decide_near_planes
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train_config import TrainConfig, resume_differences
+
+PLANE_TOLERANCE = 0.01  # mirror planes: thickness tolerance, a fraction of the glass points' diagonal
+MAX_PLANE_POINTS = 200_000  # glass points the mirror planes are fitted to (a random subset beyond)
 
 
 @dataclass
@@ -108,6 +112,7 @@ class Trainer:
         self.effects, self.effect_reasons = decide_effects(
             cfg.effects, self.train_views.transparent_fraction, roi_source
         )
+        self.near_fit: dict | None = None  # the mirror-plane fit (fit_mirror_planes), once it ran
         xyz, rgb = scene.load_points()
         self.points = (torch.as_tensor(np.asarray(xyz), dtype=torch.float32),
                        torch.as_tensor(np.asarray(rgb), dtype=torch.float32) / 255.0)
@@ -150,6 +155,45 @@ class Trainer:
         if surface is None or not self.effects.transmission or len(surface[0]) < 4:
             return surfels
         return concat_surfels([surfels, self._transparent_surface_surfels(*surface)])
+
+    @torch.no_grad()
+    def fit_mirror_planes(self) -> dict:
+        """Fit the glass's mirror planes to the model's own see-through surface and switch the near
+        reflections on where it is planar (:func:`rtsplat.train.effects.decide_near_planes`).
+
+        The points are the surface depth of every training view's transparent pixels (mask > 0.5,
+        surface alpha > 0.5) with the surface normals, at most ``MAX_PLANE_POINTS`` of them; the planes
+        are fitted within ``PLANE_TOLERANCE`` of the points' diagonal (:func:`rtsplat.model.mirror.fit_planes`)."""
+        points, normals = [], []
+        for index, camera in enumerate(self.train_views.cameras):
+            mask = self.train_views.masks[index]
+            if mask is None:
+                continue
+            out = rasterize(self.model.rasterizer_surfels(camera), camera, self.cfg.raster, backend=self.cfg.backend)
+            chosen = ((mask > 0.5) & (out.alpha > 0.5))[..., 0]
+            directions = image_ray_directions(camera)[chosen]
+            forward = camera.rotation[2]
+            distance = out.depth[chosen] / (directions @ forward).clamp_min(1e-6)[:, None]
+            points.append(camera.center + distance * directions)
+            normals.append(torch.nn.functional.normalize(out.normal[chosen], dim=-1))
+        xyz = torch.cat(points).cpu().double() if points else torch.zeros(0, 3, dtype=torch.float64)
+        normal = torch.cat(normals).cpu().double() if normals else torch.zeros(0, 3, dtype=torch.float64)
+        ok = torch.isfinite(xyz).all(-1) & torch.isfinite(normal).all(-1)
+        xyz, normal = xyz[ok], normal[ok]
+        if xyz.shape[0] > MAX_PLANE_POINTS:
+            keep = torch.randperm(xyz.shape[0], generator=self.rng)[:MAX_PLANE_POINTS]
+            xyz, normal = xyz[keep], normal[keep]
+        planes, share = empty_planes(), None
+        if xyz.shape[0] >= 16:
+            diagonal = float((xyz.max(0).values - xyz.min(0).values).norm())
+            planes, share = fit_planes(xyz, normal, tolerance=PLANE_TOLERANCE * diagonal, seed=self.cfg.seed)
+        use, why = decide_near_planes(self.cfg.effects.near_reflection, planes.shape[0], share)
+        self.model.set_mirror_planes(planes if use else empty_planes())
+        self.near_fit = {"iteration": self.iteration, "points": int(xyz.shape[0]), "planes": int(planes.shape[0]),
+                         "planar_share": share, "on": use, "reason": why}
+        self.log(f"near reflection at iteration {self.iteration}: {'on' if use else 'off'} ({why})")
+        self._write_effects()
+        return self.near_fit
 
     def _transparent_surface_surfels(self, xyz: np.ndarray, normal: np.ndarray) -> SurfelParameters:
         """Surfels where the see-through surface is (prepare's points on the masks' visual hull), which
@@ -196,6 +240,9 @@ class Trainer:
         if refine_pose:
             camera = self.poses.camera(idx, camera)
         mask = self.train_views.masks[idx]
+        if (self.effects.near_reflection and self.near_fit is None and stage_at(it, cfg) == "full"
+                and not self._background_phase()):
+            self.fit_mirror_planes()  # once, as the reflections start: the glass has its shape by then
         background_phase = self._background_phase()
         stage = "volume" if background_phase else stage_at(it, cfg)
         sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
@@ -359,6 +406,7 @@ class Trainer:
             "order": list(self.order),
             "poses": None if self.poses is None else self.poses.state_dict(),
             "camera_corrections": self.camera_corrections(),
+            "near_fit": self.near_fit,
             "rng": self.rng.get_state(),
             "torch_rng": torch.get_rng_state(),
         }
@@ -414,6 +462,7 @@ class Trainer:
             if name in saved:
                 self.test_corrections[index] = torch.as_tensor(saved[name], device=self.device)
         self.any_frozen = bool(self.frozen.any())
+        self.near_fit = state.get("near_fit")
         self.order = list(state["order"])
         # generator states are CPU byte tensors (the checkpoint was read onto self.device)
         self.rng.set_state(state["rng"].cpu())
@@ -440,10 +489,10 @@ class Trainer:
         else:
             log_path.unlink(missing_ok=True)
         _write_json(self.out / "config.json", cfg.to_dict())
-        _write_json(self.out / "effects.json", {**self.effects.to_dict(), "reasons": self.effect_reasons,
-                                                "perceptual": self.perceptual_note})
+        self._write_effects()
         self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
                  f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
+        self.log(f"near reflection: {self.effects.near_reflection} ({self.effect_reasons['near_reflection']})")
         self.log(f"perceptual loss: {self.perceptual_note}")
         backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
         self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
@@ -492,6 +541,11 @@ class Trainer:
         bar.close()
         return self.finish()
 
+    def _write_effects(self) -> None:
+        _write_json(self.out / "effects.json", {**self.effects.to_dict(), "reasons": self.effect_reasons,
+                                                "perceptual": self.perceptual_note, "near_fit": self.near_fit,
+                                                "mirror_planes": self.model.mirror_planes.tolist()})
+
     def finish(self) -> dict:
         if not self.cfg.schedule.eval_every:  # otherwise the last step's evaluation fitted them
             self.fit_test_cameras(self.cfg.cameras.final_fit_steps)
@@ -500,7 +554,8 @@ class Trainer:
         write_surfel_ply(self.out / "point_cloud.ply", self.model.surfels, self.model.uses_opacity)
         summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
-                   "surfels": len(self.model.surfels), "effects": self.effects.to_dict(), **metrics,
+                   "surfels": len(self.model.surfels), "effects": self.effects.to_dict(),
+                   "near_reflection": self.near_fit, **metrics,
                    **self._correction_sizes(),
                    **best_test_psnr(self.out / "train_log.jsonl", self.iteration, metrics)}
         _write_json(self.out / "summary.json", summary)

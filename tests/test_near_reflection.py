@@ -1,0 +1,260 @@
+"""Near-field reflections in planar glass (rtsplat.model.mirror and the model's mirrored render)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from test_raster_hard_cases import surfels_at
+
+from rtsplat.camera import camera_from_fov
+from rtsplat.model.checkpoint import read_checkpoint, write_checkpoint
+from rtsplat.model.mirror import (
+    PLANE_COLUMNS,
+    fit_planes,
+    mirror_points,
+    mirror_quats,
+    plane_assignment,
+)
+from rtsplat.model.rtmodel import ActiveEffects, RTModel, image_ray_directions
+from rtsplat.model.settings import ModelSettings
+from rtsplat.model.surfels import init_from_points
+from rtsplat.raster import RasterSettings, Surfels, rasterize
+from rtsplat.raster.projection import quat_to_rotmat
+from rtsplat.train.effects import PLANAR_SHARE, decide_near_planes
+
+
+def plane_row(normal, centre, u, half=(10.0, 10.0), thickness=0.01, dtype=torch.float32):
+    return torch.tensor([*normal, *centre, *u, *half, thickness], dtype=dtype)[None]
+
+
+# -- geometry ----------------------------------------------------------------------------------------
+
+
+def test_mirrored_rotation_is_the_reflection_with_one_tangent_axis_flipped():
+    g = torch.Generator().manual_seed(3)
+    quats = torch.nn.functional.normalize(torch.randn(50, 4, generator=g, dtype=torch.float64), dim=-1)
+    normal = torch.nn.functional.normalize(torch.randn(3, generator=g, dtype=torch.float64), dim=0)
+    H = torch.eye(3, dtype=torch.float64) - 2.0 * torch.outer(normal, normal)
+    flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
+    mirrored = quat_to_rotmat(mirror_quats(quats, normal))
+    torch.testing.assert_close(mirrored, H @ quat_to_rotmat(quats) @ flip, rtol=0, atol=1e-12)
+    assert torch.allclose(torch.linalg.det(mirrored), torch.ones(50, dtype=torch.float64))
+    # the surfel's normal (third axis) is the reflected normal: a mirror image of the surface
+    torch.testing.assert_close(mirrored[..., 2], quat_to_rotmat(quats)[..., 2] @ H.T, rtol=0, atol=1e-12)
+
+
+def test_mirrored_surfel_appears_where_the_reflected_ray_meets_it():
+    # floor mirror z = 0, a bright surfel above it, the camera above too: the mirrored render shows the
+    # surfel at the pixel of its mirror image, and the ray through that pixel, reflected at the floor,
+    # passes through the surfel
+    camera = camera_from_fov((0.0, -3.0, 1.0), (0.0, 0.0, -0.5), width=64, height=48, fov_x_deg=70,
+                             dtype=torch.float64)
+    normal, centre = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
+    surfel = surfels_at([[0.3, 0.2, 0.6]], (0.0, -1.0, 0.2), 0.05, dtype=torch.float64)
+    mirrored = Surfels(mirror_points(surfel.means, normal, centre), mirror_quats(surfel.quats, normal),
+                       surfel.scales, surfel.occupancy, surfel.opacity, surfel.features, surfel.colors)
+    out = rasterize(mirrored, camera, backend="reference")
+    weight = out.volume_alpha[..., 0]
+    row, col = divmod(int(weight.argmax()), camera.width)
+    assert weight.max() > 0.5
+    direction = image_ray_directions(camera)[row, col]
+    origin = camera.center
+    t = -origin[2] / direction[2]
+    assert t > 0  # the ray goes down to the floor
+    hit = origin + t * direction
+    reflected = direction - 2.0 * (direction @ normal) * normal
+    to_surfel = surfel.means[0] - hit
+    miss = (to_surfel - (to_surfel @ reflected) * reflected).norm()
+    pixel_size = float((surfel.means[0] - camera.center).norm() / camera.K[0, 0])
+    assert miss < 2.0 * pixel_size + 1e-9
+
+
+def test_plane_assignment_takes_the_first_rectangle_hit_and_misses_parallel_rays():
+    camera = camera_from_fov((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), width=16, height=12, dtype=torch.float64)
+    directions = image_ray_directions(camera)
+    planes = torch.cat([
+        plane_row((0, 1, 0), (0, 1, 0), (1, 0, 0), half=(0.2, 0.2), dtype=torch.float64),  # small, far
+        plane_row((0, -1, 0), (0, 0, 0), (1, 0, 0), half=(0.5, 0.5), dtype=torch.float64),  # nearer, larger
+        plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), dtype=torch.float64),  # contains the camera's rays at z=0
+    ])
+    index, distance = plane_assignment(camera, planes, directions)
+    centre = index[6, 8]
+    assert centre == 1  # the nearer plane wins where both are hit
+    assert torch.isfinite(distance[index >= 0]).all() and torch.isinf(distance[index < 0]).all()
+    # rays in the plane z = 0 (the camera's own height) never hit the plane z = 0: parallel
+    assert not torch.isfinite(torch.tensor(float(distance.min()))) or (index != 2).any()
+    grazing = directions[..., 2].abs() < 1e-6
+    assert (index[grazing] != 2).all()
+
+
+# -- fitting -----------------------------------------------------------------------------------------
+
+
+def _box_points(n=1500, seed=0, noise=0.0):
+    g = torch.Generator().manual_seed(seed)
+    points, normals = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            p = torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1
+            p[:, axis] = sign
+            p += noise * torch.randn(n, 3, generator=g, dtype=torch.float64)
+            nrm = torch.zeros(n, 3, dtype=torch.float64)
+            nrm[:, axis] = sign
+            points.append(p)
+            normals.append(nrm)
+    return torch.cat(points), torch.cat(normals)
+
+
+def test_fit_planes_finds_the_faces_of_a_box_and_their_rectangles():
+    points, normals = _box_points(noise=0.003)
+    planes, share = fit_planes(points, normals, tolerance=0.02)
+    assert planes.shape == (6, PLANE_COLUMNS)
+    assert share > 0.95
+    found = sorted(tuple(int(round(float(x))) for x in row[:3]) for row in planes)
+    assert found == sorted([(-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)])
+    for row in planes:
+        n, c = row[:3], row[3:6]
+        assert abs(float(n @ c) - 1.0) < 0.01  # each face lies at distance 1 from the centre
+        assert torch.allclose(row[9:11], torch.tensor([1.02, 1.02]), atol=0.03)  # a 2 x 2 face (+ tolerance)
+
+
+def test_fit_planes_on_a_sphere_explains_too_little_to_switch_near_reflections_on():
+    g = torch.Generator().manual_seed(1)
+    normals = torch.nn.functional.normalize(torch.randn(6000, 3, generator=g, dtype=torch.float64), dim=-1)
+    points = 1.5 * normals
+    planes, share = fit_planes(points, normals, tolerance=0.01 * 3.0 * math.sqrt(3))
+    use, why = decide_near_planes("auto", planes.shape[0], share if planes.shape[0] else None)
+    assert share < PLANAR_SHARE and not use and "not planar" in why or "no plane" in why
+    box_points, box_normals = _box_points()
+    planes, share = fit_planes(box_points, box_normals, tolerance=0.02)
+    assert decide_near_planes("auto", planes.shape[0], share)[0]
+
+
+def test_decide_near_planes_modes():
+    assert decide_near_planes("auto", 2, PLANAR_SHARE)[0]
+    assert not decide_near_planes("auto", 2, PLANAR_SHARE - 0.01)[0]
+    assert decide_near_planes("on", 2, 0.1)[0]
+    assert not decide_near_planes("on", 0, None)[0]
+
+
+# -- the model ---------------------------------------------------------------------------------------
+
+
+def _model(dtype=torch.float64, near=True, seed=0) -> RTModel:
+    """A floor of glass at z = 0 (its plane set as a mirror) under a few coloured surfels above it."""
+    g = torch.Generator().manual_seed(seed)
+    above = torch.rand(30, 3, generator=g) * torch.tensor([1.6, 1.6, 0.8]) + torch.tensor([-0.8, -0.8, 0.2])
+    glass = torch.rand(60, 3, generator=g) * torch.tensor([2.0, 2.0, 0.0]) - torch.tensor([1.0, 1.0, 0.0])
+    xyz = torch.cat([above, glass])
+    normals = torch.cat([torch.nn.functional.normalize(torch.randn(30, 3, generator=g), dim=-1),
+                         torch.tensor([[0.0, 0.0, 1.0]]).expand(60, 3)])
+    surfels = init_from_points(xyz, torch.rand(90, 3, generator=g), sh_degree=1, occupancy=0.9, opacity=0.6,
+                               generator=g, normals=normals)
+    settings = ModelSettings(env_height=8, env_width=16, env_levels=3, mlp_width=16, sh_degree=1,
+                             background_height=8, background_width=16, background_levels=2)
+    model = RTModel(surfels, effects=ActiveEffects(near_reflection=near), settings=settings,
+                    roi_center=(0.0, 0.0, 0.0), roi_radius=3.0).to(dtype)
+    model.set_mirror_planes(plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(1.0, 1.0), thickness=0.02))
+    return model
+
+
+def _camera(eye=(0.2, -2.5, 1.5), dtype=torch.float64):
+    return camera_from_fov(eye, (0.0, 0.0, 0.0), width=24, height=18, fov_x_deg=60, dtype=dtype)
+
+
+def test_near_reflection_changes_only_the_glass_pixels_and_backpropagates_into_the_reflected_surfels():
+    model = _model()
+    camera = _camera()
+    with_near = model.render(camera, stage="full", backend="reference")
+    near_alpha = with_near.layers["near_alpha"][..., 0]
+    assert near_alpha.max() > 0.3  # the surfels above the floor are seen in it
+    index, _ = plane_assignment(camera, model.mirror_planes.double(), image_ray_directions(camera))
+    assert (near_alpha[index < 0] == 0).all()  # nothing where the ray misses the pane
+    model.set_mirror_planes(torch.zeros(0, PLANE_COLUMNS))
+    without = model.render(camera, stage="full", backend="reference")
+    changed = (with_near.color - without.color).abs().amax(-1) > 1e-9
+    assert changed.any() and not changed[index < 0].any()
+    # a surfel above the floor receives gradient through its reflection alone
+    model = _model()
+    near = model.render(camera, stage="full", backend="reference").layers["near"]
+    near.sum().backward()
+    above = model.surfels.sh_dc.grad[:30]
+    assert above.abs().sum() > 0 and torch.isfinite(model.surfels.means.grad).all()
+    assert model.surfels.sh_dc.grad[30:].abs().sum() == 0  # the glass itself is never reflected
+
+
+def test_near_reflection_gradcheck_float64():
+    """The mirrored render's colour and coverage against finite differences, with respect to the
+    centres, colours and scales of the first surfels above the pane (reference backend, float64)."""
+    model = _model()
+    camera = _camera()
+    wanted = torch.ones(camera.height, camera.width, dtype=torch.bool)
+    names = ("means", "sh_dc", "log_scales")
+    parameters = model.surfels._parameters
+    full = {name: parameters[name].detach().clone() for name in names}
+
+    def near_of(*heads):
+        originals = {name: parameters[name] for name in names}
+        try:
+            for name, head in zip(names, heads, strict=True):  # the tensors stand in for the parameters
+                parameters[name] = torch.cat([head, full[name][head.shape[0]:]])
+            color, alpha = model._near_reflection(camera, wanted, None, "reference", None)
+            return torch.cat([color, alpha], -1)
+        finally:
+            parameters.update(originals)
+
+    heads = tuple(full[name][:6].clone().requires_grad_(True) for name in names)
+    assert near_of(*heads).abs().sum() > 0
+    assert torch.autograd.gradcheck(near_of, heads, eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+@pytest.mark.parametrize("case", ["camera_in_plane", "grazing", "misses", "behind_camera"])
+def test_hard_cases_stay_finite(case):
+    model = _model()
+    camera = _camera()
+    if case == "camera_in_plane":  # the mirror plane passes through the camera centre
+        camera = _camera(eye=(0.2, -2.5, 0.0))
+        model.set_mirror_planes(plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(5.0, 5.0)))
+    elif case == "grazing":  # the view skims the pane
+        camera = _camera(eye=(0.0, -3.0, 1e-3))
+    elif case == "misses":  # the pane lies outside the view
+        model.set_mirror_planes(plane_row((0, 0, 1), (50, 50, 0), (1, 0, 0), half=(0.1, 0.1)))
+    elif case == "behind_camera":  # the pane is behind the camera
+        model.set_mirror_planes(plane_row((0, 1, 0), (0, -4.0, 0), (1, 0, 0), half=(5.0, 5.0)))
+    result = model.render(camera, stage="full", backend="reference")
+    assert torch.isfinite(result.color).all()
+    if case in ("camera_in_plane", "misses", "behind_camera"):
+        assert result.layers["near_alpha"].abs().max() == 0
+    result.color.sum().backward()
+    for name, p in model.named_parameters():
+        assert p.grad is None or torch.isfinite(p.grad).all(), name
+
+
+def test_cpu_backend_matches_the_reference_on_the_mirrored_render():
+    model = _model(dtype=torch.float64)
+    camera = _camera()
+    wanted = torch.ones(camera.height, camera.width, dtype=torch.bool)
+    ref = model._near_reflection(camera, wanted, RasterSettings(), "reference", None)
+    fast = model._near_reflection(camera, wanted, RasterSettings(), "cpu", None)
+    for a, b in zip(fast, ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-8)
+
+
+def test_mirror_planes_survive_a_checkpoint(tmp_path):
+    model = _model(dtype=torch.float32)
+    write_checkpoint(tmp_path / "model.pt", model, RasterSettings())
+    back = read_checkpoint(tmp_path / "model.pt").build_model("cpu")
+    assert back.uses_near_reflection
+    torch.testing.assert_close(back.mirror_planes, model.mirror_planes)
+    camera = _camera(dtype=torch.float32)
+    with torch.no_grad():
+        torch.testing.assert_close(back.render(camera, backend="reference").color,
+                                   model.render(camera, backend="reference").color)
+
+
+def test_no_near_reflection_effect_renders_no_mirrored_pass():
+    model = _model(near=False)
+    result = model.render(_camera(), stage="full", backend="reference")
+    assert "near" not in result.layers
