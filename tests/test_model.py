@@ -505,9 +505,9 @@ def _inputs_of_the_specular_network(model, monkeypatch):
     seen = []
     forward = SpecularNetwork.forward
 
-    def spy(net, env_features, material, reflectance, mirror=None):
+    def spy(net, env_features, material, reflectance, mirror=None, near=None):
         seen.append((env_features, reflectance, mirror))
-        return forward(net, env_features, material, reflectance, mirror)
+        return forward(net, env_features, material, reflectance, mirror, near)
 
     with monkeypatch.context() as patch:
         patch.setattr(SpecularNetwork, "forward", spy)

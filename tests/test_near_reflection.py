@@ -160,8 +160,8 @@ def _model(dtype=torch.float64, near=True, seed=0) -> RTModel:
     return model
 
 
-def _camera(eye=(0.2, -2.5, 1.5), dtype=torch.float64):
-    return camera_from_fov(eye, (0.0, 0.0, 0.0), width=24, height=18, fov_x_deg=60, dtype=dtype)
+def _camera(eye=(0.2, -2.5, 1.5), dtype=torch.float64, width=24, height=18):
+    return camera_from_fov(eye, (0.0, 0.0, 0.0), width=width, height=height, fov_x_deg=60, dtype=dtype)
 
 
 def test_near_reflection_changes_only_the_glass_pixels_and_backpropagates_into_the_reflected_surfels():
@@ -189,7 +189,7 @@ def test_near_reflection_gradcheck_float64():
     """The mirrored render's colour and coverage against finite differences, with respect to the
     centres, colours and scales of the first surfels above the pane (reference backend, float64)."""
     model = _model()
-    camera = _camera()
+    camera = _camera(width=16, height=12)
     wanted = torch.ones(camera.height, camera.width, dtype=torch.bool)
     names = ("means", "sh_dc", "log_scales")
     parameters = model.surfels._parameters
@@ -200,14 +200,16 @@ def test_near_reflection_gradcheck_float64():
         try:
             for name, head in zip(names, heads, strict=True):  # the tensors stand in for the parameters
                 parameters[name] = torch.cat([head, full[name][head.shape[0]:]])
-            color, alpha = model._near_reflection(camera, wanted, None, "reference", None)
+            color, alpha = model._near_reflection(camera, wanted, None, "reference")
             return torch.cat([color, alpha], -1)
         finally:
             parameters.update(originals)
 
-    heads = tuple(full[name][:6].clone().requires_grad_(True) for name in names)
-    assert near_of(*heads).abs().sum() > 0
-    assert torch.autograd.gradcheck(near_of, heads, eps=1e-6, atol=1e-5, rtol=1e-3)
+    heads = tuple(full[name][:4].clone().requires_grad_(True) for name in names)
+    grads = torch.autograd.grad(near_of(*heads).sum(), heads)
+    assert all(g.abs().sum() > 0 for g in grads)  # the first surfels are seen in the mirror
+    # fast mode: the Jacobian checked along random directions, which any wrong entry would show
+    assert torch.autograd.gradcheck(near_of, heads, eps=1e-6, atol=1e-5, rtol=1e-3, fast_mode=True)
 
 
 @pytest.mark.parametrize("case", ["camera_in_plane", "grazing", "misses", "behind_camera"])
@@ -236,8 +238,8 @@ def test_cpu_backend_matches_the_reference_on_the_mirrored_render():
     model = _model(dtype=torch.float64)
     camera = _camera()
     wanted = torch.ones(camera.height, camera.width, dtype=torch.bool)
-    ref = model._near_reflection(camera, wanted, RasterSettings(), "reference", None)
-    fast = model._near_reflection(camera, wanted, RasterSettings(), "cpu", None)
+    ref = model._near_reflection(camera, wanted, RasterSettings(), "reference")
+    fast = model._near_reflection(camera, wanted, RasterSettings(), "cpu")
     for a, b in zip(fast, ref, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-8)
 

@@ -499,3 +499,33 @@ def test_point_normals_start_each_surfel_and_its_copies_flat_on_the_point_clouds
     assert float((normals * expected).sum(-1).abs().min()) > 1 - 1e-5
     random_normals, _ = initial_normals("random")
     assert float((random_normals * expected).sum(-1).abs().median()) < 0.9
+
+
+def test_mirror_planes_are_fitted_once_as_the_reflections_start_and_come_back_on_resume(glass_scene, tmp_path):
+    cfg = config(12, effects={"near_reflection": "on"})
+    trainer = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
+    fits = []
+    fit = trainer.fit_mirror_planes
+    trainer.fit_mirror_planes = lambda: fits.append(trainer.iteration) or fit()
+    for _ in range(6):
+        trainer.step()
+    assert fits == [cfg.schedule.specular_from + 1]  # once, at the first iteration of the full model
+    near = trainer.near_fit
+    assert near["points"] > 100 and near["planes"] >= 1 and near["on"]
+    assert trainer.model.uses_near_reflection
+    normal = trainer.model.mirror_planes[0, :3]
+    assert abs(float(normal.norm()) - 1.0) < 1e-5
+    path = trainer.save_checkpoint()
+    resumed = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
+    resumed.load_checkpoint(path)
+    assert resumed.near_fit == near
+    torch.testing.assert_close(resumed.model.mirror_planes, trainer.model.mirror_planes)
+    refits = []
+    resumed.fit_mirror_planes = lambda: refits.append(resumed.iteration)
+    resumed.step()
+    assert refits == []
+    off = Trainer(glass_scene, config(12, effects={"near_reflection": "off"}), tmp_path / "off", progress=False,
+                  log=lambda m: None)
+    for _ in range(6):
+        off.step()
+    assert off.near_fit is None and not off.model.uses_near_reflection

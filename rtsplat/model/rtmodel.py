@@ -177,8 +177,7 @@ class RTModel(nn.Module):
             wanted = shade & (roi > 0)
             near = None
             if self.uses_near_reflection:
-                near_color, near_alpha = self._near_reflection(camera, wanted[..., 0], raster_settings, backend,
-                                                               sh_degree)
+                near_color, near_alpha = self._near_reflection(camera, wanted[..., 0], raster_settings, backend)
                 if self.uses_opacity:  # a mirror of the glass: weighed by how see-through the surface is
                     clear = (1.0 - g["opacity"] / alpha_safe).clamp(0, 1)
                     near_color, near_alpha = clear * near_color, clear * near_alpha
@@ -219,11 +218,12 @@ class RTModel(nn.Module):
         return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
     def _near_reflection(self, camera: Camera, wanted: Tensor, raster_settings: RasterSettings | None,
-                         backend: str, sh_degree: int | None) -> tuple[Tensor, Tensor]:
+                         backend: str) -> tuple[Tensor, Tensor]:
         """C_near [H,W,3] (premultiplied) and its coverage A_near [H,W,1]: for the ``wanted`` pixels [H,W]
         whose ray hits a mirror plane, the volume colour of the surfels on the camera's side of the
         first plane hit, reflected in it (:mod:`rtsplat.model.mirror`); zero elsewhere. At most
-        ``near_reflection_planes`` planes are rendered per view, those that cover the most pixels."""
+        ``near_reflection_planes`` planes are rendered per view, those that cover the most pixels. The
+        reflected surfels show their view-independent colour (SH degree 0)."""
         H, W = wanted.shape
         p = self.surfels
         index, _ = plane_assignment(camera, self.mirror_planes, image_ray_directions(camera))
@@ -235,12 +235,11 @@ class RTModel(nn.Module):
         alpha = torch.zeros(H, W, 1, dtype=p.means.dtype, device=p.means.device)
         normals, centres, _, _, _, thickness = plane_parts(self.mirror_planes.to(p.means.dtype))
         center = camera.center.to(p.means.dtype)
-        degree = p.sh_degree if sh_degree is None else sh_degree
         for k in order:
             if counts[k] == 0:
                 break
             n, c = normals[k], centres[k]
-            camera_side = signed_distance(center, n, c)
+            camera_side = signed_distance(center, n, c).detach()  # which side: no gradient
             if float(camera_side.abs()) <= float(thickness[k]):
                 continue  # the camera is inside the pane's slab: no side to mirror
             side = signed_distance(p.means, n, c) * torch.sign(camera_side)
@@ -249,7 +248,9 @@ class RTModel(nn.Module):
                 continue
             mirrored_center = mirror_points(center, n, c)
             means = p.means[keep]
-            colors = eval_sh(p.sh[keep], F.normalize(means - mirrored_center, dim=-1), degree)
+            # the view-independent (degree 0) colour: a reflection sees the surfels from directions that no
+            # view may have seen them from, where higher SH degrees extrapolate
+            colors = eval_sh(p.sh[keep][:, :1], F.normalize(means - mirrored_center, dim=-1), 0)
             occupancy = p.occupancy[keep]
             opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)
             mirrored = Surfels(mirror_points(means, n, c), mirror_quats(p.quats[keep], n), p.scales[keep],
