@@ -260,3 +260,21 @@ def test_no_near_reflection_effect_renders_no_mirrored_pass():
     model = _model(near=False)
     result = model.render(_camera(), stage="full", backend="reference")
     assert "near" not in result.layers
+
+
+def test_the_near_weight_output_blends_between_no_near_term_and_the_full_one():
+    from rtsplat.model.specular import SpecularNetwork
+
+    torch.manual_seed(0)
+    net = SpecularNetwork(8, 4, 16, near_weight=True)
+    env, material = torch.randn(5, 8), torch.nn.functional.normalize(torch.randn(5, 4), dim=-1)
+    reflectance = torch.rand(5, 1)
+    near = (torch.rand(5, 3) * 0.5, torch.rand(5, 1))
+    plain, beta = net(env, material, reflectance)
+    for logit, expect in ((-40.0, plain), (40.0, reflectance * near[0] + (1 - near[1]) * plain)):
+        with torch.no_grad():
+            net.mlp[-1].weight[-1].zero_()
+            net.mlp[-1].bias[-1] = logit
+        blended, beta_near = net(env, material, reflectance, near=near)
+        torch.testing.assert_close(blended, expect)
+        torch.testing.assert_close(beta_near, beta)  # the weight is its own output: beta is untouched

@@ -97,7 +97,8 @@ class RTModel(nn.Module):
         self.background_map = (BackgroundMap(s.background_height, s.background_width, s.background_levels)
                                if s.background == "learned" else None)
         self.specular_net = (SpecularNetwork(s.env_channels + self._extra_specular_channels(), 4, s.mlp_width,
-                                             s.specular_precision, mirror=self.uses_mirror)
+                                             s.specular_precision, mirror=self.uses_mirror,
+                                             near_weight=effects.near_reflection and s.near_reflection_weight)
                              if effects.specular else None)
 
     def _extra_specular_channels(self) -> int:

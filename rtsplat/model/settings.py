@@ -82,6 +82,10 @@ class ModelSettings:
         "whose rectangles the view's shaded pixels hit most): each costs one more rasterization of the scene",
         minimum=1,
     )
+    near_reflection_weight: bool = setting(
+        False, help="with near reflections, a sixth output w of the specular network weighs them per pixel: "
+        "C_spec = reflectance (w C_near + (1 - w A_near) L) instead of w = 1"
+    )
     occupancy_init: float = setting(0.1, help="initial surfel occupancy", minimum=0.0, maximum=1.0)
     opacity_init: float = setting(0.5, help="initial optical opacity", minimum=0.0, maximum=1.0)
     transmissivity_init: float = setting(0.5, help="initial transmissivity tau", minimum=0.0, maximum=1.0)

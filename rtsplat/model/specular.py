@@ -9,6 +9,7 @@ import torch
 from torch import Tensor, nn
 
 LOG_HALF = math.log(0.5)
+NEAR_WEIGHT_START_LOGIT = 2.0  # sigmoid(2) = 0.88
 MAX_LOG_SPECULAR = 8.0  # exp() argument cap: keeps C_spec finite under any learning rate
 
 
@@ -35,17 +36,21 @@ class SpecularNetwork(nn.Module):
     native bfloat16 products (:func:`cpu_has_bfloat16_matmul`), float32 elsewhere."""
 
     def __init__(self, env_channels: int = 16, material_channels: int = 4, width: int = 256,
-                 precision: str = "float32", mirror: bool = False):
+                 precision: str = "float32", mirror: bool = False, near_weight: bool = False):
         super().__init__()
         if precision not in ("float32", "bfloat16", "auto"):
             raise ValueError(f"precision must be float32, bfloat16 or auto, got {precision!r}")
         in_dim = env_channels * material_channels + env_channels
         self.precision = precision
         self.mirror = mirror
-        outputs = 5 if mirror else 4
+        self.near_weight = near_weight
+        outputs = 4 + int(mirror) + int(near_weight)
         self.mlp = nn.Sequential(
             nn.Linear(in_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, outputs)
         )
+        if near_weight:  # the near reflection's weight starts near 1: the mirrored render is trusted first
+            with torch.no_grad():
+                self.mlp[-1].bias[-1] = NEAR_WEIGHT_START_LOGIT
 
     def uses_bfloat16(self, device: torch.device) -> bool:
         if self.precision == "auto":
@@ -72,7 +77,8 @@ class SpecularNetwork(nn.Module):
             weight = torch.sigmoid(out[:, 4:5])
             specular = weight * mirror + (1.0 - weight) * specular
         if near is not None:
-            specular = near[0] + (1.0 - near[1]) * specular
+            weight = torch.sigmoid(out[:, -1:]) if self.near_weight else 1.0
+            specular = weight * near[0] + (1.0 - weight * near[1]) * specular
         specular = specular * reflectance
         beta = torch.sigmoid(out[:, 3:4])
         return specular, beta
