@@ -12,6 +12,7 @@ from rtsplat.camera import camera_from_fov
 from rtsplat.model.checkpoint import read_checkpoint, write_checkpoint
 from rtsplat.model.mirror import (
     PLANE_COLUMNS,
+    first_plane_hit,
     fit_planes,
     mirror_points,
     mirror_quats,
@@ -22,7 +23,7 @@ from rtsplat.model.settings import ModelSettings
 from rtsplat.model.surfels import init_from_points
 from rtsplat.raster import RasterSettings, Surfels, rasterize
 from rtsplat.raster.projection import quat_to_rotmat
-from rtsplat.train.effects import PLANAR_SHARE, decide_near_planes
+from rtsplat.train.effects import PLANAR_SHARE, decide_near_planes, see_through_planes
 
 
 def plane_row(normal, centre, u, half=(10.0, 10.0), thickness=0.01, dtype=torch.float32):
@@ -109,8 +110,9 @@ def _box_points(n=1500, seed=0, noise=0.0):
 
 def test_fit_planes_finds_the_faces_of_a_box_and_their_rectangles():
     points, normals = _box_points(noise=0.003)
-    planes, share = fit_planes(points, normals, tolerance=0.02)
-    assert planes.shape == (6, PLANE_COLUMNS)
+    planes, shares = fit_planes(points, normals, tolerance=0.02)
+    share = float(shares.sum())
+    assert planes.shape == (6, PLANE_COLUMNS) and shares.shape == (6,)
     assert share > 0.95
     found = sorted(tuple(int(round(float(x))) for x in row[:3]) for row in planes)
     assert found == sorted([(-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)])
@@ -124,12 +126,13 @@ def test_fit_planes_on_a_sphere_explains_too_little_to_switch_near_reflections_o
     g = torch.Generator().manual_seed(1)
     normals = torch.nn.functional.normalize(torch.randn(6000, 3, generator=g, dtype=torch.float64), dim=-1)
     points = 1.5 * normals
-    planes, share = fit_planes(points, normals, tolerance=0.01 * 3.0 * math.sqrt(3))
+    planes, shares = fit_planes(points, normals, tolerance=0.01 * 3.0 * math.sqrt(3))
+    share = float(shares.sum())
     use, why = decide_near_planes("auto", planes.shape[0], share if planes.shape[0] else None)
     assert share < PLANAR_SHARE and not use and "not planar" in why or "no plane" in why
     box_points, box_normals = _box_points()
-    planes, share = fit_planes(box_points, box_normals, tolerance=0.02)
-    assert decide_near_planes("auto", planes.shape[0], share)[0]
+    planes, shares = fit_planes(box_points, box_normals, tolerance=0.02)
+    assert decide_near_planes("auto", planes.shape[0], float(shares.sum()))[0]
 
 
 def test_decide_near_planes_modes():
@@ -278,3 +281,25 @@ def test_the_near_weight_output_blends_between_no_near_term_and_the_full_one():
         blended, beta_near = net(env, material, reflectance, near=near)
         torch.testing.assert_close(blended, expect)
         torch.testing.assert_close(beta_near, beta)  # the weight is its own output: beta is untouched
+
+
+def test_a_plane_is_glass_only_if_what_its_rays_show_lies_behind_it():
+    # a pane at y = 0 and, off to the side, a floor at z = -1, each met first by its own rays from a camera
+    # at y = -3: the pane's rays show the scene 2 units behind it, the floor's show the floor itself
+    f64 = dict(dtype=torch.float64)
+    pane = plane_row((0, -1, 0), (0, 0, 0), (1, 0, 0), half=(1.0, 1.0), thickness=0.02, **f64)
+    floor = plane_row((0, 0, 1), (5, 3, -1), (1, 0, 0), half=(5.0, 3.0), thickness=0.02, **f64)
+    planes = torch.cat([pane, floor])
+    origin = torch.tensor([0.0, -3.0, 0.0], **f64).expand(50, 3)
+    g = torch.Generator().manual_seed(0)
+    through_pane = torch.nn.functional.normalize(
+        torch.tensor([0.0, 1.0, 0.0], **f64) + 0.1 * torch.randn(50, 3, generator=g, **f64), dim=-1)
+    to_floor = torch.nn.functional.normalize(torch.tensor([[1.0, 1.2, -0.2]], **f64), dim=-1).expand(50, 3)
+    index, distance = first_plane_hit(torch.cat([origin, origin]), torch.cat([through_pane, to_floor]), planes)
+    assert index[:50].eq(0).all() and index[50:].eq(1).all()
+    rays = torch.cat([
+        torch.cat([origin, through_pane, (distance[:50] + 2.0)[:, None]], -1),
+        torch.cat([origin, to_floor, distance[50:, None]], -1),
+    ])
+    assert see_through_planes(planes, rays).tolist() == [True, False]
+    assert see_through_planes(planes[:0], rays).shape == (0,)

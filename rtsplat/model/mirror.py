@@ -79,17 +79,24 @@ def mirror_quats(quats: Tensor, normal: Tensor) -> Tensor:
 def plane_assignment(camera: Camera, planes: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
     """For each pixel ray (unit ``directions`` [H,W,3] from the camera centre), the index of the first
     plane rectangle it hits in front of the camera (-1: none) [H,W] and the distance to it [H,W]
-    (inf where none). Rays within :data:`MIN_RAY_COSINE` of parallel to a plane miss it."""
-    H, W = directions.shape[:2]
+    (inf where none): :func:`first_plane_hit` from the camera centre."""
+    return first_plane_hit(camera.center.to(directions.dtype), directions, planes)
+
+
+def first_plane_hit(origins: Tensor, directions: Tensor, planes: Tensor) -> tuple[Tensor, Tensor]:
+    """For rays from ``origins`` [...,3] (or one [3]) along unit ``directions`` [...,3], the index of the
+    first plane rectangle hit in front of the origin (-1: none) and the distance to it (inf where none).
+    Rays within :data:`MIN_RAY_COSINE` of parallel to a plane miss it."""
+    shape = directions.shape[:-1]
     if planes.shape[0] == 0:
-        return (torch.full((H, W), -1, dtype=torch.long, device=directions.device),
-                torch.full((H, W), float("inf"), dtype=directions.dtype, device=directions.device))
+        return (torch.full(shape, -1, dtype=torch.long, device=directions.device),
+                torch.full(shape, float("inf"), dtype=directions.dtype, device=directions.device))
     n, c, u, v, half, _ = plane_parts(planes.to(directions.dtype))
-    origin = camera.center.to(directions.dtype)
-    cosine = directions @ n.T  # [H,W,K]
+    origin = origins.to(directions.dtype)[..., None, :]  # [...,1,3]
+    cosine = directions @ n.T  # [...,K]
     facing = cosine.abs() > MIN_RAY_COSINE
     t = ((c - origin) * n).sum(-1) / torch.where(facing, cosine, torch.ones_like(cosine))
-    hit = origin + t[..., None] * directions[..., None, :]  # [H,W,K,3]
+    hit = origin + t[..., None] * directions[..., None, :]  # [...,K,3]
     local = hit - c
     inside = ((local * u).sum(-1).abs() <= half[:, 0]) & ((local * v).sum(-1).abs() <= half[:, 1])
     valid = facing & inside & (t > 0) & torch.isfinite(t)
@@ -102,9 +109,9 @@ def plane_assignment(camera: Camera, planes: Tensor, directions: Tensor) -> tupl
 def fit_planes(
     points: Tensor, normals: Tensor, *, tolerance: float, max_planes: int = 6, min_share: float = 0.05,
     max_angle_deg: float = 15.0, candidates: int = 256, seed: int = 0,
-) -> tuple[Tensor, float]:
-    """Planes [K,11] that explain the oriented points [N,3] (with unit normals [N,3]), and the share of
-    the points they explain.
+) -> tuple[Tensor, Tensor]:
+    """Planes [K,12] that explain the oriented points [N,3] (with unit normals [N,3]), and the share of
+    the points each explains [K] (their sum: the share explained).
 
     Sequential RANSAC: each round draws ``candidates`` points and takes each one's own plane (its
     position and normal); the candidate with the most inliers (within ``tolerance`` of the plane and
@@ -118,7 +125,7 @@ def fit_planes(
     generator = torch.Generator().manual_seed(seed)
     cos_max = float(torch.cos(torch.deg2rad(torch.tensor(max_angle_deg))))
     remaining = torch.ones(n_all, dtype=torch.bool)
-    planes, explained = [], 0
+    planes, explained = [], []
     while len(planes) < max_planes:
         pool = torch.nonzero(remaining).flatten()
         if pool.numel() < max(3, int(min_share * n_all)):
@@ -149,11 +156,11 @@ def fit_planes(
         extent = torch.tensor([0.5 * (hi_u - lo_u) + tolerance, 0.5 * (hi_v - lo_v) + tolerance, tolerance],
                               dtype=torch.float64)
         planes.append(torch.cat([normal, centre, u, extent]))
-        explained += inliers.numel()
+        explained.append(inliers.numel() / max(n_all, 1))
         remaining[inliers] = False
     if not planes:
-        return empty_planes(), 0.0
-    return torch.stack(planes).to(torch.float32), explained / max(n_all, 1)
+        return empty_planes(), torch.zeros(0)
+    return torch.stack(planes).to(torch.float32), torch.tensor(explained, dtype=torch.float32)
 
 
 def _smallest_rectangle(local: Tensor, normal: Tensor, steps: int = 90):

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import torch
+from torch import Tensor
+
+from rtsplat.model.mirror import first_plane_hit
 from rtsplat.model.rtmodel import ActiveEffects
 from rtsplat.train_config import Effects
 
@@ -10,6 +14,7 @@ from rtsplat.train_config import Effects
 # what lies behind the glass elsewhere (about a third of them on the cabin half-way through its demo
 # training): planar panes explain 40-50% there, curved glass (the dome) no plane at all (docs/fidelity.md, 23)
 PLANAR_SHARE = 0.3
+BEHIND_SHARE = 0.5  # a plane is glass when this share of the rays meeting it first see something behind it
 
 
 def decide_effects(
@@ -74,3 +79,22 @@ def decide_near_planes(mode: str, planes: int, planar_share: float | None) -> tu
     if planar_share >= PLANAR_SHARE:
         return True, f"auto: planar glass; {share}"
     return False, f"auto: the glass is not planar; {share}, needs {PLANAR_SHARE:.0%}"
+
+
+def see_through_planes(planes: Tensor, rays: Tensor) -> Tensor:
+    """Which planes [K,12] are see-through [K] (bool): of the see-through pixels' rays [P,7] (origin,
+    unit direction, distance to what the transmission shows) that meet a plane first, at least
+    :data:`BEHIND_SHARE` see something beyond it by more than its thickness. A plane that no ray meets
+    first is kept out."""
+    if planes.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.bool)
+    index, distance = first_plane_hit(rays[:, :3], rays[:, 3:6], planes.to(rays.dtype))
+    thickness = planes[:, 11].to(rays.dtype)
+    behind = torch.zeros(planes.shape[0], dtype=rays.dtype)
+    hits = torch.zeros(planes.shape[0], dtype=rays.dtype)
+    first = index >= 0
+    k = index[first]
+    hits.index_add_(0, k, torch.ones_like(k, dtype=rays.dtype))
+    beyond = (rays[first, 6] > distance[first] + thickness[k]).to(rays.dtype)
+    behind.index_add_(0, k, beyond)
+    return (hits > 0) & (behind >= BEHIND_SHARE * hits)

@@ -50,12 +50,12 @@ from rtsplat.train.cameras import PoseCorrections, fit_corrections
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
-from rtsplat.train.effects import decide_effects, decide_near_planes
+from rtsplat.train.effects import decide_effects, decide_near_planes, see_through_planes
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train_config import TrainConfig, resume_differences
 
 PLANE_TOLERANCE = 0.01  # mirror planes: thickness tolerance, a fraction of the glass points' diagonal
-MAX_PLANE_POINTS = 200_000  # glass points the mirror planes are fitted to (a random subset beyond)
+MAX_PLANE_POINTS = 50_000  # glass points the mirror planes are fitted to (a random subset beyond)
 
 
 @dataclass
@@ -163,8 +163,13 @@ class Trainer:
 
         The points are the surface depth of every training view's transparent pixels (mask > 0.5,
         surface alpha > 0.5) with the surface normals, at most ``MAX_PLANE_POINTS`` of them; the planes
-        are fitted within ``PLANE_TOLERANCE`` of the points' diagonal (:func:`rtsplat.model.mirror.fit_planes`)."""
-        points, normals = [], []
+        are fitted within ``PLANE_TOLERANCE`` of the points' diagonal (:func:`rtsplat.model.mirror.fit_planes`).
+        A plane is glass only if the scene seen through it lies behind it: of the pixels whose ray meets
+        the plane first, most must have their volume depth (what the transmission shows) beyond the plane
+        by more than its thickness (:data:`BEHIND_SHARE`). A floor seen through a dome, or the floor inside
+        a cabin, is a plane the see-through pixels hit, but what they show lies on it, not behind it."""
+        start = time.perf_counter()
+        points, normals, rays = [], [], []
         for index, camera in enumerate(self.train_views.cameras):
             mask = self.train_views.masks[index]
             if mask is None:
@@ -172,26 +177,34 @@ class Trainer:
             out = rasterize(self.model.rasterizer_surfels(camera), camera, self.cfg.raster, backend=self.cfg.backend)
             chosen = ((mask > 0.5) & (out.alpha > 0.5))[..., 0]
             directions = image_ray_directions(camera)[chosen]
-            forward = camera.rotation[2]
-            distance = out.depth[chosen] / (directions @ forward).clamp_min(1e-6)[:, None]
-            points.append(camera.center + distance * directions)
+            along = (directions @ camera.rotation[2]).clamp_min(1e-6)[:, None]  # z per unit of distance
+            points.append(camera.center + out.depth[chosen] / along * directions)
             normals.append(torch.nn.functional.normalize(out.normal[chosen], dim=-1))
-        xyz = torch.cat(points).cpu().double() if points else torch.zeros(0, 3, dtype=torch.float64)
-        normal = torch.cat(normals).cpu().double() if normals else torch.zeros(0, 3, dtype=torch.float64)
-        ok = torch.isfinite(xyz).all(-1) & torch.isfinite(normal).all(-1)
-        xyz, normal = xyz[ok], normal[ok]
+            rays.append(torch.cat([camera.center.expand_as(directions), directions,
+                                   out.volume_depth[chosen] / along], -1))
+        xyz, normal, rays = (torch.cat(x).cpu().double() if x else torch.zeros(0, w, dtype=torch.float64)
+                             for x, w in ((points, 3), (normals, 3), (rays, 7)))
+        ok = torch.isfinite(xyz).all(-1) & torch.isfinite(normal).all(-1) & torch.isfinite(rays).all(-1)
+        xyz, normal, rays = xyz[ok], normal[ok], rays[ok]
         if xyz.shape[0] > MAX_PLANE_POINTS:
             keep = torch.randperm(xyz.shape[0], generator=self.rng)[:MAX_PLANE_POINTS]
-            xyz, normal = xyz[keep], normal[keep]
-        planes, share = empty_planes(), None
+            xyz, normal, rays = xyz[keep], normal[keep], rays[keep]
+        planes, share, dropped = empty_planes(), None, 0
         if xyz.shape[0] >= 16:
             diagonal = float((xyz.max(0).values - xyz.min(0).values).norm())
-            planes, share = fit_planes(xyz, normal, tolerance=PLANE_TOLERANCE * diagonal, seed=self.cfg.seed)
+            planes, shares = fit_planes(xyz, normal, tolerance=PLANE_TOLERANCE * diagonal, seed=self.cfg.seed)
+            glass = see_through_planes(planes, rays)
+            dropped = int((~glass).sum())
+            planes, share = planes[glass], float(shares[glass].sum())
         use, why = decide_near_planes(self.cfg.effects.near_reflection, planes.shape[0], share)
+        if dropped:
+            why += f" ({dropped} plane(s) with nothing behind them left out)"
         self.model.set_mirror_planes(planes if use else empty_planes())
         self.near_fit = {"iteration": self.iteration, "points": int(xyz.shape[0]), "planes": int(planes.shape[0]),
-                         "planar_share": share, "on": use, "reason": why}
-        self.log(f"near reflection at iteration {self.iteration}: {'on' if use else 'off'} ({why})")
+                         "planar_share": share, "on": use, "reason": why,
+                         "seconds": round(time.perf_counter() - start, 3)}
+        self.log(f"near reflection at iteration {self.iteration}: {'on' if use else 'off'} ({why}; "
+                 f"fitted in {self.near_fit['seconds']:.1f} s)")
         self._write_effects()
         return self.near_fit
 
