@@ -247,11 +247,10 @@ class RTModel(nn.Module):
             keep = torch.nonzero(side > thickness[k], as_tuple=False).flatten()
             if keep.numel() == 0:
                 continue
-            mirrored_center = mirror_points(center, n, c)
             means = p.means[keep]
-            # the view-independent (degree 0) colour: a reflection sees the surfels from directions that no
-            # view may have seen them from, where higher SH degrees extrapolate
-            colors = eval_sh(p.sh[keep][:, :1], F.normalize(means - mirrored_center, dim=-1), 0)
+            # the view-independent (degree 0) colour, which no direction changes: a reflection sees the
+            # surfels from directions that no view may have seen them from, where higher degrees extrapolate
+            colors = eval_sh(p.sh[keep], F.normalize(means - center, dim=-1), 0)
             occupancy = p.occupancy[keep]
             opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)
             mirrored = Surfels(mirror_points(means, n, c), mirror_quats(p.quats[keep], n), p.scales[keep],
