@@ -64,7 +64,8 @@ def test_training_reduces_loss_and_raises_heldout_psnr(tmp_path):
     assert last < 0.6 * first
     assert summary["test_psnr"] > before["test_psnr"] + 5.0
     assert summary["test_psnr_transparent"] > before["test_psnr_transparent"] + 3.0
-    assert summary["effects"] == {"transmission": True, "specular": True}
+    assert summary["effects"] == {"transmission": True, "specular": True, "near_reflection": True}
+    assert summary["near_reflection"]["iteration"] == 101  # the planes were fitted as the reflections started
 
 
 def test_run_directory_contents_and_ply_export(glass_scene, tmp_path):
