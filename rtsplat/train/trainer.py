@@ -177,11 +177,11 @@ class Trainer:
             out = rasterize(self.model.rasterizer_surfels(camera), camera, self.cfg.raster, backend=self.cfg.backend)
             chosen = ((mask > 0.5) & (out.alpha > 0.5))[..., 0]
             directions = image_ray_directions(camera)[chosen]
-            along = (directions @ camera.rotation[2]).clamp_min(1e-6)[:, None]  # z per unit of distance
-            points.append(camera.center + out.depth[chosen] / along * directions)
+            seen_through = losses.depth_to_points(out.volume_depth, camera)[chosen]  # what the transmission shows
+            points.append(losses.depth_to_points(out.depth, camera)[chosen])
             normals.append(torch.nn.functional.normalize(out.normal[chosen], dim=-1))
             rays.append(torch.cat([camera.center.expand_as(directions), directions,
-                                   out.volume_depth[chosen] / along], -1))
+                                   (seen_through - camera.center).norm(dim=-1, keepdim=True)], -1))
         xyz, normal, rays = (torch.cat(x).cpu().double() if x else torch.zeros(0, w, dtype=torch.float64)
                              for x, w in ((points, 3), (normals, 3), (rays, 7)))
         ok = torch.isfinite(xyz).all(-1) & torch.isfinite(normal).all(-1) & torch.isfinite(rays).all(-1)
