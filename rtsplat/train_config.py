@@ -44,9 +44,10 @@ class Effects:
         "a region of interest given in the config"
     )
     near_reflection: Literal["auto", "on", "off"] = setting(
-        "auto", help="reflections of the scene's own surfels in planar glass (mirror planes fitted to the "
-        "transparent surface that prepare finds; one more rasterization per plane in view); auto: on iff "
-        "transmission and specular are on and planes explain most of the transparent surface (planar glass)"
+        "auto", help="reflections of the scene's own surfels in planar glass (mirror planes fitted, as the "
+        "reflections start, to the surface depth of the see-through pixels; one more rasterization per plane in "
+        "view); auto: on iff transmission and specular are on and see-through planes explain enough of that "
+        "surface (planar glass)"
     )
 
 

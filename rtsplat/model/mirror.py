@@ -5,13 +5,13 @@ reflects of the scene near it (the room behind a shop window, the car beside a c
 model already, as the surfels that the views see directly. For a planar pane, that reflection is the
 model rendered through the pane's mirror image:
 
-* the pane is a plane ``n . x + d = 0`` with a rectangle on it (:func:`fit_planes` finds them in the
-  points of the transparent surface that ``prepare`` writes, the masks' visual hull);
+* the pane is a plane ``n . x + d = 0`` with a rectangle on it (:func:`fit_planes` finds them in oriented
+  points; the trainer gives it the surface depth of the see-through pixels);
 * the surfels on the camera's side of the plane (not the glass itself, which lies on the plane, and
-  not what is seen through it, which lies behind) are reflected in the plane
-  (:func:`reflect_surfels`: centres mirrored, rotations composed with the reflection so that they stay
-  rotations, colours evaluated for the mirrored camera's view direction) and rasterized from the real
-  camera: every pixel then sees, along its own ray, the scene that the ray reflected in the plane sees;
+  not what is seen through it, which lies behind) are reflected in the plane (:func:`mirror_points`,
+  :func:`mirror_quats`: centres mirrored, rotations composed with the reflection so that they stay
+  rotations) and rasterized from the real camera (``RTModel._near_reflection``): every pixel then sees,
+  along its own ray, the scene that the ray reflected in the plane sees;
 * each pixel takes the near reflection of the first plane rectangle its ray hits
   (:func:`plane_assignment`), with the volume alpha of that render as its coverage. What the reflected
   ray sees past the model's surfels (sky, far scenery) stays the environment lookup's:
@@ -117,8 +117,9 @@ def fit_planes(
     position and normal); the candidate with the most inliers (within ``tolerance`` of the plane and
     with a normal within ``max_angle_deg`` of it, either side) wins and is refitted to its inliers
     (least squares), which leave the pool. Rounds stop at ``max_planes`` or when the best plane
-    explains less than ``min_share`` of all the points. The rectangle of a plane spans its inliers
-    along their principal axes; its thickness is ``tolerance``. Scoring is chunked, so 1M points fit in memory."""
+    explains less than ``min_share`` of all the points. The rectangle of a plane is the smallest-area one
+    holding its inliers (grown by ``tolerance``); its thickness is ``tolerance``. Scoring is chunked, so
+    1M points fit in memory."""
     points = points.to(torch.float64)
     normals = torch.nn.functional.normalize(normals.to(torch.float64), dim=-1)
     n_all = points.shape[0]

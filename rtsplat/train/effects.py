@@ -12,7 +12,7 @@ from rtsplat.train_config import Effects
 # near_reflection auto: the share of the see-through points that planes must explain. The points are the
 # surface depth of the masked pixels, which is the glass where the glass is opaque enough to hold it and
 # what lies behind the glass elsewhere (about a third of them on the cabin half-way through its demo
-# training): planar panes explain 40-50% there, curved glass (the dome) no plane at all (docs/fidelity.md, 23)
+# training): planar panes explain 40-50% there, curved glass (the dome) 0-5% (docs/fidelity.md, 23)
 PLANAR_SHARE = 0.3
 BEHIND_SHARE = 0.5  # a plane is glass when this share of the rays meeting it first see something behind it
 
