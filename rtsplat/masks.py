@@ -2,16 +2,18 @@
 
 Two ways (function API :func:`make_masks`):
 
-* **ingest** ``<scene>/transparent_masks/<image stem>.png``: names and sizes are validated against
-  the images, masks are binarised, coverage is reported;
+* **ingest** ``<scene>/transparent_masks/``: one mask per photo, named like the photo (``IMG_0001.JPG``),
+  after its stem with any image extension (``IMG_0001.png``) or COLMAP's way (``IMG_0001.JPG.png``)
+  (:func:`match_masks`); names and sizes are validated against the images, masks are binarised (JPEG
+  masks with a tolerance for compression noise, :func:`interpret_mask`), coverage is reported;
 * **segment** with a local ONNX model through onnxruntime (:class:`OnnxSegmenter`): the common SAM
   and SAM2 exports (an image encoder plus a prompted mask decoder; the kind is detected from the
   decoder's input names) prompted by the points/box of the config, or a plain "image in, mask
   logits out" model.
 
-Output folder: ``<stem>.png`` masks (only when there are masks) and ``summary.json`` with
-``has_masks``, ``source`` and per-image coverage. A scene without masks gets ``has_masks: false``
-and is trained without transparency.
+Output folder: ``<stem>.png`` masks (8-bit 0/255 PNGs whatever the input format; only when there are
+masks) and ``summary.json`` with ``has_masks``, ``source`` and per-image coverage. A scene without
+masks gets ``has_masks: false`` and is trained without transparency.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ class MasksSummary:
     polarity: str = "white"  # ingest: the mask colour read as see-through
     polarity_reason: str = ""
     mask_kinds: dict[str, int] = field(default_factory=dict)  # ingest: how many masks of each kind
+    without_mask: list[str] = field(default_factory=list)  # ingest with allow_missing: photos given empty masks
 
 
 # ----------------------------------------------------------------------------------------------
@@ -275,24 +278,100 @@ class OnnxSegmenter:
 # the stage
 
 
-def _find_mask(mask_dir: Path, stem: str) -> Path | None:
-    for ext in (".png",) + tuple(e for e in IMAGE_EXTENSIONS if e != ".png"):
-        p = mask_dir / f"{stem}{ext}"
-        if p.is_file():
-            return p
-    return None
+MASK_NAMING = "<photo name> (IMG_0001.JPG), <photo stem>.<image extension> (IMG_0001.png) or <photo name>.png"
+
+
+def check_unique_stems(images: list[Path]) -> None:
+    """Refuse photos that share a stem (``a.jpg``, ``a.png``): the stage writes one ``<stem>.png`` per photo."""
+    by_stem: dict[str, Path] = {}
+    for img in images:
+        if img.stem in by_stem:
+            raise PipelineError(
+                f"two photos share a file stem: {by_stem[img.stem].name} and {img.name} "
+                f"(their masks would both be {img.stem}.png)",
+                path=img.parent,
+                fix="rename the photos so their names without extension are unique",
+            )
+        by_stem[img.stem] = img
+
+
+def match_masks(images: list[Path], mask_dir: Path) -> dict[Path, Path | None]:
+    """Each photo's mask file in ``mask_dir`` (None: it has none); the one lookup of dataset masks by name.
+
+    A mask file belongs to a photo when its name without the extension is the photo's stem or the photo's
+    full name, with any image extension in any case (:data:`MASK_NAMING`): ``IMG_0001.JPG``,
+    ``IMG_0001.jpg``, ``IMG_0001.png`` and ``IMG_0001.JPG.png`` all belong to ``IMG_0001.JPG``. Stems are
+    compared exactly (case-sensitive, like the file system). Raises :class:`PipelineError` when two files
+    belong to one photo, when a mask belongs to no photo (naming one expected and one found name), and when
+    two photos share a stem (their masks would both be written as ``<stem>.png``).
+    """
+    images = sorted(images, key=lambda p: p.name)
+    check_unique_stems(images)
+    files = list_images(mask_dir)
+    by_key: dict[str, list[Path]] = {}
+    for mask in files:
+        by_key.setdefault(mask.stem, []).append(mask)
+    found: dict[Path, Path | None] = {}
+    owner: dict[Path, Path] = {}
+    for img in images:
+        candidates = by_key.get(img.stem, []) + (by_key.get(img.name, []) if img.name != img.stem else [])
+        if len(candidates) > 1:
+            names = " and ".join(m.name for m in candidates)
+            raise PipelineError(
+                f"photo {img.name} has {len(candidates)} masks: {names}",
+                path=mask_dir,
+                fix=f"keep one mask per photo (delete or move {candidates[-1].name})",
+            )
+        mask = candidates[0] if candidates else None
+        if mask is not None and mask in owner:
+            raise PipelineError(
+                f"mask {mask.name} belongs to two photos: {owner[mask].name} and {img.name}",
+                path=mask,
+                fix="rename the photos so no photo's name is another photo's stem",
+            )
+        if mask is not None:
+            owner[mask] = img
+        found[img] = mask
+    unmatched = [m for m in files if m not in owner]
+    if unmatched and not owner:
+        raise PipelineError(
+            f"none of the {len(files)} masks matches a photo: expected e.g. {images[0].name} or "
+            f"{images[0].stem}.png (for photo {images[0].name}), found e.g. {unmatched[0].name}",
+            path=mask_dir,
+            fix=f"name each mask after its photo: {MASK_NAMING}; or point masks.dir at the right folder",
+        )
+    if unmatched:
+        stem = unmatched[0].stem
+        photos = f"images/{stem}.*" + (f" or images/{stem}" if Path(stem).suffix.lower() in IMAGE_EXTENSIONS else "")
+        raise PipelineError(
+            f"mask has no matching image (expected a photo {photos})",
+            path=unmatched[0],
+            fix=f"name each mask after its photo ({MASK_NAMING}) or remove masks of deleted photos",
+        )
+    return found
 
 
 MIDTONE_LIMIT = 0.25  # a colour mask with more pixels strictly between dark and bright is refused as a photo
+LOSSY_EXTENSIONS = (".jpg", ".jpeg", ".webp")  # mask files whose pixels may carry compression noise
+# lossy masks: largest difference between the colour channels of a pixel that still counts as grey. JPEG's
+# chroma rounding puts colour fringes of up to ~0.1 on the edges of black-and-white masks; a coloured
+# mask (one colour on black) differs by the brightness of its colour, far more
+LOSSY_GREY_TOLERANCE = 0.2
 
 
-def interpret_mask(pixels: np.ndarray, threshold: float, path: Path) -> tuple[np.ndarray, str]:
+def interpret_mask(pixels: np.ndarray, threshold: float, path: Path, lossy: bool = False) -> tuple[np.ndarray, str]:
     """A mask file's pixels (float [H, W, C] in the file's range scaled to [0, 1]) as (bool [H, W], kind):
 
     - ``label map``: the values 0 and 1 stored as integers (1/255 or 1/65535 once scaled): 1 is the surface;
     - ``alpha``: a flat colour with the mask in the alpha channel;
     - ``colour``: a coloured mask (e.g. green on black): the brightest colour channel against ``threshold``;
     - ``grey``: the first channel against ``threshold``.
+
+    ``lossy`` (JPEG, WebP): compression leaves values near black and white and slightly coloured fringes at
+    the edges, so channels that differ by up to :data:`LOSSY_GREY_TOLERANCE` still make a grey mask, read as
+    the mean of the colour channels; ``threshold`` (``masks.threshold``, 0.5 by default: halfway between
+    black and white) then cuts the ringing off on both sides. A 0/1 label map does not survive lossy
+    compression; save those as PNG.
 
     A colour image that is mostly mid-tones (a photo saved as a mask) raises :class:`PipelineError`.
     """
@@ -301,10 +380,13 @@ def interpret_mask(pixels: np.ndarray, threshold: float, path: Path) -> tuple[np
     if len(values) == 2 and values[0] == 0 and values[1] <= 1 / 255 + 1e-6:
         return colour.max(-1) > 0, "label map"
     channel, kind = pixels[..., 0], "grey"
+    grey_tolerance = LOSSY_GREY_TOLERANCE if lossy else 1 / 255
     if pixels.shape[2] in (2, 4) and float(channel.max(initial=0.0)) == float(channel.min(initial=0.0)):
         channel, kind = pixels[..., -1], "alpha"
-    elif pixels.shape[2] >= 3 and np.abs(colour - colour[..., :1]).max(initial=0.0) > 1 / 255:
+    elif pixels.shape[2] >= 3 and np.abs(colour - colour[..., :1]).max(initial=0.0) > grey_tolerance:
         channel, kind = colour.max(-1), "colour"
+    elif lossy and pixels.shape[2] >= 3:
+        channel = colour.mean(-1)
     midtones = float(((channel > 0.1) & (channel < 0.9)).mean())
     if kind == "colour" and midtones > MIDTONE_LIMIT:
         raise PipelineError(
@@ -315,35 +397,36 @@ def interpret_mask(pixels: np.ndarray, threshold: float, path: Path) -> tuple[np
     return channel >= threshold, kind
 
 
-def ingest_masks(images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig, progress: bool) -> dict:
-    """Masks of ``images`` read from ``mask_dir`` and written to ``out`` as they are (white = the value
-    :func:`interpret_mask` finds); per-image coverage, and how many masks of each kind under ``"kinds"``."""
+def ingest_masks(
+    images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig, progress: bool
+) -> tuple[dict[str, float], dict[str, int], list[str]]:
+    """Masks of ``images`` found in ``mask_dir`` by :func:`match_masks`, written to ``out`` as ``<stem>.png``
+    as they are (white = the value :func:`interpret_mask` finds). Returns the per-image coverage, how many
+    masks of each kind, and the photos without a mask (empty masks; an error unless ``masks.allow_missing``)."""
     from tqdm import tqdm
 
     from rtsplat.io.images import read_raw_pixels
 
-    stems = {p.stem for p in images}
-    extra = [p for p in list_images(mask_dir) if p.stem not in stems]
-    if extra:
+    masks = match_masks(images, mask_dir)
+    missing = [img.name for img in images if masks[img] is None]
+    if missing and not cfg.allow_missing:
+        first = Path(missing[0])
         raise PipelineError(
-            f"mask has no matching image (expected one of images/<{extra[0].stem}>.*)",
-            path=extra[0],
-            fix="name each mask after its image (<image stem>.png) or remove masks of deleted images",
+            f"no mask for image {first.name} ({len(missing)} of {len(images)} photos have none): looked for "
+            f"{first.name}, {first.stem}.<image extension> and {first.name}.png",
+            path=mask_dir,
+            fix="add the missing masks, or set masks.allow_missing: true to read those photos as having no "
+            "see-through surface (empty masks)",
         )
     coverage, kinds = {}, {}
     for img in tqdm(images, desc="masks", unit="img", disable=not progress):
         header = read_header(img)
-        mpath = _find_mask(mask_dir, img.stem)
+        mpath = masks[img]
         if mpath is None:
-            if not cfg.allow_missing:
-                raise PipelineError(
-                    f"no mask for image {img.name}",
-                    path=mask_dir / f"{img.stem}.png",
-                    fix="add the mask, or set masks.allow_missing: true to treat it as fully opaque",
-                )
             mask = np.zeros((header.height, header.width), bool)
         else:
-            mask, kind = interpret_mask(read_raw_pixels(mpath), cfg.threshold, mpath)
+            lossy = mpath.suffix.lower() in LOSSY_EXTENSIONS
+            mask, kind = interpret_mask(read_raw_pixels(mpath), cfg.threshold, mpath, lossy)
             kinds[kind] = kinds.get(kind, 0) + 1
             if mask.shape != (header.height, header.width):
                 raise PipelineError(
@@ -353,7 +436,7 @@ def ingest_masks(images: list[Path], mask_dir: Path, out: Path, cfg: MasksConfig
                 )
         write_mask(out / f"{img.stem}.png", mask)
         coverage[img.stem] = float(mask.mean())
-    return coverage, kinds
+    return coverage, kinds, missing
 
 
 def decide_polarity(coverage: dict[str, float], cfg: MasksConfig) -> tuple[str, str]:
@@ -397,15 +480,18 @@ def make_masks(
         raise PipelineError(
             "mask folder not found",
             path=mask_dir,
-            fix="put <image stem>.png masks there, set masks.dir, or masks.source: auto",
+            fix=f"put one mask per photo there ({MASK_NAMING}), set masks.dir, or masks.source: auto",
         )
+    if source != "none":
+        check_unique_stems(images)
     with output_dir(out_dir, "masks", inputs=[scene_dir]) as tmp:
-        kind, polarity, reason, kinds = "", "white", "", {}
+        kind, polarity, reason, kinds, missing = "", "white", "", {}, []
         if source == "ingest":
-            coverage, kinds = ingest_masks(images, mask_dir, tmp, cfg, progress)
-            polarity, reason = decide_polarity(coverage, cfg)
-            if polarity == "black":
-                for stem in coverage:
+            coverage, kinds, missing = ingest_masks(images, mask_dir, tmp, cfg, progress)
+            without = {Path(name).stem for name in missing}
+            polarity, reason = decide_polarity({k: v for k, v in coverage.items() if k not in without}, cfg)
+            if polarity == "black":  # photos without a mask stay empty (no see-through surface)
+                for stem in set(coverage) - without:
                     write_mask(tmp / f"{stem}.png", ~read_mask(tmp / f"{stem}.png"))
                     coverage[stem] = 1.0 - coverage[stem]
         elif source == "onnx":
@@ -422,6 +508,7 @@ def make_masks(
             polarity=polarity,
             polarity_reason=reason,
             mask_kinds=kinds,
+            without_mask=missing,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
     return summary
@@ -444,6 +531,9 @@ def run(args: argparse.Namespace) -> int:
         if s.source == "ingest":
             kinds = ", ".join(f"{n} {kind}" for kind, n in s.mask_kinds.items())
             print(f"masks {args.scene_dir}: mask files: {kinds or 'none'}; {s.polarity_reason}")
+            if s.without_mask:
+                print(f"masks {args.scene_dir}: {len(s.without_mask)} photo(s) without a mask read as having no "
+                      f"see-through surface (masks.allow_missing), e.g. {s.without_mask[0]}")
     else:
         print(f"masks {args.scene_dir}: no masks (the scene is trained without transparency)")
     return 0

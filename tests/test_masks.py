@@ -375,3 +375,131 @@ def test_a_photo_as_a_mask_is_refused(tmp_path):
         make_masks(d, tmp_path / "out", progress=False)
     assert "view_000.png" in str(err.value)
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# masks found by the photo's own name
+
+
+NAMING_STYLES = {
+    # photo extension, mask file name from (photo name, index), mask file format
+    "same name .JPG": (".JPG", lambda name, i: name, "jpg"),
+    "same name .jpg": (".jpg", lambda name, i: name, "jpg"),
+    "same name .png": (".png", lambda name, i: name, "png"),
+    "stem.png for .JPG photos": (".JPG", lambda name, i: Path(name).stem + ".png", "png"),
+    "stem.jpg for .JPG photos": (".JPG", lambda name, i: Path(name).stem + ".jpg", "jpg"),
+    "mixed case extensions": (".JPG", lambda name, i: Path(name).stem + (".jpg", ".PNG", ".JPG")[i],
+                              ("jpg", "png", "jpg")),
+    "<photo name>.png": (".JPG", lambda name, i: name + ".png", "png"),
+}
+
+
+@pytest.mark.parametrize("style", list(NAMING_STYLES))
+def test_masks_are_found_by_the_photos_name_in_every_naming_style(tmp_path, style):
+    photo_ext, mask_name, fmt = NAMING_STYLES[style]
+    formats = fmt if isinstance(fmt, tuple) else (fmt,) * 3
+    import cv2
+
+    d = tmp_path / "s"
+    views = make_corner_scene(d, n_views=3, width=80, height=60, ext=photo_ext, with_masks=True)
+    truth = {}
+    for i, v in enumerate(views):
+        stem = Path(v.name).stem
+        png = d / "transparent_masks" / f"{stem}.png"
+        truth[stem] = read_mask(png)
+        png.unlink()
+        data = np.repeat(truth[stem][..., None].astype(np.uint8) * 255, 3, axis=2)  # black and white, RGB
+        ok, encoded = cv2.imencode(f".{formats[i]}", data)
+        assert ok
+        (d / "transparent_masks" / mask_name(v.name, i)).write_bytes(encoded.tobytes())
+    out = tmp_path / "out"
+    s = make_masks(d, out, progress=False)
+    assert s.source == "ingest" and s.mask_kinds == {"grey": 3} and not s.without_mask
+    # the stage writes <stem>.png PNGs whatever the masks' names and formats
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [".rtsplat-output", "summary.json"] + [f"{stem}.png" for stem in truth])
+    for stem, mask in truth.items():
+        assert (out / f"{stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        got = read_mask(out / f"{stem}.png")
+        assert got.shape == mask.shape and np.array_equal(got, mask), (stem, int((got != mask).sum()))
+    assert s.mean_coverage == pytest.approx(np.mean([m.mean() for m in truth.values()]))
+
+
+@pytest.mark.parametrize("quality", [95, 60, 30])
+def test_jpeg_masks_are_thresholded_through_their_compression_noise(tmp_path, quality):
+    """Black-and-white masks saved as colour JPEGs, not quite grey (a few levels of colour noise, as masks
+    painted in an editor have): ringing at the edges and channels that differ, still read as grey masks;
+    at the default threshold 0.5 they come back as the drawn masks."""
+    import cv2
+
+    d = _scene_with_masks(tmp_path, {})
+    disc = np.zeros((30, 40), np.uint8)
+    cv2.circle(disc, (20, 15), 9, 255, -1)
+    tint = np.random.default_rng(0).integers(-8, 9, (30, 40, 3))
+    data = np.clip(disc[..., None].astype(int) + tint, 0, 255).astype(np.uint8)
+    for stem in ("view_000", "view_001"):
+        cv2.imwrite(str(d / "transparent_masks" / f"{stem}.jpg"), data, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    noisy = cv2.imread(str(d / "transparent_masks" / "view_000.jpg"))
+    assert len(np.unique(noisy)) > 2  # really lossy
+    if quality == 95:  # coloured fringes (lower qualities quantise the faint colour away)
+        assert np.abs(noisy.astype(int) - noisy[..., :1]).max() > 1
+    s = make_masks(d, tmp_path / "out", progress=False)
+    assert s.mask_kinds == {"grey": 2}
+    got = read_mask(tmp_path / "out" / "view_000.png")
+    assert (got != (disc > 0)).mean() <= 0.005, int((got != (disc > 0)).sum())  # at most 6 of 1200 pixels
+
+
+def test_a_coloured_jpeg_mask_is_still_a_colour_mask(tmp_path):
+    import cv2
+
+    d = _scene_with_masks(tmp_path, {})
+    for stem in ("view_000", "view_001"):
+        cv2.imwrite(str(d / "transparent_masks" / f"{stem}.jpg"), _window((0, 255, 0), 3))  # green on black
+    s = make_masks(d, tmp_path / "out", progress=False)
+    assert s.mask_kinds == {"colour": 2}
+    assert np.array_equal(read_mask(tmp_path / "out" / "view_000.png"), WINDOW)
+
+
+def test_two_masks_for_one_photo_are_refused_naming_both(tmp_path, capsys):
+    d = _scene_with_masks(tmp_path, {"view_000": _window(255), "view_001": _window(255)})
+    (d / "transparent_masks" / "view_001.JPG").write_bytes((d / "transparent_masks" / "view_001.png").read_bytes())
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert "photo view_001.png has 2 masks: view_001.JPG and view_001.png" in err and "Fix:" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_mask_set_that_matches_no_photo_shows_an_expected_and_a_found_name(tmp_path, capsys):
+    d = _scene_with_masks(tmp_path, {"IMG_7039": _window(255), "IMG_7040": _window(255)})
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert "none of the 2 masks matches a photo" in err
+    assert "expected e.g. view_000.png" in err and "found e.g. IMG_7039.png" in err
+    assert str(d / "transparent_masks") in err and "Fix:" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]  # nothing written
+
+
+def test_photos_without_masks_are_an_error_or_empty_masks_with_allow_missing(tmp_path, capsys):
+    inverted = np.where(WINDOW, 0, 255).astype(np.uint8)  # read as inverted masks (polarity auto)
+    d = _scene_with_masks(tmp_path, {"view_000": inverted})
+    out = tmp_path / "out"
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "no mask for image view_001.png (1 of 2 photos have none)" in err and "masks.allow_missing" in err
+    assert not out.exists()
+    argv = ["masks", "--scene-dir", str(d), "--out", str(out), "--config-json", '{"allow_missing": true}']
+    assert cli_main(argv) == 0
+    assert "1 photo(s) without a mask" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["without_mask"] == ["view_001.png"] and summary["polarity"] == "black"
+    assert np.array_equal(read_mask(out / "view_000.png"), WINDOW)
+    assert not read_mask(out / "view_001.png").any()  # no see-through surface, also with inverted masks
+
+
+def test_photos_sharing_a_stem_are_refused(tmp_path):
+    d = _scene_with_masks(tmp_path, {"view_000": _window(255), "view_001": _window(255)})
+    import cv2
+
+    cv2.imwrite(str(d / "images" / "view_001.jpg"), cv2.imread(str(d / "images" / "view_001.png")))
+    with pytest.raises(PipelineError, match="two photos share a file stem: view_001.jpg and view_001.png"):
+        make_masks(d, tmp_path / "out", progress=False)
