@@ -148,11 +148,18 @@ class MasksConfig:
     source: Literal["auto", "ingest", "onnx", "none"] = _f(
         "auto", help="auto: ingest <scene>/<dir> when present, else segment when onnx.model is set, else none"
     )
-    dir: str = _f("transparent_masks", help="mask folder inside the scene, one <image stem>.png per image")
-    threshold: float = _f(
-        0.5, help="binarisation threshold (of the mask value or segmenter probability)", minimum=0.0, maximum=1.0
+    dir: str = _f(
+        "transparent_masks",
+        help="mask folder inside the scene, one mask per photo named like the photo (IMG_0001.JPG), after its "
+        "stem with any image extension (IMG_0001.png) or <photo name>.png",
     )
-    allow_missing: bool = _f(False, help="ingest: an image without a mask gets an empty mask instead of an error")
+    threshold: float = _f(
+        0.5, help="binarisation threshold (of the mask value or segmenter probability); 0.5 also cuts JPEG "
+        "masks' compression noise near black and white", minimum=0.0, maximum=1.0
+    )
+    allow_missing: bool = _f(
+        False, help="ingest: a photo without a mask gets an empty mask (no see-through surface) instead of an error"
+    )
     polarity: Literal["auto", "white", "black"] = _f(
         "auto", help="ingest: the mask colour of the see-through surface; auto: white, unless the masks cover more "
         "than max_coverage of the images on average (then they are read as inverted)"
@@ -176,7 +183,16 @@ class RoiConfig:
 class PrepareConfig:
     """Downsampling, region of interest and train/test split."""
 
-    downsample: int = _f(1, help="integer image downsample factor (area filter)", minimum=1)
+    downsample: int = _f(
+        1, help="integer image downsample factor (area filter); not used when resolution is set", minimum=1
+    )
+    resolution: int | None = _f(
+        None,
+        help="longest side of the prepared images in pixels, at most (e.g. 800): the smallest integer downsample "
+        "factor that meets it is chosen per scene (1 for smaller images) and recorded in scene.json; when set, it "
+        "decides the factor and downsample is not used; null: downsample decides",
+        minimum=1,
+    )
     roi: RoiConfig | None = _f(
         None,
         help="region of interest; when not given: around the transparent masks' visual hull, else from the SfM points",

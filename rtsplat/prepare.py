@@ -6,6 +6,8 @@ Steps (function API :func:`prepare_scene`):
    images it belongs to are) and match model views to image files by name;
 2. downsample images by an integer factor with an area (box) filter, or take ``images_<factor>/``
    when the dataset has it, and scale the intrinsics exactly (see :func:`rtsplat.io.images.area_downsample`);
+   the factor is ``prepare.downsample``, or, when ``prepare.resolution`` is set, the smallest one that
+   brings the images' longest side to at most that many pixels (:func:`downsample_factor`);
 3. downsample the transparent masks the same way and binarise them;
 4. define the spherical region of interest: from the config; on a scene with transparent masks, the
    sphere around the masks' visual hull (:func:`roi_from_masks`, the see-through object and what it
@@ -21,6 +23,7 @@ Steps (function API :func:`prepare_scene`):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +71,8 @@ class PrepareSummary:
     num_points: int
     used_prescaled: bool
     gt_layer_views: int = 0  # test views with ground-truth layers (synthetic scenes)
+    resolution: int | None = None  # the requested longest side (prepare.resolution), when it chose the factor
+    downsample_reason: str = ""  # how the factor was chosen, in words
 
 
 def load_stage_summary(directory: str | Path, stage: str) -> dict:
@@ -267,6 +272,44 @@ def ground_truth_layers(linear_npz: Path, image: np.ndarray, factor: int) -> dic
     return {"reflection": np.clip(image - transmission, 0.0, 1.0), "transmission": transmission}
 
 
+def downsample_factor(sizes: set[tuple[int, int]], cfg: PrepareConfig, images: Path) -> tuple[int, str]:
+    """The integer downsample factor for images of ``sizes`` ((width, height) pairs) and how it was chosen.
+
+    With ``cfg.resolution`` set: the smallest factor after which the longest side is at most that many
+    pixels (area downsampling crops to a multiple of the factor, so the side becomes ``side // factor``);
+    1 when the images are that small already. Otherwise ``cfg.downsample``. A factor larger than the
+    images' shorter side (nothing would be left) raises :class:`PipelineError` naming the size.
+    """
+    longest = max(max(size) for size in sizes)
+    shortest = min(min(size) for size in sizes)
+    size_text = " and ".join(f"{w}x{h}" for w, h in sorted(sizes))
+    if cfg.resolution is not None:
+        target = int(cfg.resolution)
+        factor = longest // (target + 1) + 1
+        if factor == 1:
+            why = f"prepare.resolution {target} is not smaller than the images ({size_text}): factor 1, full size"
+        else:
+            why = (f"factor {factor} for prepare.resolution {target}: the smallest that takes the longest side "
+                   f"{longest} to at most {target} ({longest // factor})")
+        if factor > shortest:
+            raise PipelineError(
+                f"prepare.resolution {target} is too small for the images ({size_text}): it needs the factor "
+                f"{factor}, more than their shorter side {shortest}",
+                path=images,
+                fix=f"set prepare.resolution to at least {longest // shortest}",
+            )
+        return factor, why
+    factor = int(cfg.downsample)
+    if factor > shortest:
+        raise PipelineError(
+            f"prepare.downsample {factor} is larger than the images ({size_text}): not one pixel would be left",
+            path=images,
+            fix=f"set prepare.downsample to at most {shortest} (the images' shorter side), or set "
+            "prepare.resolution to the longest side you want in pixels",
+        )
+    return factor, f"prepare.downsample {factor}"
+
+
 def _test_split(names: list[str], test_every: int) -> dict[str, str]:
     return {n: ("test" if i % test_every == 0 else "train") for i, n in enumerate(sorted(names))}
 
@@ -289,7 +332,6 @@ def prepare_scene(
     sfm = load_stage_summary(sfm_dir, "sfm")
     model = load_model(sfm["model_dir"])
     image_dir = Path(sfm["image_dir"])
-    f = int(cfg.downsample)
     masks = load_stage_summary(masks_dir, "masks") if masks_dir is not None else {"has_masks": False}
     has_masks = bool(masks.get("has_masks"))
 
@@ -314,6 +356,7 @@ def prepare_scene(
             path=image_dir,
             fix="rename the images so their names without extension are unique",
         )
+    f, downsample_reason = downsample_factor({(v.width, v.height) for v in views}, cfg, image_dir)
 
     # masks belong to the original images: when SfM undistorted those, undistort the masks too
     distorted = None
@@ -435,6 +478,7 @@ def prepare_scene(
             cameras=sorted(cameras, key=lambda c: c.name),
             roi=roi,
             downsample=f,
+            resolution=cfg.resolution,
             source=str(scene_dir.resolve()),
             has_transparency=has_masks,
             versions=versions,
@@ -453,6 +497,8 @@ def prepare_scene(
         num_points=len(model.xyz),
         used_prescaled=use_prescaled,
         gt_layer_views=gt_layer_views,
+        resolution=cfg.resolution,
+        downsample_reason=downsample_reason,
     )
 
 
@@ -461,13 +507,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sfm", type=Path, required=True, help="output folder of 'rtsplat sfm'")
     parser.add_argument("--masks", type=Path, help="output folder of 'rtsplat masks' (none: no transparency)")
     parser.add_argument("--out", type=Path, required=True, help="prepared scene folder to write")
-    parser.add_argument("--downsample", type=int, help="override prepare.downsample")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument(
+        "--downsample", type=int, metavar="N",
+        help="integer downsample factor (area filter), e.g. 4 for quarter-size images; overrides "
+        "prepare.downsample and any prepare.resolution of the config",
+    )
+    size.add_argument(
+        "--resolution", type=int, metavar="PIXELS",
+        help="longest side of the prepared images in pixels, at most, e.g. 800: the smallest integer "
+        "downsample factor that meets it is used (1 when the images are that small already) and recorded "
+        "in scene.json; overrides prepare.resolution",
+    )
     add_config_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = stage_config_from_args(args, "prepare", {"downsample": args.downsample})
+    cfg = stage_config_from_args(args, "prepare", {"downsample": args.downsample, "resolution": args.resolution})
+    if args.downsample is not None:  # the factor given on the command line wins over a configured resolution
+        cfg = dataclasses.replace(cfg, resolution=None)
     s = prepare_scene(args.scene_dir, args.sfm, args.out, cfg, args.masks)
+    print(f"prepare {args.out}: {s.downsample_reason}")
     print(
         f"prepared {args.out}: {s.num_train} train + {s.num_test} test views at {s.width}x{s.height} "
         f"(downsample {s.downsample}{', pre-scaled images' if s.used_prescaled else ''}), "

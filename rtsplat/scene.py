@@ -20,6 +20,7 @@ On disk::
                    "width": W, "height": H, "K": 3x3, "world_to_camera": 4x4}, ...],
       "roi": {"center": [x, y, z], "radius": r, "source": "config" | "masks" | "estimated"},
       "downsample": 4,
+      "resolution": 800 | null,   # prepare.resolution (longest side in pixels) when it chose the factor
       "source": "/path/to/dataset/scene",
       "has_transparency": true,
       "versions": {"rtsplat": "0.1.0", ...}
@@ -96,6 +97,7 @@ class PreparedScene:
     cameras: list[CameraRecord]
     roi: Roi
     downsample: int = 1
+    resolution: int | None = None  # the longest side asked for (prepare.resolution) when it chose the factor
     source: str = ""
     has_transparency: bool = False
     versions: dict[str, str] = field(default_factory=dict)
@@ -167,7 +169,8 @@ class PreparedScene:
         try:
             cams = [CameraRecord(**c) for c in data["cameras"]]
             roi = Roi(**data["roi"])
-            rest = {k: data[k] for k in ("downsample", "source", "has_transparency", "versions", "format") if k in data}
+            keys = ("downsample", "resolution", "source", "has_transparency", "versions", "format")
+            rest = {k: data[k] for k in keys if k in data}
         except (KeyError, TypeError) as exc:
             raise PipelineError(
                 f"malformed prepared scene ({exc})", path=where, fix="re-run 'rtsplat prepare' for this scene"

@@ -231,6 +231,11 @@ CONFIG_CASES = {
     "ROI centre of 2 numbers": Case([*PREPARE, "{R}/res/new", "--config-json",
                                      '{"roi": {"center": [0, 0], "radius": 1}}'], ["roi.center"]),
     "prepare downsample 0": Case([*PREPARE, "{R}/res/new", "--downsample", "0"], ["downsample"]),
+    "prepare downsample larger than the images": Case([*PREPARE, "{R}/res/new", "--downsample", "100"],
+                                                      ["prepare.downsample 100", "40x30", "at most 30"]),
+    "prepare resolution 0": Case([*PREPARE, "{R}/res/new", "--resolution", "0"], ["prepare.resolution", "minimum"]),
+    "prepare resolution -5 in the config": Case([*PREPARE, "{R}/res/new", "--config-json", '{"resolution": -5}'],
+                                                ["resolution", "minimum"]),
     "prepare test_every 1": Case([*PREPARE, "{R}/res/new", "--config-json", '{"test_every": 1}'], ["test_every"]),
     "masks threshold NaN": Case([*MASKS, "{R}/res/new", "--config-json", '{"threshold": NaN}'], ["threshold", "nan"]),
 }
@@ -255,6 +260,12 @@ EXISTING_CASES = {
     "masks: a mask without an image": Case([*MASKS, "{R}/res/new"], ["extra.png", "no matching image"],
                                            lambda root: shutil.copy(root / "scene/transparent_masks/view_000.png",
                                                                     root / "scene/transparent_masks/extra.png")),
+    "masks: two masks for one photo": Case([*MASKS, "{R}/res/new"], ["view_001.jpg and view_001.png"],
+                                           lambda root: shutil.copy(root / "scene/transparent_masks/view_001.png",
+                                                                    root / "scene/transparent_masks/view_001.jpg")),
+    "masks: no mask matches a photo": Case([*MASKS, "{R}/res/new"],
+                                           ["none of the 4 masks matches a photo", "view_000.png", "mask_0.png"],
+                                           lambda root: _rename_masks(root / "scene/transparent_masks")),
     "masks: unknown polarity": Case([*MASKS, "{R}/res/new", "--config-json", '{"polarity": "inverted"}'],
                                     ["polarity", "white"]),
     "masks: max_coverage 0": Case([*MASKS, "{R}/res/new", "--config-json", '{"max_coverage": 0}'],
@@ -270,6 +281,11 @@ EXISTING_CASES = {
     "report of a missing results folder": Case(["report", "--results", "{R}/nowhere", "--out", "{R}/res/report"],
                                                ["{R}/nowhere"]),
 }
+
+
+def _rename_masks(folder: Path) -> None:
+    for i, path in enumerate(sorted(folder.iterdir())):
+        path.rename(folder / f"mask_{i}.png")
 
 
 def _crop(path: Path) -> None:

@@ -101,6 +101,8 @@ def test_schema_also_accepts_what_snakemake_validates():
         ({"defaults": {"sfm": {"matcher": "vocab"}}}, ["'defaults.sfm.matcher'", "exhaustive"]),
         ({"defaults": {"prepare": {"downsample": "four"}}}, ["'defaults.prepare.downsample'", "integer"]),
         ({"defaults": {"prepare": {"downsample": 0}}}, ["'defaults.prepare.downsample'", "minimum"]),
+        ({"defaults": {"prepare": {"resolution": 0}}}, ["'defaults.prepare.resolution'", "minimum"]),
+        ({"overrides": {"a": {"prepare": {"resolution": "800px"}}}}, ["'overrides.a.prepare.resolution'", "integer"]),
         (
             {"overrides": {"sedan": {"prepare": {"roi": {"center": [0, 0], "radius": 1}}}}},
             ["'overrides.sedan.prepare.roi.center'", "too short"],
@@ -151,6 +153,19 @@ def test_per_scene_overrides_merge_over_defaults():
     # the JSON a rule passes to the CLI round-trips into the same section
     text = section_json(cfg, "sedan", "prepare", quote=False)
     assert section_from_dict("prepare", json.loads(text)) == sedan.prepare
+
+
+def test_a_scenes_resolution_decides_its_factor_over_the_default_downsample():
+    from rtsplat.prepare import downsample_factor
+
+    cfg = load_config_dict(
+        {"defaults": {"prepare": {"downsample": 4}}, "overrides": {"cape": {"prepare": {"resolution": 800}}}}
+    )
+    cape, other = scene_config(cfg, "cape").prepare, scene_config(cfg, "other").prepare
+    assert (cape.downsample, cape.resolution, other.resolution) == (4, 800, None)
+    f, why = downsample_factor({(3648, 3648)}, cape, Path("images"))
+    assert 3648 // f <= 800 < 3648 // (f - 1) and "prepare.resolution 800" in why
+    assert downsample_factor({(3648, 3648)}, other, Path("images")) == (4, "prepare.downsample 4")
 
 
 def test_method_overrides_reach_the_trainer_config():

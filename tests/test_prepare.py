@@ -193,6 +193,68 @@ def test_prepare_cli_and_failures_keep_earlier_output(base, tmp_path, capsys):
     assert "run 'rtsplat sfm'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("resolution", [1000, W, 79])
+def test_resolution_picks_the_smallest_factor_that_meets_it(base, tmp_path, resolution):
+    root, _, sfm, masks = base
+    cfg = PrepareConfig(downsample=4, resolution=resolution)  # resolution decides, downsample is not used
+    s = prepare_scene(root / "scene", sfm, tmp_path / "p", cfg, masks, progress=False)
+    scene = PreparedScene.load(tmp_path / "p")
+    f = scene.downsample
+    assert s.downsample == f and scene.resolution == s.resolution == resolution
+    assert max(s.width, s.height) <= resolution  # meets the target ...
+    assert f == 1 or max(W // (f - 1), H // (f - 1)) > resolution  # ... with the smallest factor
+    assert (s.width, s.height) == (W // f, H // f)
+    cam = scene.cameras[0]
+    assert scene.load_image(cam.name).shape == (cam.height, cam.width, 3) == (H // f, W // f, 3)
+    assert scene.load_mask(cam.name).shape == (H // f, W // f)
+    if f == 1:
+        assert "not smaller than the images (160x120): factor 1" in s.downsample_reason
+    else:
+        assert f"factor {f} for prepare.resolution {resolution}" in s.downsample_reason
+
+
+def test_downsample_factor_refuses_what_leaves_no_pixel():
+    from rtsplat.prepare import downsample_factor
+
+    here = Path("images")
+    assert downsample_factor({(W, H)}, PrepareConfig(downsample=H), here)[0] == H  # 1 pixel high: allowed
+    with pytest.raises(PipelineError, match=r"prepare.downsample 121 is larger than the images \(160x120\)") as err:
+        downsample_factor({(W, H)}, PrepareConfig(downsample=H + 1), here)
+    assert "at most 120" in str(err.value)
+    # a panorama: the factor a small target needs would leave nothing of the short side
+    with pytest.raises(PipelineError, match=r"prepare.resolution 5 is too small for the images \(400x40\)") as err:
+        downsample_factor({(400, 40)}, PrepareConfig(resolution=5), here)
+    least = int(str(err.value).split("at least ")[1].split()[0])
+    f, _ = downsample_factor({(400, 40)}, PrepareConfig(resolution=least), here)  # the fix works
+    assert f <= 40 and 400 // f <= least
+
+
+def test_resolution_and_downsample_on_the_command_line(base, tmp_path, capsys):
+    root, _, sfm, masks = base
+    args = ["prepare", "--scene-dir", str(root / "scene"), "--sfm", str(sfm), "--masks", str(masks)]
+    assert cli_main(args + ["--out", str(tmp_path / "a"), "--resolution", "100"]) == 0
+    out = capsys.readouterr().out
+    assert "factor 2 for prepare.resolution 100" in out and "at 80x60 (downsample 2)" in out
+    assert json.loads((tmp_path / "a" / "scene.json").read_text())["resolution"] == 100
+    # a factor on the command line wins over a configured resolution
+    argv = args + ["--out", str(tmp_path / "b"), "--config-json", '{"resolution": 100}', "--downsample", "4"]
+    assert cli_main(argv) == 0
+    scene = json.loads((tmp_path / "b" / "scene.json").read_text())
+    assert (scene["downsample"], scene["resolution"]) == (4, None)
+    assert "prepare.downsample 4" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:  # both flags: a usage error
+        cli_main(args + ["--out", str(tmp_path / "c"), "--resolution", "100", "--downsample", "2"])
+    assert exc.value.code == 2 and "not allowed with argument" in capsys.readouterr().err
+    # a factor larger than the images: exit 1 naming their size, nothing written
+    assert cli_main(args + ["--out", str(tmp_path / "d"), "--downsample", "500"]) == 1
+    err = capsys.readouterr().err
+    assert "prepare.downsample 500 is larger than the images (160x120)" in err and "Fix:" in err
+    assert not (tmp_path / "d").exists()
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["prepare", "--help"])
+    assert "--resolution PIXELS" in capsys.readouterr().out
+
+
 def test_mask_of_wrong_size_is_rejected(base, tmp_path):
     root, _, sfm, masks = base
     bad = tmp_path / "masks"
