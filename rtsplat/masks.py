@@ -334,9 +334,11 @@ def match_masks(images: list[Path], mask_dir: Path) -> dict[Path, Path | None]:
         found[img] = mask
     unmatched = [m for m in files if m not in owner]
     if unmatched and not owner:
+        photo = images[0]
+        expected = photo.name if photo.suffix == ".png" else f"{photo.name} or {photo.stem}.png"
         raise PipelineError(
-            f"none of the {len(files)} masks matches a photo: expected e.g. {images[0].name} or "
-            f"{images[0].stem}.png (for photo {images[0].name}), found e.g. {unmatched[0].name}",
+            f"none of the {len(files)} masks matches a photo: expected e.g. {expected} (for photo {photo.name}), "
+            f"found e.g. {unmatched[0].name}",
             path=mask_dir,
             fix=f"name each mask after its photo: {MASK_NAMING}; or point masks.dir at the right folder",
         )
