@@ -24,7 +24,9 @@ neighbours by what they did rather than by what they are: any process counts (ot
 other users), a short one for exactly as long as it ran, and it needs no sampling. It counts the
 machine as ``/proc/stat`` sees it: in a container that is the host (or virtual machine), whose other
 processes compete for the same cores unless the container is pinned to its own; time a hypervisor
-gave to other virtual machines (steal) is not counted. The kernel accounts that time in clock ticks
+gave to other virtual machines (steal) is not counted. It cannot exceed the cores this process left
+free: on a machine with more runnable threads than cores it shows the cores full, and ``cpu_share``
+below 1 shows that the process waited. The kernel accounts that time in clock ticks
 (``SC_CLK_TCK``, usually 1/100 s per core), so a span of a few seconds carries an error of a few
 hundredths of a core-second.
 """
