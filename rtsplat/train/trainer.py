@@ -533,7 +533,8 @@ class Trainer:
         bar = _progress(total, self.iteration, self.progress)
         with open(log_path, "a") as log_file:
             if cfg.schedule.eval_every > 0 and self.iteration == 0:  # the initialisation, for comparison
-                log_file.write(json.dumps({"iteration": 0, "seconds": 0.0, "surfels": len(self.model.surfels),
+                log_file.write(json.dumps({"iteration": 0, "seconds": 0.0, "cpu_seconds": 0.0,
+                                           "surfels": len(self.model.surfels),
                                            **self.evaluate()}) + "\n")
             while self.iteration < total:
                 start, cpu_start = time.perf_counter(), time.process_time()
