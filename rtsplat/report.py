@@ -274,7 +274,7 @@ def time_rows(runs: dict[str, Run], main: str | None = None) -> list[list[str]]:
     for method in _methods_in_order(runs, main):
         r = runs[method]
         fps, timing = fps_alone(r)
-        training = r.summary.get("run") or {}
+        training = r.summary.get("run_usage") or {}
         rows.append([method, _fmt(fps, 1), _fmt(timing.get("threads"), 0), _fmt(timing.get("other_busy_cores"), 2),
                      _fmt(r.seconds(CPU_TIME), 1), _fmt(r.seconds(WALL_TIME), 1),
                      _fmt(training.get("other_busy_cores"), 2), _fmt(r.summary.get("cpu_share"), 2)])

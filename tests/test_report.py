@@ -298,7 +298,7 @@ def test_time_columns_are_the_measures_that_do_not_depend_on_neighbours(results,
         row = times[method]
         assert float(row["training CPU s"]) == pytest.approx(summary["train_cpu_seconds"], abs=0.051)
         assert float(row["training wall s"]) == pytest.approx(summary["train_seconds"], abs=0.051)
-        assert float(row["training: other cores busy"]) == pytest.approx(summary["run"]["other_busy_cores"],
+        assert float(row["training: other cores busy"]) == pytest.approx(summary["run_usage"]["other_busy_cores"],
                                                                          abs=0.0051)
         assert float(row["training CPU share"]) == pytest.approx(summary["cpu_share"], abs=0.0051)
     pareto = _table_rows(md, f"| method | {CPU_TIME.label} |")

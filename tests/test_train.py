@@ -102,7 +102,7 @@ def test_run_directory_contents_and_ply_export(glass_scene, tmp_path):
     assert summary["cpu_share"] == pytest.approx(
         summary["train_cpu_seconds"] / (summary["train_seconds"] * threads), abs=2e-3)
     # the whole run (evaluations, pose fits, checkpoints too) holds the steps
-    whole = summary["run"]
+    whole = summary["run_usage"]
     assert whole["wall_seconds"] >= summary["train_seconds"] and whole["cpu_seconds"] >= summary["train_cpu_seconds"]
     assert whole["other_busy_cores"] is None or 0 <= whole["other_busy_cores"] <= whole["cpus"]
     ply = read_surfel_ply(run / "point_cloud.ply")
@@ -237,7 +237,7 @@ def test_resume_after_kill_matches_an_uninterrupted_run(glass_scene, tmp_path):
     summary = resumed.train(resume=True)
     # the time of the killed part is in the resumed run's, CPU seconds as well as wall seconds
     assert 0 < killed["cpu_elapsed"] < summary["train_cpu_seconds"]
-    assert killed["run_usage"]["wall_seconds"] < summary["run"]["wall_seconds"]
+    assert killed["run_usage"]["wall_seconds"] < summary["run_usage"]["wall_seconds"]
     a, b = straight.model.surfels.tensors(), resumed.model.surfels.tensors()
     assert len(straight.model.surfels) == len(resumed.model.surfels)
     for name in a:
@@ -581,7 +581,7 @@ def test_a_run_with_a_busy_neighbour_records_the_cpu_time_the_neighbour_used(gla
         spinner.wait()
     neighbour = window["end"] - window["start"]
     assert neighbour > 0.1  # the neighbour did run beside the training
-    run = summary["run"]
+    run = summary["run_usage"]
     assert run["other_busy_core_seconds"] >= neighbour - 0.1  # clock ticks: a few hundredths of a second
     assert run["other_busy_cores"] == pytest.approx(run["other_busy_core_seconds"] / run["wall_seconds"], rel=0.02,
                                                     abs=0.01)

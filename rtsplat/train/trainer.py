@@ -16,7 +16,7 @@ Time, in the log and the summary (:mod:`rtsplat.usage` says what each measure me
 ``train_seconds`` are the wall seconds of the training steps (not the evaluations, test-view pose fits and
 checkpoints between them), ``cpu_seconds`` / ``train_cpu_seconds`` this process's CPU seconds over the
 same steps, which depend much less on what else the machine runs. The summary adds ``threads``,
-``cpu_share`` (train_cpu_seconds / (train_seconds x threads)) and ``run``: the usage of
+``cpu_share`` (train_cpu_seconds / (train_seconds x threads)) and ``run_usage``: the usage of
 :meth:`Trainer.train` as a whole (steps, evaluations, checkpoints; every resumed part included), with
 ``other_busy_cores``, the mean number of cores other processes kept busy meanwhile: how much ran beside it.
 """
@@ -599,7 +599,7 @@ class Trainer:
         summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
                    "train_cpu_seconds": _rounded(self.cpu_elapsed, 3), "threads": threads,
                    "cpu_share": _rounded(share, 3), "device": str(self.device),
-                   "run": None if usage is None else usage.to_dict(),
+                   "run_usage": None if usage is None else usage.to_dict(),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
                    "surfels": len(self.model.surfels), "effects": self.effects.to_dict(),
                    "near_reflection": self.near_fit, **metrics,
