@@ -251,6 +251,8 @@ class RenderConfig:
     """Rendering (``rtsplat render``)."""
 
     warmup: int = _f(2, help="untimed renders before the FPS measurement", minimum=0)
+    fps_rounds: int = _f(3, help="rtsplat fps: times every test view is rendered in the timing pass that the "
+                         "workflow runs alone (frames / wall seconds over all of them)", minimum=1)
     device: str = _f("auto", help="torch device of rtsplat render: auto (the GPU when torch sees one, else the "
                      "CPU) | cpu | cuda | cuda:N", pattern=DEVICE_PATTERN)
     edits: dict[str, list[str]] = _f(

@@ -16,7 +16,11 @@ gets that view's exposure and white-balance correction (the layers stay in the s
 so they then sum to the uncorrected image); the renders are those the trainer evaluated.
 
 FPS is measured over the views after ``--warmup`` untimed renders (inference mode, no files written
-while timing), on the device the model is on.
+while timing), on the device the model is on, by :func:`time_renders`; ``render.json`` keeps it with its
+wall and CPU seconds, threads and how busy the other cores were (``timing``, see :mod:`rtsplat.usage`).
+This FPS is timed inside the render job, beside whatever else runs (``timing.scheduled_alone`` is
+false); ``rtsplat fps`` (:mod:`rtsplat.fps`) times the same renders in a job of their own, which the
+workflow runs with nothing beside it.
 
 Scene edits (the paper's applications) are exact operations on the trained model:
 ``roughness=S`` scales every surfel's roughness (blurrier or sharper reflections),
@@ -30,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -44,6 +47,7 @@ from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.model.appearance import apply_appearance
 from rtsplat.model.composite import compose_layers, scatter_layer
+from rtsplat.usage import UsageClock
 
 LAYER_DIRS = ("color", "reflection", "transmission", "scatter", "normal", "depth")
 
@@ -136,21 +140,32 @@ def corrected_cameras(records, corrections: dict[str, list[float]], device) -> l
     return cameras
 
 
-def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, split: str = "test",
-               edits: Edits | None = None, backend: str = "auto", warmup: int = 2, device: str = "auto",
-               progress: bool = True) -> dict:
-    """Render ``split`` views of the prepared scene with the model of ``run_dir`` on ``device`` (auto, cpu,
-    cuda, cuda:N; :func:`rtsplat.devices.resolve_device`); returns render.json."""
-    from tqdm.auto import tqdm
+@dataclass
+class LoadedRun:
+    """A trained run ready to render: the views, their corrected cameras, the edited model."""
 
-    from rtsplat.io.images import write_png
+    records: list
+    cameras: list
+    model: object
+    checkpoint: object
+    device: torch.device
+    backend: str
+    appearance: dict  # view name -> its appearance correction [6] (rtsplat.model.appearance); empty: none
+
+    def render(self, camera):
+        return self.model.render(camera, stage="full", raster_settings=self.checkpoint.raster, backend=self.backend)
+
+
+def load_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "test", edits: Edits | None = None,
+             backend: str = "auto", device: str = "auto") -> LoadedRun:
+    """The model of ``run_dir`` on ``device`` (:func:`rtsplat.devices.resolve_device`) with ``edits``
+    applied, and the ``split`` views of the prepared scene with the run's pose corrections."""
     from rtsplat.model.checkpoint import read_checkpoint
     from rtsplat.raster import check_backend_name
     from rtsplat.scene import PreparedScene
 
     device = resolve_device(device)
-    run_dir, out_dir = Path(run_dir), Path(out_dir)
-    check_output_dir(out_dir, "render", inputs=[run_dir, data_dir])
+    run_dir = Path(run_dir)
     check_backend_name(backend, "--backend")
     model_path = run_dir / "model.pt"
     if not model_path.is_file():
@@ -160,48 +175,71 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
     records = scene.test_cameras if split == "test" else scene.train_cameras if split == "train" else scene.cameras
     if not records:
         raise PipelineError(f"the prepared scene has no {split!r} views", path=data_dir)
-    edits = edits or Edits()
     checkpoint = read_checkpoint(model_path, device=device)
     model = checkpoint.build_model(device)
     model.eval()
-    apply_parameter_edits(model, edits)
-    raster = checkpoint.raster
+    apply_parameter_edits(model, edits or Edits())
     cameras = corrected_cameras(records, checkpoint.training.get("camera_corrections", {}), device)
     appearance = checkpoint.training.get("appearance_corrections", {})
+    return LoadedRun(list(records), cameras, model, checkpoint, device, backend, appearance)
 
-    def render(camera):
-        return model.render(camera, stage="full", raster_settings=raster, backend=backend)
 
+def time_renders(run: LoadedRun, *, warmup: int, rounds: int = 1, scheduled_alone: bool = False) -> dict:
+    """Render every view ``rounds`` times after ``warmup`` untimed renders (inference mode, nothing
+    written) and return ``fps`` (frames / wall seconds) with ``timing``: the :class:`rtsplat.usage.Usage`
+    of the timed renders, CPU seconds per frame and ``scheduled_alone`` (what the caller says: whether the
+    job ran with nothing of its workflow beside it)."""
     with torch.inference_mode():
-        for camera in cameras[: max(warmup, 0)]:
-            render(camera)
-        _wait_for(device)
-        start = time.perf_counter()
-        for camera in cameras:
-            render(camera)
-        _wait_for(device)  # the renders are queued on a GPU: time them to the end
-        seconds = time.perf_counter() - start
+        for camera in run.cameras[: max(warmup, 0)]:
+            run.render(camera)
+        _wait_for(run.device)
+        clock = UsageClock()
+        for _ in range(rounds):
+            for camera in run.cameras:
+                run.render(camera)
+        _wait_for(run.device)  # the renders are queued on a GPU: time them to the end
+        usage = clock.read()
+    frames = rounds * len(run.cameras)
+    return {"fps": frames / max(usage.wall_seconds, 1e-12), "seconds": usage.wall_seconds, "frames": frames,
+            "warmup": warmup, "timing": {**usage.to_dict(), "cpu_seconds_per_frame": usage.cpu_seconds / frames,
+                                         "scheduled_alone": scheduled_alone}}
+
+
+def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *, split: str = "test",
+               edits: Edits | None = None, backend: str = "auto", warmup: int = 2, device: str = "auto",
+               progress: bool = True) -> dict:
+    """Render ``split`` views of the prepared scene with the model of ``run_dir`` on ``device`` (auto, cpu,
+    cuda, cuda:N; :func:`rtsplat.devices.resolve_device`); returns render.json."""
+    from tqdm.auto import tqdm
+
+    from rtsplat.io.images import write_png
+
+    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    check_output_dir(out_dir, "render", inputs=[run_dir, data_dir])
+    edits = edits or Edits()
+    run = load_run(run_dir, data_dir, split=split, edits=edits, backend=backend, device=device)
+    timed = time_renders(run, warmup=warmup)
 
     with output_dir(out_dir, "render", inputs=[run_dir, data_dir]) as tmp:
         for layer in LAYER_DIRS:
             (tmp / layer).mkdir()
         with torch.inference_mode():
-            for rec, camera in tqdm(list(zip(records, cameras, strict=True)), desc="render", disable=not progress):
-                result = render(camera)
+            for rec, camera in tqdm(list(zip(run.records, run.cameras, strict=True)), desc="render",
+                                    disable=not progress):
+                result = run.render(camera)
                 images = decompose(result, edits)
-                if rec.name in appearance:  # the photo's exposure and white balance (rtsplat.model.appearance)
-                    images["color"] = apply_appearance(images["color"], torch.as_tensor(appearance[rec.name],
-                                                                                        device=device))
+                if rec.name in run.appearance:  # the photo's exposure and white balance
+                    images["color"] = apply_appearance(images["color"], torch.as_tensor(run.appearance[rec.name],
+                                                                                        device=run.device))
                 images["normal"] = _normal_image(result.layers["normal"])
                 images["depth"] = _depth_image(result.layers["depth"], result.layers["alpha"])
                 for layer in LAYER_DIRS:
                     write_png(tmp / layer / f"{rec.name}.png", images[layer].clamp(0, 1).cpu().numpy())
         info = {
-            "views": [rec.name for rec in records], "split": split, "device": _device_name(device),
-            "backend": backend, "edits": asdict(edits), "fps": len(cameras) / max(seconds, 1e-12),
-            "seconds": seconds, "warmup": warmup, "surfels": len(model.surfels),
-            "width": records[0].width, "height": records[0].height, "effects": checkpoint.effects.to_dict(),
-            "run": str(run_dir),
+            "views": [rec.name for rec in run.records], "split": split, "device": device_name(run.device),
+            "backend": backend, "edits": asdict(edits), **timed, "surfels": len(run.model.surfels),
+            "width": run.records[0].width, "height": run.records[0].height,
+            "effects": run.checkpoint.effects.to_dict(), "run": str(run_dir),
         }
         write_json_atomic(tmp / "render.json", info)
     return info
@@ -212,7 +250,7 @@ def _wait_for(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _device_name(device: torch.device) -> str:
+def device_name(device: torch.device) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
     from rtsplat.metrics import cpu_model

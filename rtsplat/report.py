@@ -5,6 +5,7 @@ It reads what the other stages wrote under ``--results`` (the layout of ``docs/a
     <scene>/runs/<method>/{summary.json, train_log.jsonl, config.json}    rtsplat train
     <scene>/renders/<method>/{render.json, color/, reflection/, ...}       rtsplat render
     <scene>/renders/<method>@<edit>/                                       rtsplat render --edit ...
+    <scene>/fps/<method>.json                                              rtsplat fps (timed alone)
     <scene>/metrics/<method>.json                                          rtsplat metrics
     <scene>/sfm/summary.json                                               rtsplat sfm
 
@@ -16,10 +17,13 @@ baseline and there is no main method. The report opens with a summary across sce
 repeats with another seed measured), then the machine and the package versions. Per scene: the SfM
 table (registered/total views, reprojection error and time of every attempt, and for scenes whose
 dataset ships reference cameras the rotation and centre errors after a similarity fit), the quality table (entire
-image / transparent region, FPS, training time), the ablation table (the ablations against the main
+image / transparent region), the time table (FPS timed alone, training CPU and wall seconds and how busy the
+other cores were meanwhile), the ablation table (the ablations against the main
 method), decomposition scores when the scene has ground-truth layers, the accuracy-against-time
 plots and table with the Pareto front (every run's final test PSNR against its training time, and
-the test-PSNR curves logged during training), one test view (the first with ground-truth layers, if
+the test-PSNR curves logged during training; the time is :func:`time_measure`: the training steps' CPU
+seconds where every run trained on the CPU and recorded them, which depend little on the jobs that ran
+beside a run, else their wall seconds), one test view (the first with ground-truth layers, if
 any): ground truth / main / the other methods except ablations, each method's per-pixel error map
 (|render - ground truth| averaged over channels, viridis from 0 to :data:`ERROR_MAP_MAX`), the main
 method's decomposition, its reflection and colour - reflection next to the ground-truth layers with
@@ -96,14 +100,42 @@ class Run:
     summary: dict = field(default_factory=dict)
     log: list[dict] = field(default_factory=list)
     metrics: dict = field(default_factory=dict)
+    fps: dict = field(default_factory=dict)  # rtsplat fps: the FPS timed in a job of its own
 
     @property
     def mean(self) -> dict:
         return self.metrics.get("mean", {})
 
-    @property
-    def seconds(self) -> float | None:
-        return self.summary.get("train_seconds")
+    def seconds(self, measure: TimeMeasure) -> float | None:
+        value = self.summary.get(measure.key)
+        return float(value) if isinstance(value, (int, float)) and value > 0 else None
+
+
+@dataclass(frozen=True)
+class TimeMeasure:
+    """A training time of the runs: its key in summary.json, its key in train_log.jsonl, its label."""
+
+    key: str
+    log_key: str
+    label: str
+    caption: str
+
+
+CPU_TIME = TimeMeasure(
+    "train_cpu_seconds", "cpu_seconds", "training CPU s",
+    "Training time: the CPU seconds of the training steps (user + system, all threads of the training "
+    "process), which depend little on the jobs that ran beside it (rtsplat/usage.py).")
+WALL_TIME = TimeMeasure(
+    "train_seconds", "seconds", "training wall s",
+    "Training time: the wall seconds of the training steps, which grow with the jobs that ran beside each "
+    "run (see 'other cores busy'): not every run trained on the CPU and recorded its CPU seconds.")
+
+
+def time_measure(runs: dict[str, Run]) -> TimeMeasure:
+    """:data:`CPU_TIME` when every run of ``runs`` trained on the CPU and recorded its CPU seconds, else
+    :data:`WALL_TIME` (a GPU run's CPU seconds count only the host's part of the work)."""
+    on_cpu = all(r.summary.get("device", "cpu") == "cpu" and r.seconds(CPU_TIME) is not None for r in runs.values())
+    return CPU_TIME if on_cpu else WALL_TIME
 
 
 def _read_json(path: Path) -> dict:
@@ -126,6 +158,9 @@ def collect(results: Path) -> dict[str, dict[str, Run]]:
         metrics = results / scene / "metrics" / f"{method}.json"
         if metrics.is_file():
             run.metrics = _read_json(metrics)
+        fps = results / scene / "fps" / f"{method}.json"
+        if fps.is_file():
+            run.fps = _read_json(fps)
         scenes.setdefault(scene, {})[method] = run
     if not scenes:
         raise PipelineError("no finished training runs found (no <scene>/runs/<method>/summary.json)", path=results,
@@ -194,25 +229,66 @@ class Document:
         return "\n".join(self.html + ["</body></html>"]) + "\n", "\n".join(self.md) + "\n"
 
 
+QUALITY_HEADER = ["method", "PSNR", "SSIM", "LPIPS", "PSNR (transp.)", "SSIM (transp.)", "LPIPS (transp.)",
+                  "surfels"]
+TIME_HEADER = ["method", "FPS alone", "FPS threads", "FPS: other cores busy", "training CPU s", "training wall s",
+               "training: other cores busy", "training CPU share"]
+TIME_CAPTION = (
+    "FPS alone: the test views' renders timed by `rtsplat fps` in a job that the workflow ran with nothing beside "
+    "it (it holds all of the run's cores and renders on as many threads), frames per wall second; '-' where no "
+    "such timing exists or it did not run alone. Training CPU s: the CPU seconds of the training steps (all "
+    "threads), which depend little on what ran beside the run; training wall s: the same steps' wall seconds, "
+    "which do. Other cores busy: the mean number of cores that other processes (of this workflow or not) kept "
+    "busy while the FPS was timed or the run trained (0: nothing beside it, 1: about one single-threaded job "
+    "beside it all the time). CPU share: CPU seconds / (wall seconds x threads) of the training steps, below 1 "
+    "where the run waited for a core.")
+
+
+def fps_alone(run: Run) -> tuple[float | None, dict]:
+    """The run's FPS from ``rtsplat fps`` and its timing record when that job was scheduled alone, else
+    (None, {})."""
+    timing = run.fps.get("timing", {})
+    if not timing.get("scheduled_alone") or not isinstance(run.fps.get("fps"), (int, float)):
+        return None, {}
+    return float(run.fps["fps"]), timing
+
+
+def _methods_in_order(runs: dict[str, Run], main: str | None) -> list[str]:
+    return sorted(runs, key=lambda m: (m != main, m))
+
+
 def quality_rows(runs: dict[str, Run], main: str | None = None) -> list[list[str]]:
     rows = []
-    for method in sorted(runs, key=lambda m: (m != main, m)):
+    for method in _methods_in_order(runs, main):
         r = runs[method]
         m = r.mean
-        fps = r.metrics.get("fps")
         rows.append([method] + [_fmt(m.get(k), d) for k, d in (
             ("psnr", 2), ("ssim", 3), ("lpips", 3), ("psnr_transparent", 2), ("ssim_transparent", 3),
-            ("lpips_transparent", 3))] + [_fmt(fps, 1), _fmt(r.seconds, 1), _fmt(r.summary.get("surfels"), 0)])
+            ("lpips_transparent", 3))] + [_fmt(r.summary.get("surfels"), 0)])
     return rows
 
 
-def time_points(runs: dict[str, Run], key: str) -> list[tuple[str, float, float]]:
-    """(method, training seconds, test metric) of every run with both."""
+def time_rows(runs: dict[str, Run], main: str | None = None) -> list[list[str]]:
+    """One row of :data:`TIME_HEADER` per run."""
+    rows = []
+    for method in _methods_in_order(runs, main):
+        r = runs[method]
+        fps, timing = fps_alone(r)
+        training = r.summary.get("run_usage") or {}
+        rows.append([method, _fmt(fps, 1), _fmt(timing.get("threads"), 0), _fmt(timing.get("other_busy_cores"), 2),
+                     _fmt(r.seconds(CPU_TIME), 1), _fmt(r.seconds(WALL_TIME), 1),
+                     _fmt(training.get("other_busy_cores"), 2), _fmt(r.summary.get("cpu_share"), 2)])
+    return rows
+
+
+def time_points(runs: dict[str, Run], key: str, measure: TimeMeasure) -> list[tuple[str, float, float]]:
+    """(method, training seconds by ``measure``, test metric) of every run with both."""
     points = []
     for method, r in runs.items():
         value = r.mean.get(key, r.summary.get("test_" + key))
-        if isinstance(value, float) and r.seconds:
-            points.append((method, float(r.seconds), value))
+        seconds = r.seconds(measure)
+        if isinstance(value, float) and seconds:
+            points.append((method, seconds, value))
     return points
 
 
@@ -224,8 +300,9 @@ def plot_accuracy_time(scene: str, runs: dict[str, Run], out: Path) -> list[str]
     import matplotlib.pyplot as plt
 
     written = []
+    measure = time_measure(runs)
     for key, label in (("psnr", "PSNR entire image (dB)"), ("psnr_transparent", "PSNR transparent region (dB)")):
-        points = time_points(runs, key)
+        points = time_points(runs, key, measure)
         if not points:
             continue
         fig, ax = plt.subplots(figsize=(8, 5))
@@ -233,7 +310,8 @@ def plot_accuracy_time(scene: str, runs: dict[str, Run], out: Path) -> list[str]
         styles = [(colour, line) for line in ("-", "--", ":") for colour in plt.get_cmap("tab20").colors]
         for i, (method, r) in enumerate(sorted(runs.items())):
             # the evaluation before the first step (0 s) has no place on the log time axis
-            curve = [(e["seconds"], e[f"test_{key}"]) for e in r.log if f"test_{key}" in e and e["seconds"] > 0]
+            curve = [(e[measure.log_key], e[f"test_{key}"]) for e in r.log
+                     if f"test_{key}" in e and (e.get(measure.log_key) or 0) > 0]
             if len(curve) > 1:
                 colour, line = styles[i % len(styles)]
                 ax.plot(*zip(*curve, strict=True), linestyle=line, color=colour, alpha=0.7,
@@ -247,9 +325,9 @@ def plot_accuracy_time(scene: str, runs: dict[str, Run], out: Path) -> list[str]
             ax.step(*zip(*front, strict=True), where="post", color="r", lw=1, label="Pareto front (final runs)")
         ax.set_xscale("log")  # budgets of 1x to 16x the demo's: equal steps per doubling
         ax.margins(x=0.15)  # room on the right for the names of the longest runs
-        ax.set_xlabel("training time (s, log scale)")
+        ax.set_xlabel(f"{measure.label} (log scale)")
         ax.set_ylabel(label)
-        ax.set_title(f"{scene}: accuracy against training time")
+        ax.set_title(f"{scene}: accuracy against {measure.label}")
         ax.grid(alpha=0.3)
         # beside the axes, not on them: the curves end in the top right, where a legend inside would sit
         ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
@@ -365,7 +443,8 @@ def _repeat_differences(scene: str, runs: dict[str, Run], roles: Roles, results:
         base = runs[base_name]
         seed, base_seed = (_run_seed(results / scene / "runs" / m) for m in (method, base_name))
         diffs = {key: _difference(base.mean.get(key), r.mean.get(key)) for key in ("psnr", "psnr_transparent")}
-        ta, tb = base.seconds, r.seconds
+        measure = time_measure({base_name: base, method: r})
+        ta, tb = base.seconds(measure), r.seconds(measure)
         found.append({"method": method, "of": base_name, "seed": seed, "same_seed": seed == base_seed,
                       **{key: None if d is None else abs(d) for key, d in diffs.items()},
                       "time_percent": 100 * abs(ta - tb) / max(ta, 1e-9) if ta and tb else None})
@@ -406,7 +485,8 @@ def near_reflection_rows(runs: dict[str, Run]) -> list[list[str]]:
         if not r.summary.get("effects", {}).get("near_reflection") or not isinstance(fit, dict):
             continue
         rows.append([m, "on" if fit.get("on") else "off", _fmt(fit.get("planes"), 0), _fmt(fit.get("planar_share")),
-                     str(fit.get("reason", "")), _fmt(r.summary.get("seconds_per_iteration"), 3)])
+                     str(fit.get("reason", "")), _fmt(r.summary.get("seconds_per_iteration"), 3),
+                     _fmt(_per_iteration(r.summary.get("train_cpu_seconds"), r.summary.get("iterations")), 3)])
     return rows
 
 
@@ -421,6 +501,10 @@ def appearance_rows(runs: dict[str, Run]) -> list[list[str]]:
         rows.append([m, "on" if a.get("on") else "off", _fmt(a.get("spread"), 3), str(a.get("reason", "")),
                      _fmt(a.get("train_mean_abs_log_gain"), 3), _fmt(a.get("test_mean_abs_log_gain"), 3)])
     return rows
+
+
+def _per_iteration(seconds, iterations) -> float | None:
+    return seconds / iterations if isinstance(seconds, (int, float)) and iterations else None
 
 
 def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
@@ -555,8 +639,6 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                   f"{machine.get('platform', '?')}; rendering device: {any_metrics.get('render_device', '?')}. "
                   f"Packages: {', '.join(f'{k} {v}' for k, v in any_metrics.get('versions', {}).items())}.")
     doc.paragraph("LPIPS: " + str(any_metrics.get("lpips", "not computed")))
-    header = ["method", "PSNR", "SSIM", "LPIPS", "PSNR (transp.)", "SSIM (transp.)", "LPIPS (transp.)", "FPS",
-              "train s", "surfels"]
     for scene, runs in scenes.items():
         doc.heading(f"Scene {scene}")
         sfm_summary = results / scene / "sfm" / "summary.json"
@@ -566,8 +648,11 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             doc.paragraph(text)
             if sfm_rows:
                 doc.table(sfm_header, sfm_rows)
-        doc.heading("Quality, speed and training time", 3)
-        doc.table(header, quality_rows(runs, main))
+        doc.heading("Quality", 3)
+        doc.table(QUALITY_HEADER, quality_rows(runs, main))
+        doc.heading("Speed and training time", 3)
+        doc.paragraph(TIME_CAPTION)
+        doc.table(TIME_HEADER, time_rows(runs, main))
 
         ablations = [(m, ablation_reference(m, runs, roles)) for m in roles.of_role(runs, "ablation")]
         ablations = [(m, full) for m, full in ablations if full is not None]
@@ -593,8 +678,10 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             doc.heading("Near reflections (mirror planes of the glass)", 3)
             doc.paragraph("Whether each run reflected its own surfels in planes fitted to the see-through surface "
                           "(effects.near_reflection; auto keeps them where planes explain enough of it), and the "
-                          "seconds per training iteration it paid.")
-            doc.table(["method", "near reflection", "planes", "planar share", "why", "s / iteration"], near_rows)
+                          "seconds per training iteration it paid (wall seconds, and CPU seconds, which depend "
+                          "less on what ran beside it).")
+            doc.table(["method", "near reflection", "planes", "planar share", "why", "wall s / iteration",
+                       "CPU s / iteration"], near_rows)
 
         exposure_rows = appearance_rows(runs)
         if any(row[1] == "on" for row in exposure_rows):
@@ -606,14 +693,17 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                       exposure_rows)
 
         doc.heading("Accuracy against training time", 3)
+        measure = time_measure(runs)
+        doc.paragraph(measure.caption + " The Pareto front: the runs that no other run beats in both time and PSNR.")
         for name in plot_accuracy_time(scene, runs, out):
             doc.images([(name, name)])
-        points = time_points(runs, "psnr_transparent") or time_points(runs, "psnr")
-        key = "psnr_transparent" if time_points(runs, "psnr_transparent") else "psnr"
+        key = "psnr_transparent" if time_points(runs, "psnr_transparent", measure) else "psnr"
+        points = time_points(runs, key, measure)
         flags = pareto_front([(t, q) for _, t, q in points])
-        doc.table(["method", "train s", key, "Pareto front"],
-                  [[m, _fmt(t, 1), _fmt(q), "yes" if f else ""] for (m, t, q), f in
-                   sorted(zip(points, flags, strict=True), key=lambda x: x[0][1])])
+        beside = [WALL_TIME] if measure is not WALL_TIME else []  # the wall seconds, for reference
+        doc.table(["method", measure.label, *(b.label for b in beside), key, "Pareto front"],
+                  [[m, _fmt(t, 1), *(_fmt(runs[m].seconds(b), 1) for b in beside), _fmt(q), "yes" if f else ""]
+                   for (m, t, q), f in sorted(zip(points, flags, strict=True), key=lambda x: x[0][1])])
 
         test_names = next((r.metrics.get("views") for r in runs.values() if r.metrics.get("views")), {})
         if test_names:
@@ -653,7 +743,8 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                       "come from non-deterministic floating-point reductions, time differences from machine load; "
                       "expect a rerun to reproduce the numbers within these. Another seed: the spread to expect "
                       "between methods that are in truth equally good, so smaller gaps between methods are not "
-                      "significant.")
+                      "significant. Time diff: of the training CPU seconds where both runs trained on the CPU and "
+                      "recorded them, else of the wall seconds.")
         doc.table(["scene", "method", "rerun", "|dPSNR|", "|dPSNR transp.|", "time diff %"], noise)
     else:
         doc.paragraph("No repeated runs in these results, so run-to-run noise was not measured here.")

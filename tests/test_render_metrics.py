@@ -92,6 +92,12 @@ def test_render_writes_layers_that_add_up_and_fps(trained, tmp_path):
     info = render_run(root / "run", scene.root, tmp_path / "renders", progress=False)
     assert info["fps"] > 0 and info["views"] == [c.name for c in scene.test_cameras]
     assert json.loads((tmp_path / "renders" / "render.json").read_text())["fps"] == info["fps"]
+    # the FPS says how it was timed: wall seconds of the timed frames, inside the render job, not alone
+    timing = info["timing"]
+    assert info["fps"] == pytest.approx(info["frames"] / info["seconds"])
+    assert timing["wall_seconds"] == pytest.approx(info["seconds"], abs=5e-4)
+    assert timing["scheduled_alone"] is False and timing["threads"] == torch.get_num_threads()
+    assert 0 < timing["cpu_seconds"] <= timing["wall_seconds"] * timing["threads"] * 1.05 + 0.01
     for name in info["views"]:
         layers = read_layers(tmp_path / "renders", name)
         total = layers["reflection"] + layers["transmission"] + layers["scatter"]
@@ -212,3 +218,26 @@ def test_bad_edit_and_missing_model_fail_cleanly(trained, tmp_path):
                              capture_output=True, text=True)
     assert missing.returncode == 1 and "model.pt" in missing.stderr and "rtsplat train" in missing.stderr
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_fps_cli_times_the_test_views_alone_and_says_so(trained, tmp_path):
+    """`rtsplat fps` renders every test view `--rounds` times, writes only its JSON file, and records
+    scheduled_alone only when the caller says the job runs alone."""
+    root, scene, _ = trained
+    outs = {}
+    for alone in (True, False):
+        out = tmp_path / f"fps_{alone}.json"
+        args = [sys.executable, "-m", "rtsplat.cli", "fps", "--run", str(root / "run"), "--data", str(scene.root),
+                "--out", str(out), "--rounds", "2", "--warmup", "1"] + (["--scheduled-alone"] if alone else [])
+        result = subprocess.run(args, capture_output=True, text=True)
+        assert result.returncode == 0, result.stderr
+        outs[alone] = json.loads(out.read_text())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fps_False.json", "fps_True.json"]
+    for alone, info in outs.items():
+        timing = info["timing"]
+        assert timing["scheduled_alone"] is alone
+        assert info["frames"] == 2 * len(scene.test_cameras) == 2 * info["views"]
+        assert info["fps"] == pytest.approx(info["frames"] / info["seconds"])
+        assert timing["wall_seconds"] == pytest.approx(info["seconds"], abs=5e-4)
+        assert timing["cpu_seconds_per_frame"] == pytest.approx(timing["cpu_seconds"] / info["frames"], abs=1e-3)
+        assert 0 < timing["cpu_seconds"] <= timing["wall_seconds"] * timing["threads"] * 1.05 + 0.01

@@ -13,11 +13,21 @@ import pytest
 
 from rtsplat.bench.toy_scene import write_scene
 from rtsplat.errors import PipelineError
+from rtsplat.fps import measure_fps
 from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.images import read_image, write_png
 from rtsplat.metrics import compute_metrics
 from rtsplat.render import Edits, render_run
-from rtsplat.report import Roles, ablation_reference, build_report, comparison_pairs, pareto_front
+from rtsplat.report import (
+    CPU_TIME,
+    TIME_HEADER,
+    WALL_TIME,
+    Roles,
+    ablation_reference,
+    build_report,
+    comparison_pairs,
+    pareto_front,
+)
 from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
 
@@ -240,13 +250,70 @@ def test_near_reflection_rows_list_the_runs_that_asked_for_them():
     fit = {"iteration": 201, "planes": 4, "planar_share": 0.92, "on": True, "reason": "auto: planar glass"}
     runs = {
         "rtsplat": Run("film", "rtsplat", summary={"effects": {"near_reflection": True}, "near_reflection": fit,
-                                                   "seconds_per_iteration": 0.61}),
+                                                   "seconds_per_iteration": 0.61, "iterations": 200,
+                                                   "train_cpu_seconds": 100.0}),
         "2dgs": Run("film", "2dgs", summary={"effects": {"near_reflection": False}, "near_reflection": None,
                                              "seconds_per_iteration": 0.3}),
         "old": Run("film", "old", summary={"effects": {"transmission": True}}),  # written before the term
     }
     rows = near_reflection_rows(runs)
-    assert rows == [["rtsplat", "on", "4", "0.92", "auto: planar glass", "0.610"]]
+    assert rows == [["rtsplat", "on", "4", "0.92", "auto: planar glass", "0.610", "0.500"]]
+
+
+def _table_rows(md: str, header_start: str) -> dict[str, dict[str, str]]:
+    """The Markdown table whose header row starts with ``header_start``: {first cell: {column: cell}}."""
+    lines = md.splitlines()
+    at = next(i for i, line in enumerate(lines) if line.startswith(header_start))
+    header = [c.strip() for c in lines[at].strip("|").split("|")]
+    rows = {}
+    for line in lines[at + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        rows[cells[0]] = dict(zip(header, cells, strict=True))
+    return rows
+
+
+def test_time_columns_are_the_measures_that_do_not_depend_on_neighbours(results, tmp_path):
+    """Training time against accuracy is the training CPU seconds (wall seconds beside them), FPS the one
+    `rtsplat fps` timed in a job scheduled alone; a GPU run's CPU seconds are not used."""
+    copy = tmp_path / "results"
+    shutil.copytree(results, copy)
+    prepared = copy / "toy" / "prepared"
+    measure_fps(copy / "toy" / "runs" / "rtsplat", prepared, copy / "toy" / "fps" / "rtsplat.json", rounds=1,
+                scheduled_alone=True)
+    measure_fps(copy / "toy" / "runs" / "2dgs", prepared, copy / "toy" / "fps" / "2dgs.json", rounds=1)
+    md = build_report(copy, tmp_path / "report", roles=Roles.from_dict(ROLES)).with_suffix(".md").read_text()
+    assert "FPS alone: the test views' renders timed by `rtsplat fps`" in md
+    times = _table_rows(md, "| " + " | ".join(TIME_HEADER[:2]))
+    alone = json.loads((copy / "toy" / "fps" / "rtsplat.json").read_text())
+    assert float(times["rtsplat"]["FPS alone"]) == pytest.approx(alone["fps"], abs=0.051)
+    assert times["rtsplat"]["FPS threads"] == str(alone["timing"]["threads"])
+    assert float(times["rtsplat"]["FPS: other cores busy"]) == pytest.approx(alone["timing"]["other_busy_cores"],
+                                                                             abs=0.0051)
+    assert times["2dgs"]["FPS alone"] == "-"  # timed, but not alone
+    assert times["ablation_gating"]["FPS alone"] == "-"  # not timed by rtsplat fps at all
+    for method in METHODS:
+        summary = json.loads((copy / "toy" / "runs" / method / "summary.json").read_text())
+        row = times[method]
+        assert float(row["training CPU s"]) == pytest.approx(summary["train_cpu_seconds"], abs=0.051)
+        assert float(row["training wall s"]) == pytest.approx(summary["train_seconds"], abs=0.051)
+        assert float(row["training: other cores busy"]) == pytest.approx(summary["run_usage"]["other_busy_cores"],
+                                                                         abs=0.0051)
+        assert float(row["training CPU share"]) == pytest.approx(summary["cpu_share"], abs=0.0051)
+    pareto = _table_rows(md, f"| method | {CPU_TIME.label} |")
+    assert CPU_TIME.caption in md
+    for method, row in pareto.items():
+        summary = json.loads((copy / "toy" / "runs" / method / "summary.json").read_text())
+        assert float(row[CPU_TIME.label]) == pytest.approx(summary["train_cpu_seconds"], abs=0.051)
+    # one run trained on a GPU: its CPU seconds are the host's share only, so the scene's time is wall seconds
+    path = copy / "toy" / "runs" / "2dgs" / "summary.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "device": "cuda:0"}))
+    md = build_report(copy, tmp_path / "report_gpu", roles=Roles.from_dict(ROLES)).with_suffix(".md").read_text()
+    assert WALL_TIME.caption in md and CPU_TIME.caption not in md
+    pareto = _table_rows(md, f"| method | {WALL_TIME.label} |")
+    summary = json.loads((copy / "toy" / "runs" / "rtsplat" / "summary.json").read_text())
+    assert float(pareto["rtsplat"][WALL_TIME.label]) == pytest.approx(summary["train_seconds"], abs=0.051)
 
 
 def test_appearance_rows_show_the_spread_and_the_corrections_size():

@@ -92,6 +92,19 @@ def test_run_directory_contents_and_ply_export(glass_scene, tmp_path):
     assert summary["final_minus_best_test_psnr"] == pytest.approx(summary["test_psnr"] - summary["best_test_psnr"])
     assert "test_psnr_transparent" in read_log(run)[-1]
     assert log[0]["seconds"] == 0 and all(r["seconds"] > 0 for r in log[1:])
+    # CPU seconds of the same steps: counted as they run, never more than the threads' wall time
+    cpu = [r["cpu_seconds"] for r in log]
+    assert cpu == sorted(cpu) and cpu[0] == 0 and cpu[1] > 0
+    assert cpu[-1] == pytest.approx(summary["train_cpu_seconds"], abs=1e-3)
+    threads = summary["threads"]
+    assert threads == torch.get_num_threads()
+    assert 0 < summary["train_cpu_seconds"] <= summary["train_seconds"] * threads * 1.05 + 0.01
+    assert summary["cpu_share"] == pytest.approx(
+        summary["train_cpu_seconds"] / (summary["train_seconds"] * threads), abs=2e-3)
+    # the whole run (evaluations, pose fits, checkpoints too) holds the steps
+    whole = summary["run_usage"]
+    assert whole["wall_seconds"] >= summary["train_seconds"] and whole["cpu_seconds"] >= summary["train_cpu_seconds"]
+    assert whole["other_busy_cores"] is None or 0 <= whole["other_busy_cores"] <= whole["cpus"]
     ply = read_surfel_ply(run / "point_cloud.ply")
     n = summary["surfels"]
     assert len(ply["x"]) == n == len(trainer.model.surfels)
@@ -216,11 +229,15 @@ def test_resume_after_kill_matches_an_uninterrupted_run(glass_scene, tmp_path):
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert not (run / "summary.json").exists()  # a killed run does not look finished
-    killed_at = read_checkpoint(checkpoint).training["iteration"]
+    killed = read_checkpoint(checkpoint).training
+    killed_at = killed["iteration"]
     assert 10 <= killed_at < 40
 
     resumed = Trainer(glass_scene, cfg, run, progress=False, log=lambda m: None)
-    resumed.train(resume=True)
+    summary = resumed.train(resume=True)
+    # the time of the killed part is in the resumed run's, CPU seconds as well as wall seconds
+    assert 0 < killed["cpu_elapsed"] < summary["train_cpu_seconds"]
+    assert killed["run_usage"]["wall_seconds"] < summary["run_usage"]["wall_seconds"]
     a, b = straight.model.surfels.tensors(), resumed.model.surfels.tensors()
     assert len(straight.model.surfels) == len(resumed.model.surfels)
     for name in a:
@@ -530,3 +547,41 @@ def test_mirror_planes_are_fitted_once_as_the_reflections_start_and_come_back_on
     for _ in range(6):
         off.step()
     assert off.near_fit is None and not off.model.uses_near_reflection
+
+
+SPIN = "while True: pass\n"
+
+
+def _cpu_seconds_of(pid: int) -> float:
+    """utime + stime of a process from /proc/<pid>/stat (after the command name, fields 14 and 15)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@pytest.mark.skipif(not Path("/proc/stat").is_file(), reason="no /proc (not Linux)")
+def test_a_run_with_a_busy_neighbour_records_the_cpu_time_the_neighbour_used(glass_scene, tmp_path):
+    """A process spinning beside the training: every CPU second it used while the run's clock ran is in
+    the run's other_busy_core_seconds (the machine's busy time minus the training's own)."""
+    spinner = subprocess.Popen([sys.executable, "-c", SPIN])
+    window = {}
+
+    class Watched(Trainer):
+        def finish(self):  # inside the run's clock: read the neighbour's CPU time before the summary
+            window["end"] = _cpu_seconds_of(spinner.pid)
+            return super().finish()
+
+    def log(message: str) -> None:
+        if message.startswith("effects:") and "start" not in window:  # logged after train() started its clock
+            window["start"] = _cpu_seconds_of(spinner.pid)
+
+    try:
+        summary = Watched(glass_scene, config(12), tmp_path / "run", progress=False, log=log).train()
+    finally:
+        spinner.kill()
+        spinner.wait()
+    neighbour = window["end"] - window["start"]
+    assert neighbour > 0.1  # the neighbour did run beside the training
+    run = summary["run_usage"]
+    assert run["other_busy_core_seconds"] >= neighbour - 0.1  # clock ticks: a few hundredths of a second
+    assert run["other_busy_cores"] == pytest.approx(run["other_busy_core_seconds"] / run["wall_seconds"], rel=0.02,
+                                                    abs=0.01)

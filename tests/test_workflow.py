@@ -83,6 +83,7 @@ EXPECTED = {
     "train": 2,
     "render": 2,
     "render_edit": 8,
+    "fps": 2,
     "metrics": 2,
     "report": 1,
     "all": 1,
@@ -117,6 +118,43 @@ def test_dry_run_builds_the_whole_dag(dataset):
     report = next(b for b in _jobs(out) if b.startswith("localrule report") or b.startswith("rule report"))
     assert report.count("config.yaml") == 2, report  # one --config for the report, one in the command
     assert re.search(r"--cores \d+'", report), report  # a number, not "all"
+
+
+def test_fps_jobs_hold_every_core_of_the_run_and_only_then_say_they_ran_alone(dataset):
+    """The timing pass takes --cores threads, so Snakemake runs nothing beside it, and records that; with
+    fewer threads (--set-threads) it runs beside other jobs and does not claim to be alone."""
+    for extra, threads, alone in ((["--cores", "3"], 3, True), (["--cores", "3", "--set-threads", "fps=1"], 1, False)):
+        r = snakemake(dataset, "-n", "-p", *extra)
+        assert r.returncode == 0, r.stderr + r.stdout
+        fps = [b for b in _jobs(r.stdout + r.stderr) if b.startswith("rule fps:")]
+        assert len(fps) == 2
+        for block in fps:
+            shown = re.search(r"^\s*threads: (\d+)$", block, re.M)  # Snakemake leaves out "threads: 1"
+            assert (int(shown.group(1)) if shown else 1) == threads, block
+            assert (" fps --data " in block) and (("--scheduled-alone" in block) is alone), block
+
+
+def _jobs_beside(output: str, rule: str) -> list[tuple[str, set[str]]]:
+    """For every job of ``rule`` in a real run's log: (its jobid, the other jobs that were running at any
+    time while it ran), from the order of Snakemake's "rule X: ... jobid: N" and "Finished jobid: N" lines."""
+    running: dict[str, str] = {}  # jobid -> rule
+    watched: dict[str, set[str]] = {}  # jobid of a `rule` job -> the others seen running beside it
+    done = []
+    events = re.finditer(r"^(?:local)?rule (\w+):\n(?:.*\n)*?\s*jobid: (\d+)$|^Finished jobid: (\d+)", output, re.M)
+    for event in events:
+        if event.group(3) is not None:
+            finished = event.group(3)
+            running.pop(finished, None)
+            if finished in watched:
+                done.append((finished, watched.pop(finished)))
+            continue
+        name, jobid = event.group(1), event.group(2)
+        for other in watched:
+            watched[other].add(f"{name} {jobid}")
+        if name == rule:
+            watched[jobid] = {f"{n} {j}" for j, n in running.items()}
+        running[jobid] = name
+    return done
 
 
 def test_paths_with_spaces_are_quoted(tmp_path):
@@ -287,7 +325,8 @@ def test_whole_dag_to_the_report(tmp_path):
     }
     data["defaults"]["render"] = {"edits": {"no-reflections": ["reflections=off"]}}
     cfg.write_text(yaml.safe_dump(data))
-    r = snakemake(tmp_path, "--cores", "2", config=cfg)
+    # one thread per training and rendering job, as `make demo` runs them: two such jobs run at a time
+    r = snakemake(tmp_path, "--cores", "2", "--set-threads", "train=1", "render=1", "render_edit=1", config=cfg)
     assert r.returncode == 0, r.stderr[-4000:]
     results = tmp_path / "results"
     for method in ("rtsplat", "2dgs"):
@@ -298,8 +337,16 @@ def test_whole_dag_to_the_report(tmp_path):
         assert (results / "glass" / "benchmarks" / f"train_{method}.tsv").is_file()
     assert json.loads((results / "glass" / "runs" / "2dgs" / "effects.json").read_text())["transmission"] is False
     assert (results / "glass" / "renders" / "rtsplat@no-reflections" / "render.json").is_file()
+    # the FPS timing jobs ran with nothing beside them, and say so
+    beside = _jobs_beside(r.stderr, "fps")
+    assert len(beside) == 2 and all(not others for _, others in beside), beside
+    assert any(others for _, others in _jobs_beside(r.stderr, "render_edit"))  # the others ran two at a time
+    for method in ("rtsplat", "2dgs"):
+        fps = json.loads((results / "glass" / "fps" / f"{method}.json").read_text())
+        assert fps["fps"] > 0 and fps["timing"]["scheduled_alone"] is True and fps["timing"]["threads"] == 2
     md = (results / "report" / "index.md").read_text()
     assert "| rtsplat |" in md and "| 2dgs |" in md and "no-reflections" in md
+    assert "FPS alone" in md and "training CPU s" in md
     assert (results / "report" / "index.html").is_file()
 
 

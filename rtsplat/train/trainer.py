@@ -5,12 +5,20 @@ Run directory layout::
 
     <out>/config.json        resolved TrainConfig
     <out>/effects.json       which branches run and why (effects: auto)
-    <out>/train_log.jsonl    one JSON line per logging step: losses, PSNR, surfels, seconds
+    <out>/train_log.jsonl    one JSON line per logging step: losses, PSNR, surfels, seconds, cpu_seconds
     <out>/checkpoints/last.pt  resumable state (rtsplat.model.checkpoint, written atomically; never
                              a diverged one, and resuming needs the same config, see load_checkpoint);
                              with a checkpoint_dir: <checkpoint_dir>/last.pt and a copy of train_log.jsonl
     <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
     <out>/summary.json       written last: a run without it is not finished
+
+Time, in the log and the summary (:mod:`rtsplat.usage` says what each measure means): ``seconds`` /
+``train_seconds`` are the wall seconds of the training steps (not the evaluations, test-view pose fits and
+checkpoints between them), ``cpu_seconds`` / ``train_cpu_seconds`` this process's CPU seconds over the
+same steps, which depend much less on what else the machine runs. The summary adds ``threads``,
+``cpu_share`` (train_cpu_seconds / (train_seconds x threads)) and ``run_usage``: the usage of
+:meth:`Trainer.train` as a whole (steps, evaluations, checkpoints; every resumed part included), with
+``other_busy_cores``, the mean number of cores other processes kept busy meanwhile: how much ran beside it.
 """
 
 from __future__ import annotations
@@ -55,6 +63,7 @@ from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import decide_effects, decide_near_planes, see_through_planes
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train_config import TrainConfig, resume_differences
+from rtsplat.usage import Usage, UsageClock, compute_threads
 
 PLANE_TOLERANCE = 0.01  # mirror planes: thickness tolerance, a fraction of the glass points' diagonal
 MAX_PLANE_POINTS = 50_000  # glass points the mirror planes are fitted to (a random subset beyond)
@@ -140,7 +149,10 @@ class Trainer:
         self.frozen = torch.zeros(len(self.model.surfels), dtype=torch.bool, device=self.device)
         self.any_frozen = False  # kept on the host: the step tests it without reading the device
         self.iteration = 0
-        self.elapsed = 0.0
+        self.elapsed = 0.0  # wall seconds of the training steps
+        self.cpu_elapsed: float | None = 0.0  # CPU seconds of the same steps (None: resumed from a run without)
+        self.usage_before: Usage | None = Usage(threads=compute_threads())  # the resumed parts' run usage
+        self.run_clock = UsageClock()  # this part's, restarted when train() starts
         self.order: list[int] = []
         self.watch = DivergenceWatch(self.device)
         # the iteration of the checkpoint at checkpoint_path this run wrote or resumed from
@@ -467,6 +479,8 @@ class Trainer:
         return {
             "iteration": self.iteration,
             "elapsed": self.elapsed,
+            "cpu_elapsed": self.cpu_elapsed,
+            "run_usage": None if (usage := self.run_usage()) is None else usage.to_dict(),
             "config": self.cfg.to_dict(),
             "optimizer": self.optimizer.state_dict(),
             "density": self.density.state_dict(),
@@ -545,6 +559,8 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"].cpu())
         self.iteration = int(state["iteration"])
         self.elapsed = float(state["elapsed"])
+        self.cpu_elapsed = None if state.get("cpu_elapsed") is None else float(state["cpu_elapsed"])
+        self.usage_before = None if state.get("run_usage") is None else Usage.from_dict(state["run_usage"])
         self.checkpoint_iteration = self.iteration
 
     # -- the loop ------------------------------------------------------------------------------
@@ -554,6 +570,7 @@ class Trainer:
         parameter that goes non-finite stops the run with
         :class:`~rtsplat.train.divergence.TrainingDiverged` before anything of that state is written."""
         cfg = self.cfg
+        self.run_clock.restart()
         self.out.mkdir(parents=True, exist_ok=True)
         log_path = self.out / "train_log.jsonl"
         if resume and self.checkpoint_path.exists():
@@ -580,10 +597,11 @@ class Trainer:
         bar = _progress(total, self.iteration, self.progress)
         with open(log_path, "a") as log_file:
             if cfg.schedule.eval_every > 0 and self.iteration == 0:  # the initialisation, for comparison
-                log_file.write(json.dumps({"iteration": 0, "seconds": 0.0, "surfels": len(self.model.surfels),
+                log_file.write(json.dumps({"iteration": 0, "seconds": 0.0, "cpu_seconds": 0.0,
+                                           "surfels": len(self.model.surfels),
                                            **self.evaluate()}) + "\n")
             while self.iteration < total:
-                start = time.perf_counter()
+                start, cpu_start = time.perf_counter(), time.process_time()
                 try:
                     step = self.step()
                 except Exception:  # a diverged state can break the step itself: name the divergence
@@ -598,11 +616,14 @@ class Trainer:
                 if logging or watch_every_step:
                     self.stop_if_diverged()
                 self.elapsed += time.perf_counter() - start
+                if self.cpu_elapsed is not None:
+                    self.cpu_elapsed += time.process_time() - cpu_start
                 bar.update(1)
                 if numbers is not None:
                     bar.set_postfix(loss=f"{numbers['loss']:.4f}", psnr=f"{numbers['psnr']:.2f}",
                                     surfels=len(self.model.surfels))
-                    record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4), **numbers,
+                    record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4),
+                              "cpu_seconds": _rounded(self.cpu_elapsed, 4), **numbers,
                               "surfels": len(self.model.surfels), "stage": step.stage}
                     if step.density:
                         record["density"] = step.density
@@ -618,6 +639,12 @@ class Trainer:
         bar.close()
         return self.finish()
 
+    def run_usage(self) -> Usage | None:
+        """Wall and CPU seconds, threads and the other processes' CPU time of the whole run so far (this
+        part since :meth:`train` started, plus the parts it resumed from); None when a resumed part
+        did not record it."""
+        return None if self.usage_before is None else self.usage_before + self.run_clock.read()
+
     def _write_effects(self) -> None:
         _write_json(self.out / "effects.json", {**self.effects.to_dict(), "reasons": self.effect_reasons,
                                                 "perceptual": self.perceptual_note, "near_fit": self.near_fit,
@@ -631,7 +658,14 @@ class Trainer:
         metrics = self.evaluate()
         self.save_checkpoint(self.out / "model.pt")
         write_surfel_ply(self.out / "point_cloud.ply", self.model.surfels, self.model.uses_opacity)
+        threads = compute_threads()
+        share = (self.cpu_elapsed / (self.elapsed * threads)
+                 if self.cpu_elapsed is not None and self.elapsed > 0 else None)
+        usage = self.run_usage()
         summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
+                   "train_cpu_seconds": _rounded(self.cpu_elapsed, 3), "threads": threads,
+                   "cpu_share": _rounded(share, 3), "device": str(self.device),
+                   "run_usage": None if usage is None else usage.to_dict(),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
                    "surfels": len(self.model.surfels), "effects": self.effects.to_dict(),
                    "near_reflection": self.near_fit, "appearance": self.appearance_summary(), **metrics,
@@ -640,6 +674,10 @@ class Trainer:
         _write_json(self.out / "summary.json", summary)
         self.log(f"done: {json.dumps(summary)}")
         return summary
+
+
+def _rounded(value: float | None, digits: int) -> float | None:
+    return None if value is None else round(value, digits)
 
 
 def best_test_psnr(log_path: Path, iteration: int, final: dict[str, float]) -> dict:

@@ -84,6 +84,56 @@ rule render_edit:
         "--config-json {params.cfg} --warmup 0 --quiet > {log:q} 2>&1"
 
 
+def local_cores():
+    """This run's --cores when its jobs run on this machine; None when an executor submits them elsewhere
+    (a cluster, where each job has an allocation of its own) or the run has no core count."""
+    from snakemake.exceptions import WorkflowError
+
+    if not workflow.local_exec or workflow.remote_exec:
+        return None
+    try:
+        return workflow.cores
+    except WorkflowError:
+        return None
+
+
+def scheduled_alone_flag(wildcards, threads):
+    """Params function: --scheduled-alone when the job holds every core of the run (its threads equal
+    --cores), which Snakemake's scheduler guarantees no other job runs beside; nothing otherwise (a
+    --set-threads below --cores, a cluster run)."""
+    cores = local_cores()
+    return "--scheduled-alone" if cores is not None and threads >= cores else ""
+
+
+# The timing pass behind the report's FPS. It takes every core of the run: Snakemake keeps the sum of
+# the threads of the running jobs at or below --cores, so nothing else of the workflow runs beside it
+# (rtsplat/fps.py). On a cluster each job has its own allocation; add `slurm_extra: "'--exclusive'"`
+# for fps in the profile to have the node to itself.
+rule fps:
+    input:
+        prepared=f"{RESULTS}/{{scene}}/prepared",
+        run=f"{RESULTS}/{{scene}}/runs/{{method}}",
+    output:
+        f"{RESULTS}/{{scene}}/fps/{{method}}.json",
+    log:
+        f"{RESULTS}/{{scene}}/logs/fps_{{method}}.log",
+    benchmark:
+        f"{RESULTS}/{{scene}}/benchmarks/fps_{{method}}.tsv"
+    params:
+        cfg=stage_json("render"),
+        alone=scheduled_alone_flag,
+    threads: local_cores() or 1
+    resources:
+        gpu=1,
+        runtime=30,
+        mem_mb=8000,
+    conda:
+        ENV
+    shell:
+        "{RTSPLAT} fps --data {input.prepared:q} --run {input.run:q} --out {output:q} "
+        "--config-json {params.cfg} {params.alone} > {log:q} 2>&1"
+
+
 rule metrics:
     input:
         prepared=f"{RESULTS}/{{scene}}/prepared",
@@ -136,6 +186,7 @@ def reproduce_command():
 
 def report_inputs(wildcards):
     inputs = expand(f"{RESULTS}/{{scene}}/metrics/{{method}}.json", scene=SCENES, method=METHODS)
+    inputs += expand(f"{RESULTS}/{{scene}}/fps/{{method}}.json", scene=SCENES, method=METHODS)
     for scene in SCENES:
         inputs += [f"{RESULTS}/{scene}/renders/{MAIN_METHOD}@{edit}" for edit in edit_names(scene)]
     return inputs
