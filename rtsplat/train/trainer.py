@@ -10,7 +10,8 @@ Run directory layout::
                              a diverged one, and resuming needs the same config, see load_checkpoint);
                              with a checkpoint_dir: <checkpoint_dir>/last.pt and a copy of train_log.jsonl
     <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
-    <out>/summary.json       written last: a run without it is not finished
+    <out>/summary.json       written last: a run without it is not finished; its starting_surfels says how
+                             many surfels the SfM points started and why (rtsplat.train.initial)
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import decide_effects, decide_near_planes, see_through_planes
+from rtsplat.train.initial import choose_points, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train_config import TrainConfig, resume_differences
 
@@ -119,6 +121,9 @@ class Trainer:
         if self.points[0].shape[0] == 0:
             raise PipelineError("the point cloud is empty; cannot initialise surfels", path=scene.points_path,
                                 fix="rerun `rtsplat prepare` on a scene whose SfM produced points")
+        train_pixels = sum(int(image.shape[0]) * int(image.shape[1]) for image in self.train_views.images)
+        self.starting = plan_starting_surfels(self.points[0].shape[0], cfg.densify.initial_copies,
+                                              starting_cap(cfg.densify, train_pixels))
         self.model = self._new_model(self._init_surfels())
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
         self.density = DensityControl(cfg.densify, cfg.schedule, self.extent)
@@ -141,10 +146,13 @@ class Trainer:
     # -- construction ------------------------------------------------------------------------
     def _init_surfels(self) -> SurfelParameters:
         m = self.cfg.model
-        copies = self.cfg.densify.initial_copies
-        xyz, rgb = scatter_points(*self.points, copies, generator=self.rng)
-        # a point's scattered copies follow it block by block (scatter_points), and share its normal
-        normals = (point_cloud_normals(self.points[0]).repeat(copies, 1)
+        copies = self.starting.copies
+        chosen = choose_points(self.starting, self.rng)
+        points, colours = self.points if chosen is None else (self.points[0][chosen], self.points[1][chosen])
+        xyz, rgb = scatter_points(points, colours, copies, generator=self.rng)
+        # a point's scattered copies follow it block by block (scatter_points), and share its normal, that
+        # of the whole cloud around it
+        normals = (point_cloud_normals(self.points[0], queries=None if chosen is None else points).repeat(copies, 1)
                    if self.cfg.densify.initial_orientation == "point_normals" else None)
         surfels = init_from_points(
             xyz, rgb, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
@@ -507,6 +515,7 @@ class Trainer:
                  f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
         self.log(f"near reflection: {self.effects.near_reflection} ({self.effect_reasons['near_reflection']})")
         self.log(f"perceptual loss: {self.perceptual_note}")
+        self.log(f"starting surfels: {self.starting.surfels} ({self.starting.reason})")
         backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
         self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
         total = cfg.schedule.iterations
@@ -567,7 +576,8 @@ class Trainer:
         write_surfel_ply(self.out / "point_cloud.ply", self.model.surfels, self.model.uses_opacity)
         summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
-                   "surfels": len(self.model.surfels), "effects": self.effects.to_dict(),
+                   "surfels": len(self.model.surfels), "starting_surfels": self.starting.to_dict(),
+                   "effects": self.effects.to_dict(),
                    "near_reflection": self.near_fit, **metrics,
                    **self._correction_sizes(),
                    **best_test_psnr(self.out / "train_log.jsonl", self.iteration, metrics)}
