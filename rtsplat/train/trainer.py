@@ -190,13 +190,16 @@ class Trainer:
             normals.append(torch.nn.functional.normalize(out.normal[chosen], dim=-1))
             rays.append(torch.cat([camera.center.expand_as(directions), directions,
                                    (seen_through - camera.center).norm(dim=-1, keepdim=True)], -1))
-        xyz, normal, rays = (torch.cat(x).cpu().double() if x else torch.zeros(0, w, dtype=torch.float64)
+        # in the render's precision until the subset is drawn: all views' transparent pixels of a real
+        # capture are millions of points
+        xyz, normal, rays = (torch.cat(x).cpu() if x else torch.zeros(0, w)
                              for x, w in ((points, 3), (normals, 3), (rays, 7)))
         ok = torch.isfinite(xyz).all(-1) & torch.isfinite(normal).all(-1) & torch.isfinite(rays).all(-1)
         xyz, normal, rays = xyz[ok], normal[ok], rays[ok]
         if xyz.shape[0] > MAX_PLANE_POINTS:
             keep = torch.randperm(xyz.shape[0], generator=self.rng)[:MAX_PLANE_POINTS]
             xyz, normal, rays = xyz[keep], normal[keep], rays[keep]
+        xyz, normal, rays = xyz.double(), normal.double(), rays.double()
         planes, share, dropped = empty_planes(), None, 0
         if xyz.shape[0] >= 16:
             diagonal = float((xyz.max(0).values - xyz.min(0).values).norm())
