@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
+from rtsplat.model.surfels import SurfelParameters, init_from_points, point_cloud_normals, scatter_points
 from rtsplat.train_config import Densification
 
 
@@ -71,3 +72,18 @@ def choose_points(plan: StartingSurfels, generator: torch.Generator) -> Tensor |
     if plan.points >= plan.sfm_points:
         return None
     return torch.randperm(plan.sfm_points, generator=generator)[: plan.points].sort().values
+
+
+def initial_surfels(points: Tensor, colours: Tensor, plan: StartingSurfels, generator: torch.Generator, *,
+                    point_normals: bool, **init: float | int) -> SurfelParameters:
+    """The starting surfels of ``plan`` from the SfM ``points`` [N,3] and ``colours`` [N,3] in [0,1]: the
+    chosen points (:func:`choose_points`), each followed by its scattered copies
+    (:func:`~rtsplat.model.surfels.scatter_points`); with ``point_normals`` they face along the whole
+    cloud's normal at their point (a point's copies share it), else randomly. ``init``: the starting
+    values of :func:`~rtsplat.model.surfels.init_from_points`."""
+    chosen = choose_points(plan, generator)
+    kept, kept_colours = (points, colours) if chosen is None else (points[chosen], colours[chosen])
+    xyz, rgb = scatter_points(kept, kept_colours, plan.copies, generator=generator)
+    normals = (point_cloud_normals(points, queries=None if chosen is None else kept).repeat(plan.copies, 1)
+               if point_normals else None)
+    return init_from_points(xyz, rgb, generator=generator, normals=normals, **init)

@@ -39,8 +39,6 @@ from rtsplat.model.surfels import (
     SurfelParameters,
     concat_surfels,
     init_from_points,
-    point_cloud_normals,
-    scatter_points,
 )
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
@@ -52,7 +50,7 @@ from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import decide_effects, decide_near_planes, see_through_planes
-from rtsplat.train.initial import choose_points, plan_starting_surfels, starting_cap
+from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train_config import TrainConfig, resume_differences
 
@@ -146,18 +144,11 @@ class Trainer:
     # -- construction ------------------------------------------------------------------------
     def _init_surfels(self) -> SurfelParameters:
         m = self.cfg.model
-        copies = self.starting.copies
-        chosen = choose_points(self.starting, self.rng)
-        points, colours = self.points if chosen is None else (self.points[0][chosen], self.points[1][chosen])
-        xyz, rgb = scatter_points(points, colours, copies, generator=self.rng)
-        # a point's scattered copies follow it block by block (scatter_points), and share its normal, that
-        # of the whole cloud around it
-        normals = (point_cloud_normals(self.points[0], queries=None if chosen is None else points).repeat(copies, 1)
-                   if self.cfg.densify.initial_orientation == "point_normals" else None)
-        surfels = init_from_points(
-            xyz, rgb, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
-            transmissivity=m.transmissivity_init, roughness=m.roughness_init, reflectance=m.reflectance_init,
-            generator=self.rng, normals=normals,
+        surfels = initial_surfels(
+            *self.points, self.starting, self.rng,
+            point_normals=self.cfg.densify.initial_orientation == "point_normals", sh_degree=m.sh_degree,
+            occupancy=m.occupancy_init, opacity=m.opacity_init, transmissivity=m.transmissivity_init,
+            roughness=m.roughness_init, reflectance=m.reflectance_init,
         )
         surface = self.scene.load_transparent_surface() if self.cfg.seed_transparent_surface else None
         if surface is None or not self.effects.transmission or len(surface[0]) < 4:
