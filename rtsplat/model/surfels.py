@@ -86,7 +86,7 @@ QUERY_CHUNK = 65_536  # query points per k-d tree query and per batch of covaria
 
 
 def _tree_workers() -> int:
-    """Threads of the k-d tree queries: torch's thread count (the stage's --set-threads)."""
+    """Threads of the k-d tree queries: torch's (``OMP_NUM_THREADS``, which Snakemake sets to a job's threads)."""
     return max(1, torch.get_num_threads())
 
 
@@ -95,8 +95,8 @@ def nearest_neighbours(points: Tensor, k: int, queries: Tensor | None = None, ch
     """Distances and indices [M,k] (nearest first, float64 and int64 numpy arrays) of the ``k`` points of
     ``points`` [N,3] nearest to each of ``queries`` [M,3] (default: the points themselves, each its own
     nearest), found in a k-d tree (:class:`scipy.spatial.cKDTree`) in chunks of ``chunk`` queries:
-    O((N + M) log N) time and O(N + chunk k) memory. Among points at equal distance, which ones fill
-    the last places is the tree's choice. Needs ``1 <= k <= N``."""
+    O((N + M k) log N) time, and memory for the tree and the results, O(N + M k). Among points at equal
+    distance, which ones fill the last places is the tree's choice. Needs ``1 <= k <= N``."""
     from scipy.spatial import cKDTree
 
     xyz = points.detach().cpu().double().numpy()
