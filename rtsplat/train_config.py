@@ -202,8 +202,19 @@ class Densification:
     initial_copies: int = setting(
         4, help="surfels started per SfM point: the point and copies - 1 more around it, offset by a normal "
         "deviate of half its RMS distance to its 3 nearest points (colour copied); a sparse SfM cloud otherwise "
-        "leaves too few surfels for the few densifications of a short run to grow. 1: one surfel per point",
+        "leaves too few surfels for the few densifications of a short run to grow. 1: one surfel per point. Fewer "
+        "copies, or a random subset of the points with one surfel each, when they exceed the cap that "
+        "initial_budget_share and initial_pixels_per_surfel set (rtsplat/train/initial.py)",
         minimum=1,
+    )
+    initial_budget_share: float = setting(
+        0.5, help="the surfels started from the SfM points are at most this share of max_surfels (the rest is "
+        "left to densification)", exclusiveMinimum=0.0, maximum=1.0
+    )
+    initial_pixels_per_surfel: float = setting(
+        1.0, help="... and at most one per this many training pixels (the training views at the training "
+        "resolution, summed): more surfels than pixels have more parameters than the images have values. 0: no "
+        "such cap", minimum=0.0
     )
 
 

@@ -118,3 +118,19 @@ def test_a_density_step_does_not_undo_the_training_before_it(tmp_path, rules, ma
 def test_density_control_ends_at_half_the_run_by_default():
     assert TrainConfig.from_dict({"schedule": {"iterations": 600}}).schedule.densify_stop() == 300
     assert TrainConfig.from_dict({"schedule": {"densify_until": 450}}).schedule.densify_stop() == 450
+
+
+def test_the_points_benchmark_clouds_lie_on_their_surfaces_and_its_densify_step_clones_splits_and_prunes():
+    from rtsplat.bench.points import run_step, surface_cloud
+
+    xyz, rgb = surface_cloud(5000)
+    assert xyz.shape == (5000, 3) and rgb.shape == (5000, 3)
+    to_surface = torch.stack([xyz[:, 2].abs(), xyz[:, 0].abs(), xyz[:, 1].abs(),
+                              ((xyz - torch.tensor([1.5, 1.5, 0.5])).norm(dim=1) - 0.5).abs(),
+                              ((xyz - torch.tensor([2.8, 1.0, 0.8])).norm(dim=1) - 0.8).abs()], 1).amin(1)
+    assert float(to_surface.max()) < 5 * 0.008  # within five noise deviations of one of the five surfaces
+    row = run_step("densify", 5000, train_pixels=10**6)
+    assert row["cloned"] > 0 and row["split"] > 0 and row["pruned"] > 0 and row["seconds"] >= 0
+    assert row["surfels"] == 5000 + row["cloned"] + row["split"] - row["pruned"]
+    start = run_step("start", 5000, train_pixels=10_000)  # a cap of 10k: 2 copies of the 5000 points
+    assert start["surfels"] == 10_000 and start["peak_mb"] >= start["rise_mb"] >= 0

@@ -623,3 +623,95 @@ def test_fresnel_reflectance_reaches_the_network_as_schlick_of_the_surfel_reflec
     torch.testing.assert_close(reflectance_f, reflectance + (1 - reflectance) * (1 - cosine) ** 5)
     assert float((reflectance_f - reflectance).detach().max()) > 1e-3  # some shaded pixels are seen at an angle
     assert (fresnel.layers["spec"] - plain.layers["spec"]).abs().max() > 1e-4
+
+
+def _brute_distances(points: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
+    """Exact float64 distances [M,N] from each query to each point (the oracle, no k-d tree, no cdist)."""
+    return (queries.double()[:, None, :] - points.double()[None, :, :]).square().sum(-1).sqrt()
+
+
+def _brute_scale(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    n = points.shape[0]
+    if n <= 1:
+        return torch.full((n,), 0.01, dtype=torch.float64)
+    d2 = _brute_distances(points, points).square()
+    d2.fill_diagonal_(math.inf)
+    return d2.topk(min(k, n - 1), largest=False).values.mean(-1).clamp_min(1e-7).sqrt()
+
+
+def _brute_normals(points: torch.Tensor, k: int = 16) -> torch.Tensor:
+    nearest = _brute_distances(points, points).topk(min(k, points.shape[0]), largest=False).indices
+    neighbours = points.double()[nearest]
+    centred = neighbours - neighbours.mean(1, keepdim=True)
+    return torch.linalg.eigh(centred.transpose(1, 2) @ centred).eigenvectors[:, :, 0]
+
+
+def _clouds() -> dict[str, torch.Tensor]:
+    """Small clouds in float64: general position, with coincident points, tiny ones, on a line, on a plane."""
+    g = torch.Generator().manual_seed(3)
+    rand = lambda *shape: torch.rand(*shape, generator=g, dtype=torch.float64)  # noqa: E731
+    general = rand(400, 3)
+    duplicates = torch.cat([general[:300], general[:60], general[:5], general[:5]])  # pairs and quadruples
+    direction = torch.nn.functional.normalize(torch.tensor([0.3, -1.0, 0.4], dtype=torch.float64), dim=0)
+    line = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64) + rand(200, 1) * direction
+    uv = rand(300, 2)
+    plane = torch.stack([uv[:, 0], uv[:, 1], 0.5 * uv[:, 0] - 0.2 * uv[:, 1] + 1.0], -1)
+    return {"general": general, "duplicates": duplicates, "line": line, "plane": plane, "one": rand(1, 3),
+            "two": rand(2, 3), "three": rand(3, 3), "five": rand(5, 3), "all_coincident": rand(1, 3).repeat(20, 1)}
+
+
+@pytest.mark.parametrize("name", list(_clouds()))
+def test_neighbour_scales_equal_the_brute_force_ones(name):
+    from rtsplat.model.surfels import nearest_neighbour_scale
+
+    points = _clouds()[name]
+    for k in (1, 3, 8):
+        got = nearest_neighbour_scale(points, k=k)
+        assert got.dtype == points.dtype and got.shape == (points.shape[0],) and torch.isfinite(got).all()
+        torch.testing.assert_close(got, _brute_scale(points, k), rtol=1e-9, atol=1e-12)
+    single = nearest_neighbour_scale(points.float())  # float32 in, float32 out
+    assert single.dtype == torch.float32
+    torch.testing.assert_close(single.double(), _brute_scale(points.float()), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", list(_clouds()))
+def test_nearest_neighbours_are_the_brute_force_nearest(name):
+    from rtsplat.model.surfels import nearest_neighbours
+
+    points = _clouds()[name]
+    k = min(6, points.shape[0])
+    distances, indices = nearest_neighbours(points, k, chunk=64)
+    brute = _brute_distances(points, points)
+    expected = brute.topk(k, largest=False).values
+    torch.testing.assert_close(torch.from_numpy(distances), expected, rtol=1e-9, atol=1e-12)
+    # the indices are k distinct points at those distances (which of equally far points: the tree's choice)
+    index = torch.from_numpy(indices)
+    torch.testing.assert_close(brute.gather(1, index), expected, rtol=1e-9, atol=1e-12)
+    assert all(len(set(row)) == k for row in indices.tolist())
+    queries = points[:7] + 0.01
+    d_query, _ = nearest_neighbours(points, k, queries)
+    torch.testing.assert_close(torch.from_numpy(d_query), _brute_distances(points, queries).topk(k, largest=False)
+                               .values, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", list(_clouds()))
+def test_point_cloud_normals_equal_the_brute_force_ones(name):
+    from rtsplat.model.surfels import point_cloud_normals
+
+    points = _clouds()[name]
+    normals = point_cloud_normals(points, chunk=50)
+    assert normals.shape == points.shape and torch.isfinite(normals).all()
+    torch.testing.assert_close(normals.norm(dim=1), torch.ones(len(points), dtype=torch.float64))
+    if name == "line":  # every direction across the line is least spread: any of them, but across it
+        direction = torch.nn.functional.normalize(points[-1] - points[0], dim=0)
+        assert float((normals @ direction).abs().max()) < 1e-6
+    elif name in ("one", "two"):
+        assert normals.tolist() == [[0.0, 0.0, 1.0]] * len(points)
+    elif name == "all_coincident":  # no spread at all: any unit vector will do
+        pass
+    else:  # the same neighbour sets (coincident points tie with identical coordinates) and the same axis
+        cosine = (normals * _brute_normals(points)).sum(1).abs()
+        assert float(cosine.min()) > 1 - 1e-9
+    # normals at some of the points as queries: those of the whole cloud there
+    some = point_cloud_normals(points, queries=points[::3])
+    assert float((some * normals[::3]).sum(1).abs().min()) > 1 - 1e-9 or name in ("line", "all_coincident")

@@ -585,3 +585,73 @@ def test_a_run_with_a_busy_neighbour_records_the_cpu_time_the_neighbour_used(gla
     assert run["other_busy_core_seconds"] >= neighbour - 0.1  # clock ticks: a few hundredths of a second
     assert run["other_busy_cores"] == pytest.approx(run["other_busy_core_seconds"] / run["wall_seconds"], rel=0.02,
                                                     abs=0.01)
+
+
+def test_the_starting_plan_keeps_every_copy_under_the_cap_then_fewer_copies_then_fewer_points():
+    from rtsplat.train.initial import plan_starting_surfels
+
+    for points in (1, 7, 100, 1000):
+        for copies in (1, 3, 4):
+            for cap in (1, 5, 99, 100, 250, 400, 4000):
+                plan = plan_starting_surfels(points, copies, cap)
+                assert plan.surfels <= max(cap, 1) and 1 <= plan.copies <= copies and plan.points <= points
+                if points * copies <= cap:  # within the cap: exactly as without it
+                    assert (plan.points, plan.copies) == (points, copies)
+                elif points <= cap:  # all points, the most copies that fit
+                    assert plan.points == points and points * (plan.copies + 1) > cap
+                else:
+                    assert (plan.points, plan.copies) == (cap, 1)
+                assert str(plan.surfels) in json.dumps(plan.to_dict())
+
+
+def test_the_starting_cap_follows_the_budget_and_the_training_pixels():
+    from rtsplat.train.initial import starting_cap
+    from rtsplat.train_config import Densification
+
+    assert starting_cap(Densification(max_surfels=200_000), 10**9) == 100_000  # the budget's share
+    assert starting_cap(Densification(max_surfels=200_000, initial_budget_share=0.25), 10**9) == 50_000
+    assert starting_cap(Densification(max_surfels=200_000), 30_000) == 30_000  # one surfel per pixel
+    assert starting_cap(Densification(max_surfels=200_000, initial_pixels_per_surfel=4), 30_000) == 7_500
+    assert starting_cap(Densification(max_surfels=200_000, initial_pixels_per_surfel=0), 30_000) == 100_000
+
+
+def test_a_capped_start_uses_a_seeded_subset_of_the_points_with_the_whole_clouds_normals(glass_scene, tmp_path):
+    from rtsplat.model.surfels import point_cloud_normals
+    from rtsplat.raster.projection import quat_to_rotmat
+
+    n_points = glass_scene.load_points()[0].shape[0]
+    train_pixels = sum(c.width * c.height for c in glass_scene.train_cameras)
+    assert n_points * 4 < train_pixels  # the default cap leaves this small scene as it was
+    default = Trainer(glass_scene, config(2, seed_transparent_surface=False), tmp_path / "default", progress=False,
+                      log=lambda m: None)
+    assert len(default.model.surfels) == 4 * n_points and default.starting.surfels == 4 * n_points
+
+    def capped(run: str, cap: int, seed: int = 0) -> Trainer:
+        cfg = config(2, seed=seed, seed_transparent_surface=False,
+                     densify={"max_surfels": 2 * cap, "initial_budget_share": 0.5})
+        return Trainer(glass_scene, cfg, tmp_path / run, progress=False, log=lambda m: None)
+
+    fewer_copies = capped("copies", 2 * n_points + n_points // 2)  # room for 2.5 copies: 2
+    assert (fewer_copies.starting.points, fewer_copies.starting.copies) == (n_points, 2)
+    assert len(fewer_copies.model.surfels) == 2 * n_points
+    assert torch.equal(fewer_copies.model.surfels.means.detach()[:n_points], fewer_copies.points[0])
+
+    cap = n_points // 3
+    trainer = capped("subset", cap)
+    means = trainer.model.surfels.means.detach()
+    assert len(means) == cap and trainer.starting.points == cap and trainer.starting.copies == 1
+    # each surfel sits on a distinct SfM point, with that point's colour ...
+    match = torch.cdist(means, trainer.points[0]).argmin(1)
+    assert torch.equal(trainer.points[0][match], means) and len(set(match.tolist())) == cap
+    colour = torch.sigmoid(trainer.model.surfels.scatter_logit.detach())
+    torch.testing.assert_close(colour, trainer.points[1][match].clamp(0.02, 0.98))
+    # ... facing along the whole cloud's normal there (not that of the sparser subset)
+    normals = quat_to_rotmat(torch.nn.functional.normalize(trainer.model.surfels.quats.detach(), dim=-1))[:, :, 2]
+    expected = point_cloud_normals(trainer.points[0])[match]
+    assert float((normals * expected).sum(-1).abs().min()) > 1 - 1e-5
+    # the subset is the seed's: the same again with it, another with another seed
+    assert torch.equal(capped("again", cap).model.surfels.means.detach(), means)
+    assert not torch.equal(capped("other", cap, seed=1).model.surfels.means.detach(), means)
+    summary = trainer.train()
+    assert summary["starting_surfels"]["surfels"] == cap and "random" in summary["starting_surfels"]["reason"]
+    assert json.loads((tmp_path / "subset" / "summary.json").read_text())["starting_surfels"]["cap"] == cap

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -81,36 +82,70 @@ class SurfelParameters(nn.Module):
         return {name: getattr(self, name) for name in PARAMETERS}
 
 
-def nearest_neighbour_scale(points: Tensor, k: int = 3, chunk: int = 4096) -> Tensor:
-    """RMS distance to the ``k`` nearest other points (the 3DGS initial scale), chunked."""
+QUERY_CHUNK = 65_536  # query points per k-d tree query and per batch of covariance eigensolves
+
+
+def _tree_workers() -> int:
+    """Threads of the k-d tree queries: torch's (``OMP_NUM_THREADS``, which Snakemake sets to a job's threads)."""
+    return max(1, torch.get_num_threads())
+
+
+def nearest_neighbours(points: Tensor, k: int, queries: Tensor | None = None, chunk: int = QUERY_CHUNK
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Distances and indices [M,k] (nearest first, float64 and int64 numpy arrays) of the ``k`` points of
+    ``points`` [N,3] nearest to each of ``queries`` [M,3] (default: the points themselves, each its own
+    nearest), found in a k-d tree (:class:`scipy.spatial.cKDTree`) in chunks of ``chunk`` queries:
+    O((N + M k) log N) time, and memory for the tree and the results, O(N + M k). Among points at equal
+    distance, which ones fill the last places is the tree's choice. Needs ``1 <= k <= N``."""
+    from scipy.spatial import cKDTree
+
+    xyz = points.detach().cpu().double().numpy()
+    at = xyz if queries is None else queries.detach().cpu().double().numpy()
+    tree = cKDTree(xyz)
+    distances = np.empty((at.shape[0], k))
+    indices = np.empty((at.shape[0], k), dtype=np.int64)
+    for start in range(0, at.shape[0], chunk):
+        d, i = tree.query(at[start:start + chunk], k=[*range(1, k + 1)], workers=_tree_workers())
+        distances[start:start + chunk], indices[start:start + chunk] = d, i
+    return distances, indices
+
+
+def nearest_neighbour_scale(points: Tensor, k: int = 3) -> Tensor:
+    """RMS distance to the ``k`` nearest other points (the 3DGS initial scale): coincident points count
+    (at distance 0), at least sqrt(1e-7). One point: 0.01."""
     n = points.shape[0]
     if n <= 1:
         return torch.full((n,), 0.01, dtype=points.dtype, device=points.device)
     k = min(k, n - 1)
-    out = []
-    for start in range(0, n, chunk):
-        d2 = torch.cdist(points[start : start + chunk], points).square()
-        d2[torch.arange(d2.shape[0]), torch.arange(start, start + d2.shape[0])] = float("inf")
-        out.append(d2.topk(k, largest=False).values.mean(-1))
-    return torch.cat(out).clamp_min(1e-7).sqrt()
+    # each point is among its own k + 1 nearest at distance 0 (a coincident one may be listed in its
+    # place: the distances are the same), so the first column is the point itself
+    distances, _ = nearest_neighbours(points, k + 1)
+    mean_square = np.square(distances[:, 1:]).mean(1)
+    return torch.from_numpy(mean_square).clamp_min(1e-7).sqrt().to(dtype=points.dtype, device=points.device)
 
 
-def point_cloud_normals(points: Tensor, k: int = 16, chunk: int = 4096) -> Tensor:
-    """Unit normals [N,3] of a point cloud [N,3]: per point, the direction of least spread of its ``k``
-    nearest points (itself included), the smallest principal axis of their covariance. The sign is
-    arbitrary (a surfel faces every camera). Fewer than 3 points: the z axis."""
+def point_cloud_normals(points: Tensor, k: int = 16, queries: Tensor | None = None, chunk: int = QUERY_CHUNK
+                        ) -> Tensor:
+    """Unit normals [M,3] at ``queries`` [M,3] (default: at the points) of the point cloud ``points``
+    [N,3]: per query, the direction of least spread of its ``k`` nearest points of the cloud (a point
+    itself included), the smallest principal axis of their covariance. The sign is arbitrary (a
+    surfel faces every camera). Fewer than 3 points: the z axis. Neighbours from
+    :func:`nearest_neighbours`; the eigensolves run ``chunk`` at a time."""
+    at = points if queries is None else queries
     n = points.shape[0]
     if n < 3:
-        return torch.tensor([0.0, 0.0, 1.0], dtype=points.dtype, device=points.device).expand(n, 3).clone()
+        return torch.tensor([0.0, 0.0, 1.0], dtype=at.dtype, device=at.device).expand(at.shape[0], 3).clone()
     k = min(k, n)
+    _, nearest = nearest_neighbours(points, k, queries, chunk)
+    xyz = points.detach().cpu().double()
     out = []
-    for start in range(0, n, chunk):
-        nearest = torch.cdist(points[start : start + chunk], points).topk(k, largest=False).indices
-        neighbours = points[nearest]  # [c, k, 3]
+    for start in range(0, nearest.shape[0], chunk):
+        neighbours = xyz[torch.from_numpy(nearest[start:start + chunk])]  # [c, k, 3]
         centred = neighbours - neighbours.mean(1, keepdim=True)
         covariance = centred.transpose(1, 2) @ centred
-        out.append(torch.linalg.eigh(covariance.double()).eigenvectors[:, :, 0].to(points.dtype))
-    return torch.cat(out)
+        out.append(torch.linalg.eigh(covariance).eigenvectors[:, :, 0])
+    normals = torch.cat(out) if out else torch.zeros(0, 3, dtype=torch.float64)
+    return normals.to(dtype=at.dtype, device=at.device)
 
 
 def scatter_points(xyz: Tensor, rgb: Tensor, copies: int, generator: torch.Generator | None = None

@@ -30,6 +30,7 @@ from rtsplat.camera import Camera
 APPEARANCE_SPREAD = 0.03
 MIN_POINTS_PER_VIEW = 20  # a view with fewer usable point colours gives no gain estimate
 DARK = 0.04  # point or pixel colours below this (of 1) are left out: their ratios are mostly noise
+MAX_POINTS = 100_000  # a larger cloud is read at every k-th point: a view's median needs far fewer
 
 
 class AppearanceCorrections:
@@ -68,8 +69,11 @@ def view_log_gains(
 ) -> Tensor:
     """[V, 3] each view's log gain against the SfM points' colours: the median over the points it sees
     (in front, inside the image, off the transparent mask, neither colour dark) of ``log(photo / point)``;
-    NaN for a view with fewer than :data:`MIN_POINTS_PER_VIEW` such points."""
+    NaN for a view with fewer than :data:`MIN_POINTS_PER_VIEW` such points. At most :data:`MAX_POINTS`
+    points are read (every k-th of a larger cloud)."""
     out = torch.full((len(cameras), 3), float("nan"))
+    stride = max(1, -(-xyz.shape[0] // MAX_POINTS))
+    xyz, rgb = xyz[::stride], rgb[::stride]
     for index, (camera, image, mask) in enumerate(zip(cameras, images, masks, strict=True)):
         points = xyz.to(camera.K)
         uv, z = camera.project(points)

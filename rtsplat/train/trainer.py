@@ -10,7 +10,8 @@ Run directory layout::
                              a diverged one, and resuming needs the same config, see load_checkpoint);
                              with a checkpoint_dir: <checkpoint_dir>/last.pt and a copy of train_log.jsonl
     <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
-    <out>/summary.json       written last: a run without it is not finished
+    <out>/summary.json       written last: a run without it is not finished; its starting_surfels says how
+                             many surfels the SfM points started and why (rtsplat.train.initial)
 
 Time, in the log and the summary (:mod:`rtsplat.usage` says what each measure means): ``seconds`` /
 ``train_seconds`` are the wall seconds of the training steps (not the evaluations, test-view pose fits and
@@ -47,8 +48,6 @@ from rtsplat.model.surfels import (
     SurfelParameters,
     concat_surfels,
     init_from_points,
-    point_cloud_normals,
-    scatter_points,
 )
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
@@ -61,6 +60,7 @@ from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import decide_effects, decide_near_planes, see_through_planes
+from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train_config import TrainConfig, resume_differences
 from rtsplat.usage import Usage, UsageClock, compute_threads
@@ -130,6 +130,9 @@ class Trainer:
         if self.points[0].shape[0] == 0:
             raise PipelineError("the point cloud is empty; cannot initialise surfels", path=scene.points_path,
                                 fix="rerun `rtsplat prepare` on a scene whose SfM produced points")
+        train_pixels = sum(int(image.shape[0]) * int(image.shape[1]) for image in self.train_views.images)
+        self.starting = plan_starting_surfels(self.points[0].shape[0], cfg.densify.initial_copies,
+                                              starting_cap(cfg.densify, train_pixels))
         self.appearance_spread = appearance_spread(view_log_gains(
             self.train_views.cameras, self.train_views.images, self.train_views.masks, self.points[0].to(self.device),
             self.points[1].to(self.device)))
@@ -163,15 +166,11 @@ class Trainer:
     # -- construction ------------------------------------------------------------------------
     def _init_surfels(self) -> SurfelParameters:
         m = self.cfg.model
-        copies = self.cfg.densify.initial_copies
-        xyz, rgb = scatter_points(*self.points, copies, generator=self.rng)
-        # a point's scattered copies follow it block by block (scatter_points), and share its normal
-        normals = (point_cloud_normals(self.points[0]).repeat(copies, 1)
-                   if self.cfg.densify.initial_orientation == "point_normals" else None)
-        surfels = init_from_points(
-            xyz, rgb, sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=m.opacity_init,
-            transmissivity=m.transmissivity_init, roughness=m.roughness_init, reflectance=m.reflectance_init,
-            generator=self.rng, normals=normals,
+        surfels = initial_surfels(
+            *self.points, self.starting, self.rng,
+            point_normals=self.cfg.densify.initial_orientation == "point_normals", sh_degree=m.sh_degree,
+            occupancy=m.occupancy_init, opacity=m.opacity_init, transmissivity=m.transmissivity_init,
+            roughness=m.roughness_init, reflectance=m.reflectance_init,
         )
         surface = self.scene.load_transparent_surface() if self.cfg.seed_transparent_surface else None
         if surface is None or not self.effects.transmission or len(surface[0]) < 4:
@@ -204,13 +203,16 @@ class Trainer:
             normals.append(torch.nn.functional.normalize(out.normal[chosen], dim=-1))
             rays.append(torch.cat([camera.center.expand_as(directions), directions,
                                    (seen_through - camera.center).norm(dim=-1, keepdim=True)], -1))
-        xyz, normal, rays = (torch.cat(x).cpu().double() if x else torch.zeros(0, w, dtype=torch.float64)
+        # in the render's precision until the subset is drawn: all views' transparent pixels of a real
+        # capture are millions of points
+        xyz, normal, rays = (torch.cat(x).cpu() if x else torch.zeros(0, w)
                              for x, w in ((points, 3), (normals, 3), (rays, 7)))
         ok = torch.isfinite(xyz).all(-1) & torch.isfinite(normal).all(-1) & torch.isfinite(rays).all(-1)
         xyz, normal, rays = xyz[ok], normal[ok], rays[ok]
         if xyz.shape[0] > MAX_PLANE_POINTS:
             keep = torch.randperm(xyz.shape[0], generator=self.rng)[:MAX_PLANE_POINTS]
             xyz, normal, rays = xyz[keep], normal[keep], rays[keep]
+        xyz, normal, rays = xyz.double(), normal.double(), rays.double()
         planes, share, dropped = empty_planes(), None, 0
         if xyz.shape[0] >= 16:
             diagonal = float((xyz.max(0).values - xyz.min(0).values).norm())
@@ -588,6 +590,7 @@ class Trainer:
         self.log(f"near reflection: {self.effects.near_reflection} ({self.effect_reasons['near_reflection']})")
         self.log(f"per-view appearance: {self.appearance is not None} ({self.effect_reasons['appearance']})")
         self.log(f"perceptual loss: {self.perceptual_note}")
+        self.log(f"starting surfels: {self.starting.surfels} ({self.starting.reason})")
         backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
         self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
         total = cfg.schedule.iterations
@@ -667,7 +670,8 @@ class Trainer:
                    "cpu_share": _rounded(share, 3), "device": str(self.device),
                    "run_usage": None if usage is None else usage.to_dict(),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
-                   "surfels": len(self.model.surfels), "effects": self.effects.to_dict(),
+                   "surfels": len(self.model.surfels), "starting_surfels": self.starting.to_dict(),
+                   "effects": self.effects.to_dict(),
                    "near_reflection": self.near_fit, "appearance": self.appearance_summary(), **metrics,
                    **self._correction_sizes(),
                    **best_test_psnr(self.out / "train_log.jsonl", self.iteration, metrics)}
