@@ -11,7 +11,9 @@ Writes, for every view of the chosen split, into ``<out>/``:
 
 Each view is rendered from its prepared pose moved by the run's pose correction for that view
 (``train.cameras``, saved in ``model.pt``: learnt for training views, fitted to the image for test
-views), so the renders are those the trainer evaluated.
+views), and where the run learnt per-view appearance (``train.effects.appearance``) the final image
+gets that view's exposure and white-balance correction (the layers stay in the scene's own colours,
+so they then sum to the uncorrected image); the renders are those the trainer evaluated.
 
 FPS is measured over the views after ``--warmup`` untimed renders (inference mode, no files written
 while timing), on the device the model is on.
@@ -40,6 +42,7 @@ from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.outputs import check_output_dir, output_dir
+from rtsplat.model.appearance import apply_appearance
 from rtsplat.model.composite import compose_layers, scatter_layer
 
 LAYER_DIRS = ("color", "reflection", "transmission", "scatter", "normal", "depth")
@@ -164,6 +167,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
     apply_parameter_edits(model, edits)
     raster = checkpoint.raster
     cameras = corrected_cameras(records, checkpoint.training.get("camera_corrections", {}), device)
+    appearance = checkpoint.training.get("appearance_corrections", {})
 
     def render(camera):
         return model.render(camera, stage="full", raster_settings=raster, backend=backend)
@@ -185,6 +189,9 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
             for rec, camera in tqdm(list(zip(records, cameras, strict=True)), desc="render", disable=not progress):
                 result = render(camera)
                 images = decompose(result, edits)
+                if rec.name in appearance:  # the photo's exposure and white balance (rtsplat.model.appearance)
+                    images["color"] = apply_appearance(images["color"], torch.as_tensor(appearance[rec.name],
+                                                                                        device=device))
                 images["normal"] = _normal_image(result.layers["normal"])
                 images["depth"] = _depth_image(result.layers["depth"], result.layers["alpha"])
                 for layer in LAYER_DIRS:

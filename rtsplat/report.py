@@ -410,6 +410,19 @@ def near_reflection_rows(runs: dict[str, Run]) -> list[list[str]]:
     return rows
 
 
+def appearance_rows(runs: dict[str, Run]) -> list[list[str]]:
+    """One row per run that measured its photos' exposure spread: on/off, spread, why, and the mean
+    absolute log gain its training and test views' corrections took."""
+    rows = []
+    for m, r in sorted(runs.items()):
+        a = r.summary.get("appearance")
+        if not isinstance(a, dict):
+            continue
+        rows.append([m, "on" if a.get("on") else "off", _fmt(a.get("spread"), 3), str(a.get("reason", "")),
+                     _fmt(a.get("train_mean_abs_log_gain"), 3), _fmt(a.get("test_mean_abs_log_gain"), 3)])
+    return rows
+
+
 def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
     """(paragraph, header, rows) of a scene's SfM table from the sfm stage's summary.json."""
     total = summary.get("total", "?")
@@ -582,6 +595,15 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                           "(effects.near_reflection; auto keeps them where planes explain enough of it), and the "
                           "seconds per training iteration it paid.")
             doc.table(["method", "near reflection", "planes", "planar share", "why", "s / iteration"], near_rows)
+
+        exposure_rows = appearance_rows(runs)
+        if any(row[1] == "on" for row in exposure_rows):
+            doc.heading("Per-view appearance (exposure and white balance)", 3)
+            doc.paragraph("Whether each run learnt a colour correction per photo (effects.appearance; auto turns it "
+                          "on where the photos' colours of the SfM points spread by exposure), and how far the "
+                          "corrections moved (mean |log gain|; 0.1 is a 10% exposure change).")
+            doc.table(["method", "appearance", "exposure spread", "why", "train |log gain|", "test |log gain|"],
+                      exposure_rows)
 
         doc.heading("Accuracy against training time", 3)
         for name in plot_accuracy_time(scene, runs, out):

@@ -25,7 +25,8 @@ from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.raster import RasterSettings, check_backend_name
 from rtsplat.schema import setting
 
-__all__ = ["Ablations", "CameraRefinement", "Densification", "Effects", "Gating", "ITERATION_COUNTS", "LearningRates",
+__all__ = ["Ablations", "AppearanceSettings", "CameraRefinement", "Densification", "Effects", "Gating",
+           "ITERATION_COUNTS", "LearningRates",
            "Losses", "ModelSettings", "RESUME_MAY_CHANGE", "Schedule", "TrainConfig", "resume_differences",
            "scale_budget"]
 
@@ -48,6 +49,11 @@ class Effects:
         "reflections start, to the surface depth of the see-through pixels; one more rasterization per plane in "
         "view); auto: on iff transmission and specular are on and see-through planes explain enough of that "
         "surface (planar glass)"
+    )
+    appearance: Literal["auto", "on", "off"] = setting(
+        "auto", help="a per-view exposure and white-balance correction (log gain and offset per channel) learnt "
+        "for each training view and fitted for each test view; auto: on iff the photos' colours of the SfM points "
+        "spread by exposure (rtsplat.train.appearance)"
     )
 
 
@@ -228,6 +234,31 @@ class CameraRefinement:
 
 
 @dataclass
+class AppearanceSettings:
+    """Per-view appearance corrections (:mod:`rtsplat.train.appearance`), when effects.appearance is on:
+    learnt for the training views with the model, fitted in closed form for the test views before each
+    evaluation, saved with the model and applied by ``rtsplat render``."""
+
+    learn_from: int | None = setting(
+        None, help="the training views' corrections are learnt after this iteration; null: after "
+        "schedule.volume_until (the model has its first colours by then, so a view's gain does not take what the "
+        "model has not learnt yet)", minimum=0
+    )
+
+    def start(self, schedule: Schedule) -> int:
+        """The iteration after which the corrections are learnt."""
+        return schedule.volume_until if self.learn_from is None else self.learn_from
+    lr: float = setting(2e-3, help="Adam learning rate of the corrections (log gain, offset)", minimum=0.0)
+    prior_weight: float = setting(
+        1e-3, help="loss weight of the squared distance of the current view's correction from the identity; it "
+        "keeps the model's colours at the photos' common exposure", minimum=0.0
+    )
+    test_prior: float = setting(
+        1e-2, help="ridge weight (per pixel) of the test views' closed-form fits towards the identity", minimum=0.0
+    )
+
+
+@dataclass
 class TrainConfig:
     """The trainer's config tree (rtsplat train)."""
 
@@ -256,6 +287,8 @@ class TrainConfig:
     model: ModelSettings = setting(help="model sizes and initial values", factory=ModelSettings)
     raster: RasterSettings = setting(help="rasterizer constants", factory=RasterSettings)
     cameras: CameraRefinement = setting(help="per-view pose corrections", factory=CameraRefinement)
+    appearance: AppearanceSettings = setting(help="per-view exposure and white-balance corrections",
+                                             factory=AppearanceSettings)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -309,6 +342,7 @@ ITERATION_COUNTS = {
     "lr": ("position_max_steps",),
     "losses": ("perceptual_from", "normal_from"),
     "cameras": ("refine_from",),
+    "appearance": ("learn_from",),
 }
 
 

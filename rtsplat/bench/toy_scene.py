@@ -4,7 +4,9 @@ Ground truth is rendered with the rasterizer's volume colour from known surfels 
 surfels coloured by a scikit-image photograph; the pane: full occupancy, opacity 0.15, bluish),
 plus a view-dependent "reflection" (a bright band whose position moves with the camera) added on
 the pane pixels, so a model that can reflect has something to learn. Masks are the pane's
-projection. Written with the pipeline's PreparedScene contract.
+projection. ``exposures`` (one ``[6]`` appearance correction per view, :mod:`rtsplat.model.appearance`)
+photographs each view with its own exposure and white balance, as a phone does. Written with the
+pipeline's PreparedScene contract.
 """
 
 from __future__ import annotations
@@ -60,7 +62,10 @@ def ground_truth_surfels(n_side: int = 20, with_pane: bool = True) -> tuple[Surf
 
 
 def write_scene(root: Path, *, views: int = 12, width: int = 64, height: int = 48, with_pane: bool = True,
-                n_side: int = 20, test_every: int = 4, seed: int = 0, roi_source: str = "config") -> PreparedScene:
+                n_side: int = 20, test_every: int = 4, seed: int = 0, roi_source: str = "config",
+                exposures: torch.Tensor | None = None) -> PreparedScene:
+    from rtsplat.model.appearance import apply_appearance
+
     root = Path(root)
     (root / "images").mkdir(parents=True, exist_ok=True)
     if with_pane:
@@ -82,6 +87,8 @@ def write_scene(root: Path, *, views: int = 12, width: int = 64, height: int = 4
             band = torch.exp(-((xs - band_x) ** 2) / (2 * (0.08 * width) ** 2)).expand(height, width, 1)
             image = image + 0.5 * band * pane
             write_mask(root / "masks" / f"{name}.png", pane[..., 0].numpy() > 0.5)
+        if exposures is not None:
+            image = apply_appearance(image, exposures[i])
         write_png(root / "images" / f"{name}.png", image.clamp(0, 1).numpy())
         records.append(CameraRecord(
             name=name, split="test" if i % test_every == 0 else "train", width=width, height=height,

@@ -29,6 +29,7 @@ from torch import Tensor
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_text_atomic
+from rtsplat.model.appearance import apply_appearance, fit_appearance, remove_appearance
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
 from rtsplat.model.mirror import empty_planes, fit_planes
@@ -46,6 +47,7 @@ from rtsplat.quality.lpips import load_lpips
 from rtsplat.raster import default_backend, rasterize
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
+from rtsplat.train.appearance import AppearanceCorrections, appearance_spread, decide_appearance, view_log_gains
 from rtsplat.train.cameras import PoseCorrections, fit_corrections
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
@@ -119,6 +121,14 @@ class Trainer:
         if self.points[0].shape[0] == 0:
             raise PipelineError("the point cloud is empty; cannot initialise surfels", path=scene.points_path,
                                 fix="rerun `rtsplat prepare` on a scene whose SfM produced points")
+        self.appearance_spread = appearance_spread(view_log_gains(
+            self.train_views.cameras, self.train_views.images, self.train_views.masks, self.points[0].to(self.device),
+            self.points[1].to(self.device)))
+        use_appearance, self.effect_reasons["appearance"] = decide_appearance(cfg.effects.appearance,
+                                                                             self.appearance_spread)
+        self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
+                           if use_appearance else None)
+        self.test_appearance = torch.zeros(len(self.test_views), 6, device=self.device)
         self.model = self._new_model(self._init_surfels())
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
         self.density = DensityControl(cfg.densify, cfg.schedule, self.extent)
@@ -263,7 +273,13 @@ class Trainer:
         result = self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
                                    backend=cfg.backend, sh_degree=sh_degree, background=background)
         weight = (1.0 - mask) if (background_phase and mask is not None) else None
-        terms = {"image": losses.image_loss(result.color, target, cfg.losses.ssim_weight, weight)}
+        color = result.color
+        learn_appearance = self.appearance is not None and it > cfg.appearance.start(cfg.schedule)
+        if learn_appearance:
+            color = apply_appearance(color, self.appearance.correction(idx))
+        terms = {"image": losses.image_loss(color, target, cfg.losses.ssim_weight, weight)}
+        if learn_appearance and cfg.appearance.prior_weight > 0:
+            terms["appearance"] = cfg.appearance.prior_weight * self.appearance.prior(idx)
         L = cfg.losses
         if L.normal_weight > 0 and it > L.normal_from:
             depth = result.raster.depth_median if L.normal_depth == "median" else result.raster.depth
@@ -276,7 +292,7 @@ class Trainer:
         if L.distortion_weight > 0:
             terms["distortion"] = L.distortion_weight * result.raster.distortion.mean()
         if self.perceptual is not None and L.perceptual_weight > 0 and it >= L.perceptual_from:
-            terms["perceptual"] = L.perceptual_weight * self.perceptual(result.color, target)
+            terms["perceptual"] = L.perceptual_weight * self.perceptual(color, target)
         if L.transmissivity_bce_weight > 0 and "tau" in result.layers and mask is not None:
             terms["tau"] = L.transmissivity_bce_weight * masked_mean(
                 -torch.log((1 - result.layers["tau"]).clamp_min(1e-6)), 1 - mask)
@@ -293,10 +309,12 @@ class Trainer:
         gradients = self._optimizer_step()
         if refine_pose:
             self.poses.step()
+        if learn_appearance:
+            self.appearance.step()
         events, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
         self.watch.record(it, loss, gradients, self.optimizer)
         with torch.no_grad():
-            value = psnr(result.color.detach().clamp(0, 1), target)
+            value = psnr(color.detach().clamp(0, 1), target)
         return StepResult(it, loss.detach(), value, {k: v.detach() for k, v in terms.items()}, stage,
                           events.to_dict() if events.any() else {})
 
@@ -338,13 +356,26 @@ class Trainer:
 
     def fit_test_cameras(self, steps: int) -> None:
         """Fit the test views' pose corrections to their images (model fixed), continuing from the
-        current ones; nothing without pose refinement (``cameras.refine``) or test views."""
-        if self.poses is None or steps <= 0 or len(self.test_views) == 0:
+        current ones, then their appearance corrections (closed form, on the render at the fitted pose);
+        poses only with pose refinement (``cameras.refine``), appearance only where it is learnt. The pose
+        fit compares the render with the photo brought back to the model's colours by the view's current
+        appearance correction."""
+        if len(self.test_views) == 0:
             return
         start = time.perf_counter()
-        self.test_corrections = fit_corrections(
-            lambda camera: self._render_for_evaluation(camera).color, self.test_views.cameras,
-            self.test_views.images, self.test_corrections, self.extent, steps, self.cfg.cameras.test_fit_lr)
+        if self.poses is not None and steps > 0:
+            images = self.test_views.images
+            if self.appearance is not None:
+                images = [remove_appearance(image, correction)
+                          for image, correction in zip(images, self.test_appearance, strict=True)]
+            self.test_corrections = fit_corrections(
+                lambda camera: self._render_for_evaluation(camera).color, self.test_views.cameras,
+                images, self.test_corrections, self.extent, steps, self.cfg.cameras.test_fit_lr)
+        if self.appearance is not None:
+            with torch.no_grad():
+                for index, (camera, image) in enumerate(zip(self.test_cameras(), self.test_views.images, strict=True)):
+                    rendered = self._render_for_evaluation(camera).color
+                    self.test_appearance[index] = fit_appearance(rendered, image, self.cfg.appearance.test_prior)
         self.test_fit_seconds += time.perf_counter() - start
 
     def test_cameras(self) -> list:
@@ -356,13 +387,17 @@ class Trainer:
     def evaluate(self, views: ViewSet | None = None) -> dict[str, float]:
         """Test PSNR (entire image, transparent region) of ``views`` (default: the test views, with
         their fitted pose corrections)."""
+        appearance = self.test_appearance if views is None and self.appearance is not None else None
         cameras = views.cameras if views is not None else self.test_cameras()
         views = views or self.test_views
         if len(views) == 0:
             return {}
         full, region = [], []
-        for camera, image, mask in zip(cameras, views.images, views.masks, strict=True):
-            color = self._render_for_evaluation(camera).color.clamp(0, 1)
+        for index, (camera, image, mask) in enumerate(zip(cameras, views.images, views.masks, strict=True)):
+            color = self._render_for_evaluation(camera).color
+            if appearance is not None:
+                color = apply_appearance(color, appearance[index])
+            color = color.clamp(0, 1)
             full.append(psnr(color, image))
             if mask is not None:  # NaN marks a view without transparent pixels
                 has_region = mask.sum() > 0
@@ -383,6 +418,26 @@ class Trainer:
         pairs = [*zip(self.train_views.names, self.poses.values().tolist(), strict=True),
                  *zip(self.test_views.names, self.test_corrections.tolist(), strict=True)]
         return dict(pairs)
+
+    def appearance_corrections(self) -> dict[str, list[float]]:
+        """Every view's appearance correction by name (log gain, offset per channel), for
+        :func:`rtsplat.model.appearance.apply_appearance`; empty where appearance is not learnt."""
+        if self.appearance is None:
+            return {}
+        pairs = [*zip(self.train_views.names, self.appearance.detached().tolist(), strict=True),
+                 *zip(self.test_views.names, self.test_appearance.tolist(), strict=True)]
+        return dict(pairs)
+
+    def appearance_summary(self) -> dict:
+        """Whether appearance is learnt, why, and the mean absolute log gain and offset of the views."""
+        out = {"on": self.appearance is not None, "spread": self.appearance_spread,
+               "reason": self.effect_reasons["appearance"]}
+        if self.appearance is not None:
+            for split, values in (("train", self.appearance.detached()), ("test", self.test_appearance)):
+                if len(values):
+                    out[f"{split}_mean_abs_log_gain"] = float(values[:, :3].abs().mean())
+                    out[f"{split}_mean_abs_offset"] = float(values[:, 3:].abs().mean())
+        return out
 
     def _correction_sizes(self) -> dict[str, float]:
         """Mean rotation (degrees) and translation (scene units) of the training and test views'
@@ -419,6 +474,8 @@ class Trainer:
             "order": list(self.order),
             "poses": None if self.poses is None else self.poses.state_dict(),
             "camera_corrections": self.camera_corrections(),
+            "appearance": None if self.appearance is None else self.appearance.state_dict(),
+            "appearance_corrections": self.appearance_corrections(),
             "near_fit": self.near_fit,
             "rng": self.rng.get_state(),
             "torch_rng": torch.get_rng_state(),
@@ -474,6 +531,12 @@ class Trainer:
         for index, name in enumerate(self.test_views.names):
             if name in saved:
                 self.test_corrections[index] = torch.as_tensor(saved[name], device=self.device)
+        if self.appearance is not None and state.get("appearance") is not None:
+            self.appearance.load_state_dict(state["appearance"])
+        saved = state.get("appearance_corrections", {})
+        for index, name in enumerate(self.test_views.names):
+            if name in saved:
+                self.test_appearance[index] = torch.as_tensor(saved[name], device=self.device)
         self.any_frozen = bool(self.frozen.any())
         self.near_fit = state.get("near_fit")
         self.order = list(state["order"])
@@ -506,6 +569,7 @@ class Trainer:
         self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
                  f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
         self.log(f"near reflection: {self.effects.near_reflection} ({self.effect_reasons['near_reflection']})")
+        self.log(f"per-view appearance: {self.appearance is not None} ({self.effect_reasons['appearance']})")
         self.log(f"perceptual loss: {self.perceptual_note}")
         backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
         self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
@@ -557,6 +621,8 @@ class Trainer:
     def _write_effects(self) -> None:
         _write_json(self.out / "effects.json", {**self.effects.to_dict(), "reasons": self.effect_reasons,
                                                 "perceptual": self.perceptual_note, "near_fit": self.near_fit,
+                                                "appearance": self.appearance is not None,
+                                                "appearance_spread": self.appearance_spread,
                                                 "mirror_planes": self.model.mirror_planes.tolist()})
 
     def finish(self) -> dict:
@@ -568,7 +634,7 @@ class Trainer:
         summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
                    "surfels": len(self.model.surfels), "effects": self.effects.to_dict(),
-                   "near_reflection": self.near_fit, **metrics,
+                   "near_reflection": self.near_fit, "appearance": self.appearance_summary(), **metrics,
                    **self._correction_sizes(),
                    **best_test_psnr(self.out / "train_log.jsonl", self.iteration, metrics)}
         _write_json(self.out / "summary.json", summary)

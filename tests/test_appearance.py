@@ -1,0 +1,173 @@
+"""Per-view appearance (exposure, white balance): the correction, its fits, the data's decision, training
+and rendering with it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from rtsplat.bench.toy_scene import write_scene
+from rtsplat.model.appearance import LOG_GAIN_LIMIT, apply_appearance, fit_appearance, remove_appearance
+from rtsplat.model.checkpoint import read_checkpoint
+from rtsplat.train.appearance import (
+    APPEARANCE_SPREAD,
+    appearance_spread,
+    decide_appearance,
+    view_log_gains,
+)
+from rtsplat.train.data import load_views
+from rtsplat.train.trainer import Trainer
+from rtsplat.train_config import TrainConfig
+
+SMALL_MODEL = {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32}
+
+
+def exposures(views: int, seed: int = 0, log_gain: float = 0.15, offset: float = 0.02) -> torch.Tensor:
+    """A phone's shot-to-shot exposure and white balance: per view and channel, a log gain in
+    [-log_gain, log_gain] (a common exposure plus a smaller white-balance tilt) and a small offset."""
+    g = torch.Generator().manual_seed(seed)
+    exposure = (torch.rand(views, 1, generator=g) * 2 - 1) * log_gain
+    balance = (torch.rand(views, 3, generator=g) * 2 - 1) * log_gain / 3
+    shift = (torch.rand(views, 3, generator=g) * 2 - 1) * offset
+    return torch.cat([(exposure + balance).clamp(-log_gain, log_gain), shift], 1)
+
+
+def train_config(iterations: int, **effects) -> TrainConfig:
+    return TrainConfig.from_dict({
+        "schedule": {"iterations": iterations, "volume_until": iterations // 6, "specular_from": iterations // 3,
+                     "densify_from": iterations // 3, "densify_every": max(iterations // 6, 1), "reset_every": 0,
+                     "log_every": 5, "checkpoint_every": 0},
+        "model": dict(SMALL_MODEL), "effects": effects,
+    })
+
+
+def test_zero_is_the_identity_and_remove_inverts_apply():
+    g = torch.Generator().manual_seed(1)
+    color = torch.rand(5, 7, 3, generator=g)
+    assert torch.equal(apply_appearance(color, torch.zeros(6)), color)
+    correction = torch.tensor([0.3, -0.2, 0.1, 0.05, -0.02, 0.0])
+    out = apply_appearance(color, correction)
+    assert not torch.allclose(out, color)
+    assert torch.allclose(remove_appearance(out, correction), color, atol=1e-6)
+    assert torch.allclose(out[..., 0], color[..., 0] * math.exp(0.3) + 0.05, atol=1e-6)
+
+
+@pytest.mark.parametrize("log_gain", [1e6, -1e6, 1e30])
+def test_extreme_gains_are_clamped_and_stay_finite_with_finite_gradients(log_gain):
+    color = torch.rand(4, 4, 3, requires_grad=True)
+    correction = torch.tensor([log_gain, 0.0, -log_gain, 0.0, 0.0, 0.0], requires_grad=True)
+    out = apply_appearance(color, correction)
+    out.sum().backward()
+    assert torch.isfinite(out).all() and torch.isfinite(color.grad).all() and torch.isfinite(correction.grad).all()
+    assert float(out.detach()[..., 0].max()) <= math.exp(LOG_GAIN_LIMIT) + 1e-4
+    assert torch.isfinite(remove_appearance(out, correction)).all()
+
+
+def test_the_closed_form_fit_recovers_a_known_exposure():
+    g = torch.Generator().manual_seed(2)
+    rendered = torch.rand(40, 50, 3, generator=g)
+    truth = torch.tensor([0.2, -0.1, 0.05, 0.03, -0.01, 0.02])
+    photo = apply_appearance(rendered, truth) + 0.01 * torch.randn(40, 50, 3, generator=g)
+    fitted = fit_appearance(rendered, photo, prior=1e-4)
+    assert torch.allclose(fitted, truth, atol=0.01)
+    # the fit lowers the error against the photo below that of the plain render
+    assert (apply_appearance(rendered, fitted) - photo).abs().mean() < 0.5 * (rendered - photo).abs().mean()
+
+
+def test_a_flat_or_dark_render_gets_a_finite_fit_that_keeps_its_gain_near_one():
+    for rendered in (torch.full((8, 8, 3), 0.4), torch.zeros(8, 8, 3)):
+        photo = torch.full((8, 8, 3), 0.6)
+        fitted = fit_appearance(rendered, photo)
+        assert torch.isfinite(fitted).all()
+        assert float(fitted[:3].abs().max()) < 0.5  # the offset takes the difference, not a wild gain
+        assert torch.allclose(apply_appearance(rendered, fitted), photo, atol=0.05)
+
+
+def _gains(scene) -> torch.Tensor:
+    views = load_views(scene, "train")
+    xyz, rgb = scene.load_points()
+    return view_log_gains(views.cameras, views.images, views.masks, torch.as_tensor(np.asarray(xyz)).float(),
+                          torch.as_tensor(np.asarray(rgb)).float() / 255)
+
+
+def test_the_views_log_gains_are_read_from_the_point_colours(tmp_path):
+    truth = exposures(8, log_gain=0.12, offset=0.0)
+    scene = write_scene(tmp_path / "exposed", views=8, width=64, height=48, with_pane=False, test_every=100,
+                        exposures=truth)
+    gains = _gains(scene)  # the training views: all but view 0
+    assert torch.isfinite(gains).all()
+    # each view's measured gain against its true one, up to the common factor the points' colours carry
+    error = (gains - truth[1:, :3]) - (gains - truth[1:, :3]).median(0).values
+    assert float(error.abs().max()) < 0.04
+    spread = appearance_spread(gains)
+    assert spread is not None and spread >= APPEARANCE_SPREAD
+    flat = appearance_spread(_gains(write_scene(tmp_path / "flat", views=8, width=64, height=48, with_pane=False,
+                                                test_every=100)))
+    assert flat is not None and flat < APPEARANCE_SPREAD
+
+
+def test_the_decision_says_why():
+    assert decide_appearance("auto", APPEARANCE_SPREAD * 2)[0]
+    assert not decide_appearance("auto", APPEARANCE_SPREAD / 2)[0]
+    on, why = decide_appearance("auto", None)
+    assert not on and "not measurable" in why
+    assert decide_appearance("on", 0.0)[0] and not decide_appearance("off", 1.0)[0]
+    assert appearance_spread(torch.full((2, 3), 0.1)) is None  # fewer than 3 views
+
+
+def test_training_learns_and_saves_every_views_correction_and_render_applies_it(tmp_path):
+    from rtsplat.render import render_run
+
+    scene = write_scene(tmp_path / "scene", views=8, width=40, height=30, with_pane=False,
+                        exposures=exposures(8, seed=3))
+    trainer = Trainer(scene, train_config(40), tmp_path / "run", progress=False, log=lambda m: None)
+    summary = trainer.train()
+    effects = json.loads((tmp_path / "run" / "effects.json").read_text())
+    assert effects["appearance"] is True and "auto" in effects["reasons"]["appearance"]
+    assert summary["appearance"]["on"] and summary["appearance"]["spread"] >= APPEARANCE_SPREAD
+    corrections = read_checkpoint(tmp_path / "run" / "model.pt").training["appearance_corrections"]
+    assert sorted(corrections) == sorted(r.name for r in scene.cameras)
+    test_name = scene.test_cameras[0].name
+    assert any(abs(v) > 1e-4 for v in corrections[test_name])  # the test view's fit moved it
+    assert any(any(abs(v) > 1e-4 for v in corrections[r.name]) for r in scene.train_cameras)
+
+    plain = tmp_path / "plain"
+    render_run(tmp_path / "run", tmp_path / "scene", tmp_path / "render", progress=False)
+    # the same render without the correction: the run's corrections dropped from a copy of the model
+    checkpoint = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
+    checkpoint["training"]["appearance_corrections"] = {}
+    (plain / "run").mkdir(parents=True)
+    torch.save(checkpoint, plain / "run" / "model.pt")
+    render_run(plain / "run", tmp_path / "scene", plain / "render", progress=False)
+    from rtsplat.io.images import read_image
+
+    with_fit = torch.as_tensor(read_image(tmp_path / "render" / "color" / f"{test_name}.png"))
+    without = torch.as_tensor(read_image(plain / "render" / "color" / f"{test_name}.png"))
+    expected = apply_appearance(without, torch.as_tensor(corrections[test_name]).float()).clamp(0, 1)
+    assert (with_fit - expected).abs().max() < 3 / 255  # 8-bit rounding of both PNGs
+    assert (with_fit - without).abs().max() > 3 / 255
+
+
+def test_a_scene_with_one_exposure_learns_no_corrections(tmp_path):
+    scene = write_scene(tmp_path / "scene", views=6, width=32, height=24, with_pane=False)
+    trainer = Trainer(scene, train_config(10), tmp_path / "run", progress=False, log=lambda m: None)
+    summary = trainer.train()
+    assert trainer.appearance is None and not summary["appearance"]["on"]
+    assert "one exposure" in summary["appearance"]["reason"]
+    assert read_checkpoint(tmp_path / "run" / "model.pt").training["appearance_corrections"] == {}
+
+
+@pytest.mark.slow
+def test_per_view_appearance_raises_held_out_psnr_on_photos_of_varying_exposure(tmp_path):
+    scene = write_scene(tmp_path / "scene", views=12, width=48, height=36, with_pane=False,
+                        exposures=exposures(12, seed=4, log_gain=0.25, offset=0.03))
+    scores = {}
+    for mode in ("on", "off"):
+        trainer = Trainer(scene, train_config(240, appearance=mode), tmp_path / mode, progress=False,
+                          log=lambda m: None)
+        scores[mode] = trainer.train()["test_psnr"]
+    assert scores["on"] > scores["off"] + 1.0, scores
