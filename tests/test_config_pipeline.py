@@ -22,6 +22,7 @@ from rtsplat.config import (
     train_json,
     validate_config,
 )
+from rtsplat.train_config import TrainConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -39,6 +40,21 @@ def test_repository_config_is_valid_and_matches_defaults():
     # every key in config.yaml exists in the schema (it validated) and the schema has every field
     props = json_schema()["properties"]["defaults"]["properties"]
     assert set(props) == {"sfm", "masks", "prepare", "train", "render", "metrics"}
+
+
+def test_the_real_capture_benchmark_builds_every_method_on_both_captures():
+    """benchmarks/real.yaml is a config of its own (not layered over the demo): both captures, every method,
+    the demo's schedule at 1x and 4x, appearance off only where asked."""
+    from rtsplat.config import trainer_options
+
+    cfg = load_config(ROOT / "benchmarks" / "real.yaml")
+    assert cfg.scenes == ["glass", "fox"] and cfg.defaults.prepare.resolution == 480
+    trees = {(scene, m): trainer_options(cfg, scene, m) for scene in cfg.scenes for m in cfg.methods}
+    for scene in cfg.scenes:
+        assert trees[(scene, "rtsplat_x4")]["schedule"]["iterations"] == 4 * trees[(scene, "rtsplat")]["schedule"][
+            "iterations"]
+        assert TrainConfig.from_dict(trees[(scene, "rtsplat_no_appearance")]).effects.appearance == "off"
+        assert TrainConfig.from_dict(trees[(scene, "rtsplat")]).effects.appearance == "auto"
 
 
 @pytest.mark.parametrize("layer", ["targets.yaml", "targets_quick.yaml"])
