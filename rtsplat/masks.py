@@ -19,6 +19,7 @@ masks gets ``has_masks: false`` and is trained without transparency.
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -36,7 +37,13 @@ from rtsplat.io.images import (
     validate_image_set,
     write_mask,
 )
+from rtsplat.io.manifest import photo_fingerprints, photos_fingerprint
 from rtsplat.io.outputs import check_output_dir, output_dir
+
+
+def _log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
@@ -54,6 +61,9 @@ class MasksSummary:
     polarity_reason: str = ""
     mask_kinds: dict[str, int] = field(default_factory=dict)  # ingest: how many masks of each kind
     without_mask: list[str] = field(default_factory=list)  # ingest with allow_missing: photos given empty masks
+    scene_dir: str = ""  # the dataset scene they were made for (for messages)
+    images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
+    photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
 
 
 # ----------------------------------------------------------------------------------------------
@@ -473,7 +483,7 @@ def make_masks(
     cfg = cfg or MasksConfig()
     scene_dir = Path(scene_dir)
     check_output_dir(out_dir, "masks", inputs=[scene_dir])
-    images = [h.path for h in validate_image_set(scene_dir / "images", decode=False)]
+    images = [h.path for h in validate_image_set(scene_dir / "images", decode=False, log=_log)]
     mask_dir = scene_dir / cfg.dir
     source = cfg.source
     if source == "auto":
@@ -486,6 +496,7 @@ def make_masks(
         )
     if source != "none":
         check_unique_stems(images)
+    photos = photo_fingerprints(scene_dir / "images")
     with output_dir(out_dir, "masks", inputs=[scene_dir]) as tmp:
         kind, polarity, reason, kinds, missing = "", "white", "", {}, []
         if source == "ingest":
@@ -511,6 +522,9 @@ def make_masks(
             polarity_reason=reason,
             mask_kinds=kinds,
             without_mask=missing,
+            scene_dir=str(scene_dir.resolve()),
+            images_fingerprint=photos_fingerprint(photos),
+            photos=photos,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
     return summary

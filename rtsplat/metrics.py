@@ -13,10 +13,12 @@ Definitions (METHOD.md section 7), images in [0,1]:
   pixels. Without weights the value is the string ``"n/a (weights not found)"``.
 
 Views are the renders of ``rtsplat render`` (``<renders>/color/<name>.png``) against the prepared
-scene's images and masks. The JSON records per-view values, means, the run's config hash, package
-versions and the machine. Synthetic scenes also get the decomposition scored (:func:`layer_metrics`)
-against the ground-truth layers that ``rtsplat prepare`` carries into ``<data>/gt_layers`` (or
-``--gt-layers DIR`` with ``DIR/{reflection,transmission}/<name>.png`` at the prepared resolution).
+scene's images and masks. The JSON records the split the renders are of (``split``: ``test``, or
+``train`` / ``all``, which include training views: said when printed, labelled in the report),
+per-view values, means, the run's config hash, package versions and the machine. Synthetic scenes
+also get the decomposition scored (:func:`layer_metrics`) against the ground-truth layers that
+``rtsplat prepare`` carries into ``<data>/gt_layers`` (or ``--gt-layers DIR`` with
+``DIR/{reflection,transmission}/<name>.png`` at the prepared resolution).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import hashlib
 import json
 import os
 import platform
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -171,7 +174,7 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
     keys = sorted({k for v in per_view.values() for k in v})
     means = {k: _mean([v[k] for v in per_view.values() if k in v]) for k in keys}
     return {
-        "mean": means, "views": per_view, "lpips": lpips_note,
+        "split": info.get("split", "test"), "mean": means, "views": per_view, "lpips": lpips_note,
         "gt_layers": str(gt_dir) if gt_dir else None,
         "layer_views": sum("psnr_reflection_layer" in v for v in per_view.values()), "fps": info.get("fps"),
         "render_device": info.get("device"), "renders": str(renders), "data": str(data_dir),
@@ -202,5 +205,9 @@ def run(args: argparse.Namespace) -> int:
     write_json_atomic(args.out, result)
     m = result["mean"]
     parts = [f"{k} {v:.4f}" if isinstance(v, float) else f"{k} {v}" for k, v in m.items()]
-    print(f"{args.out}: " + ", ".join(parts))
+    split = result["split"]
+    print(f"{args.out}: {split} views ({len(result['views'])}): " + ", ".join(parts))
+    if split != "test":
+        print(f"{args.out}: scored on the {split!r} views of the render, training views included: not a held-out "
+              "score (render with --split test for one)", file=sys.stderr)
     return 0

@@ -17,7 +17,12 @@ Steps (function API :func:`prepare_scene`):
 6. on a scene with masks, the points of the masks' visual hull that face the cameras, with their
    normals (:func:`hull_surface`, ``transparent_surface.npz``): where the see-through surface is,
    which the SfM points miss (glass has no features of its own);
-7. write ``prepared/`` atomically (see :mod:`rtsplat.scene` for the format).
+7. write ``prepared/`` atomically (see :mod:`rtsplat.scene` for the format), with the content
+   fingerprints of what it was made from (``inputs`` in ``scene.json``: the photos, the SfM model, the
+   masks folder; :mod:`rtsplat.io.manifest`).
+
+Before anything is read, the SfM and masks outputs must belong to the scene's photos: each records the
+fingerprint of the photos it was made from, and one made from other photos is refused, naming both.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from rtsplat.io.images import (
     write_mask,
     write_png,
 )
+from rtsplat.io.manifest import check_made_from_photos, folder_fingerprint, photo_fingerprints, photos_fingerprint
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.io.ply import write_points_ply
 from rtsplat.pose_eval import camera_center
@@ -330,10 +336,19 @@ def prepare_scene(
     inputs = [scene_dir, sfm_dir, masks_dir]
     check_output_dir(out_dir, "prepare", inputs=inputs)
     sfm = load_stage_summary(sfm_dir, "sfm")
+    masks = load_stage_summary(masks_dir, "masks") if masks_dir is not None else {"has_masks": False}
+    photos = photo_fingerprints(scene_dir / "images")
+    check_made_from_photos(sfm_dir, sfm, "sfm", scene_dir / "images", photos, "--sfm")
+    if masks_dir is not None:
+        check_made_from_photos(masks_dir, masks, "masks", scene_dir / "images", photos, "--masks")
     model = load_model(sfm["model_dir"])
     image_dir = Path(sfm["image_dir"])
-    masks = load_stage_summary(masks_dir, "masks") if masks_dir is not None else {"has_masks": False}
     has_masks = bool(masks.get("has_masks"))
+    made_from = {
+        "images": photos_fingerprint(photos),
+        "sfm": folder_fingerprint(sfm["model_dir"]),
+        "masks": folder_fingerprint(masks_dir, skip=("summary.json",)) if masks_dir is not None else None,
+    }
 
     missing = [v.name for v in model.views if not (image_dir / v.name).is_file()]
     views = [v for v in model.views if v.name not in missing]
@@ -482,6 +497,7 @@ def prepare_scene(
             source=str(scene_dir.resolve()),
             has_transparency=has_masks,
             versions=versions,
+            inputs=made_from,
         )
         scene.save(tmp)
         scene.validate(check_files=True, where=tmp / "scene.json")

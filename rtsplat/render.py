@@ -7,7 +7,11 @@ Writes, for every view of the chosen split, into ``<out>/``:
 * ``transmission/<name>.png``   ``beta * tau * C_trans`` (plus the plain radiance outside the ROI);
 * ``scatter/<name>.png``        the rest, ``beta * (1 - tau) * C_scatter``: the three layers sum to ``color``;
 * ``normal/<name>.png``         world normals mapped to [0,1];  ``depth/<name>.png``: inverse depth;
-* ``render.json``               views, device, backend, edits and frames per second.
+* ``render.json``               views and their split, device, backend, edits and frames per second.
+
+The run must have been trained on a scene prepared from the same photos and SfM model as ``--data``
+(:meth:`rtsplat.scene.PreparedScene.check_run_belongs`); a model with non-finite parameters is refused
+when read (:func:`rtsplat.model.checkpoint.read_checkpoint`).
 
 Each view is rendered from its prepared pose moved by the run's pose correction for that view
 (``train.cameras``, saved in ``model.pt``: learnt for training views, fitted to the image for test
@@ -176,6 +180,7 @@ def load_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "test", 
     if not records:
         raise PipelineError(f"the prepared scene has no {split!r} views", path=data_dir)
     checkpoint = read_checkpoint(model_path, device=device)
+    scene.check_run_belongs(checkpoint.training.get("data"), run_dir)
     model = checkpoint.build_model(device)
     model.eval()
     apply_parameter_edits(model, edits or Edits())
@@ -282,6 +287,7 @@ def run(args: argparse.Namespace) -> int:
     resolve_device(cfg.device, key="--device" if args.device is not None else "render.device")
     info = render_run(args.run, args.data, args.out, split=args.split, edits=edits, backend=args.backend,
                       warmup=cfg.warmup, device=cfg.device, progress=not args.quiet)
-    print(f"rendered {len(info['views'])} views to {args.out}: {info['fps']:.2f} FPS on {info['device']}")
+    print(f"rendered {len(info['views'])} {info['split']} views to {args.out}: {info['fps']:.2f} FPS on "
+          f"{info['device']}")
     return 0
 

@@ -262,7 +262,9 @@ def quality_rows(runs: dict[str, Run], main: str | None = None) -> list[list[str
     for method in _methods_in_order(runs, main):
         r = runs[method]
         m = r.mean
-        rows.append([method] + [_fmt(m.get(k), d) for k, d in (
+        split = r.metrics.get("split", "test")
+        label = method if split == "test" else f"{method} [{split} views]"
+        rows.append([label] + [_fmt(m.get(k), d) for k, d in (
             ("psnr", 2), ("ssim", 3), ("lpips", 3), ("psnr_transparent", 2), ("ssim_transparent", 3),
             ("lpips_transparent", 3))] + [_fmt(r.summary.get("surfels"), 0)])
     return rows
@@ -649,6 +651,12 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             if sfm_rows:
                 doc.table(sfm_header, sfm_rows)
         doc.heading("Quality", 3)
+        other_splits = {m: r.metrics.get("split") for m, r in runs.items() if r.metrics.get("split", "test") != "test"}
+        if other_splits:
+            doc.paragraph("Not held-out scores: " + ", ".join(
+                f"{m} was scored on its {split} views" + (" (training views included)" if split in ("all", "train")
+                                                           else "") for m, split in sorted(other_splits.items()))
+                + "; the other runs on the test views.")
         doc.table(QUALITY_HEADER, quality_rows(runs, main))
         doc.heading("Speed and training time", 3)
         doc.paragraph(TIME_CAPTION)

@@ -23,8 +23,9 @@ On disk::
       "resolution": 800 | null,   # prepare.resolution (longest side in pixels) when it chose the factor
       "source": "/path/to/dataset/scene",
       "has_transparency": true,
-      "versions": {"rtsplat": "0.1.0", ...}
-    }
+      "versions": {"rtsplat": "0.1.0", ...},
+      "inputs": {"images": fp, "sfm": fp, "masks": fp | null}   # content fingerprints of what it was made
+    }                                       # from (rtsplat.io.manifest); {} in scenes written before them
 
 Cameras follow :mod:`rtsplat.camera` (OpenCV axes, world-to-camera, pixel corner at (0, 0)), sorted
 by name; the test split is every ``test_every``-th camera of that order starting with the first.
@@ -101,6 +102,7 @@ class PreparedScene:
     source: str = ""
     has_transparency: bool = False
     versions: dict[str, str] = field(default_factory=dict)
+    inputs: dict[str, str | None] = field(default_factory=dict)  # content fingerprints: images, sfm, masks
     format: int = FORMAT_VERSION
     root: Path | None = field(default=None, compare=False, repr=False)
 
@@ -158,6 +160,36 @@ class PreparedScene:
                                 path=path, fix="rerun `rtsplat prepare` for this scene")
         return xyz, normal
 
+    # -- identity ----------------------------------------------------------------------------
+    def data_record(self) -> dict[str, Any]:
+        """What a training run records of the prepared scene it trains on (in its checkpoints and
+        ``model.pt``): ``path`` (for messages), ``fingerprint`` (:func:`rtsplat.io.manifest.folder_fingerprint`
+        of the whole prepared folder: a resume refuses another one) and ``inputs`` (the photos, SfM model and
+        masks it was prepared from: render refuses a scene of other photos or another SfM model)."""
+        from rtsplat.io.manifest import folder_fingerprint
+
+        root = self._root()
+        return {"path": str(root.resolve()), "fingerprint": folder_fingerprint(root), "inputs": dict(self.inputs)}
+
+    def check_run_belongs(self, recorded: dict[str, Any] | None, run: str | Path) -> None:
+        """Refuse to render the run at ``run`` on this scene when the scene it was trained on
+        (``recorded``: its :meth:`data_record`) was prepared from other photos or another SfM model (so
+        another scene, or another world frame). A run or scene without the record passes."""
+        theirs = (recorded or {}).get("inputs") or {}
+        ours = self.inputs or {}
+        differs = [key for key in ("images", "sfm") if theirs.get(key) and ours.get(key) and theirs[key] != ours[key]]
+        if not differs:
+            return
+        what = {"images": "photos", "sfm": "SfM model"}
+        detail = ", ".join(f"{what[k]} {theirs[k]} vs {ours[k]}" for k in differs)
+        raise PipelineError(
+            f"the run {run} was trained on the prepared scene {recorded.get('path', '?')}, which was made from "
+            f"other {' and '.join(what[k] for k in differs)} than this one, {self._root()} ({detail})",
+            path=self._root(),
+            fix=f"pass --data {recorded.get('path', 'the prepared scene the run was trained on')}, or train a run "
+            "on this prepared scene",
+        )
+
     # -- (de)serialisation -------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -169,7 +201,7 @@ class PreparedScene:
         try:
             cams = [CameraRecord(**c) for c in data["cameras"]]
             roi = Roi(**data["roi"])
-            keys = ("downsample", "resolution", "source", "has_transparency", "versions", "format")
+            keys = ("downsample", "resolution", "source", "has_transparency", "versions", "inputs", "format")
             rest = {k: data[k] for k in keys if k in data}
         except (KeyError, TypeError) as exc:
             raise PipelineError(
@@ -246,8 +278,15 @@ class PreparedScene:
                 or not np.allclose(w2c[3], [0, 0, 0, 1])
             ):
                 raise bad(f"camera {c.name}: world_to_camera is not a rigid transform")
-        if len(self.roi.center) != 3 or not float(self.roi.radius) > 0:
+        try:
+            center = np.asarray(self.roi.center, dtype=float)
+            radius = float(self.roi.radius)
+        except (TypeError, ValueError):
+            raise bad(f"roi: center {self.roi.center!r} and radius {self.roi.radius!r} must be numbers") from None
+        if center.shape != (3,) or not radius > 0:
             raise bad("roi must have a 3D center and a positive radius")
+        if not (np.all(np.isfinite(center)) and np.isfinite(radius)):
+            raise bad(f"roi.center {self.roi.center} and roi.radius {self.roi.radius} must be finite")
         if self.roi.source not in ("config", "masks", "estimated"):
             raise bad(f"roi.source must be 'config', 'masks' or 'estimated', got {self.roi.source!r}")
         if check_files:

@@ -40,6 +40,7 @@ Output folder::
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import tempfile
 import time
@@ -53,6 +54,7 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.colmap import is_model_dir, load_model
 from rtsplat.io.images import list_images, read_mask, validate_image_set, write_mask
+from rtsplat.io.manifest import check_made_from_photos, photo_fingerprints, photos_fingerprint
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.pose_eval import compare_poses
 from rtsplat.sfm_attempts import AttemptResult, AttemptRunner, better, describe, first_settings, next_attempt
@@ -79,6 +81,9 @@ class SfmSummary:
     pose_errors: dict | None = None  # PoseErrors fields of the written model against reference_model
     refinement: dict | None = None  # RefinementResult fields (None: sfm.refine off, or a dataset model)
     seconds: float = 0.0
+    scene_dir: str = ""  # the dataset scene it was made from (for messages)
+    images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
+    photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
 
 
 def _check_registration(
@@ -217,8 +222,12 @@ def run_sfm(
     images_dir = scene_dir / "images"
     out_dir = Path(out_dir)
     check_output_dir(out_dir, "sfm", inputs=[scene_dir, masks_dir])
-    headers = validate_image_set(images_dir, decode=True, progress=progress)
+    headers = validate_image_set(images_dir, decode=True, progress=progress, log=log)
     names = [h.path.name for h in headers]
+    photos = photo_fingerprints(images_dir)
+    if masks_dir is not None and (Path(masks_dir) / "summary.json").is_file():
+        masks_summary = json.loads((Path(masks_dir) / "summary.json").read_text())
+        check_made_from_photos(masks_dir, masks_summary, "masks", images_dir, photos, "--masks")
     given = scene_dir / "sparse" / "0"
     attempts: list[AttemptResult] = []
     chosen, choice, pose_errors, reference_dir, refinement = None, "", None, None, None
@@ -332,6 +341,9 @@ def run_sfm(
             pose_errors=pose_errors,
             refinement=asdict(refinement) if refinement else None,
             seconds=time.perf_counter() - t0,
+            scene_dir=str(scene_dir.resolve()),
+            images_fingerprint=photos_fingerprint(photos),
+            photos=photos,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
     return summary

@@ -6,6 +6,7 @@ nothing partial left behind)."""
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 import struct
 import sys
@@ -39,6 +40,15 @@ def base(tmp_path_factory) -> Path:
     (root / "user/notes.txt").write_text("the user's own file")
     (root / "a_file").write_text("not a folder")
     make_corner_scene(root / "other_scene", n_views=2, width=40, height=30)
+    # another scene (other photos: JPEGs of other views) and its stage outputs under res/other/
+    make_corner_scene(root / "scene_b", n_views=5, width=40, height=30, with_model=True, with_masks=True, ext=".jpg")
+    assert main(["masks", "--scene-dir", str(root / "scene_b"), "--out", str(root / "res/other/masks")]) == 0
+    assert main(["sfm", "--scene-dir", str(root / "scene_b"), "--out", str(root / "res/other/sfm")]) == 0
+    assert main(["prepare", "--scene-dir", str(root / "scene_b"), "--sfm", str(root / "res/other/sfm"), "--masks",
+                 str(root / "res/other/masks"), "--out", str(root / "res/other/prepared")]) == 0
+    # a real run of two iterations on res/prepared, its resumable checkpoint kept as a killed run leaves it
+    assert main(["train", "--data", str(root / "res/prepared"), "--out", str(root / "res/trained"), "--quiet",
+                 "--config-json", TINY_TRAINING]) == 0
     return root
 
 
@@ -82,6 +92,12 @@ def write(rel: str, text: str) -> Callable[[Path], None]:
     return apply
 
 
+TINY_TRAINING = json.dumps({
+    "schedule": {"iterations": 2, "volume_until": 1, "specular_from": 2, "densify_from": 1000, "reset_every": 0,
+                 "checkpoint_every": 1, "eval_every": 0, "log_every": 1},
+    "model": {"env_height": 8, "env_width": 16, "env_levels": 2, "mlp_width": 8},
+    "cameras": {"final_fit_steps": 0, "test_fit_steps": 0},
+})
 SFM = ["sfm", "--scene-dir", "{R}/scene", "--out"]
 MASKS = ["masks", "--scene-dir", "{R}/scene", "--out"]
 PREPARE = ["prepare", "--scene-dir", "{R}/scene", "--sfm", "{R}/res/sfm", "--masks", "{R}/res/masks", "--out"]
@@ -272,7 +288,7 @@ EXISTING_CASES = {
                                   ["max_coverage"]),
     "prepare sfm folder without summary": Case([*PREPARE, "{R}/res/new"], ["{R}/res/sfm"],
                                                lambda root: (root / "res/sfm/summary.json").unlink()),
-    "prepare image of the wrong size": Case([*PREPARE, "{R}/res/new"], ["view_000.png", "30x20", "40x30"],
+    "prepare image changed since sfm": Case([*PREPARE, "{R}/res/new"], ["--sfm {R}/res/sfm", "view_000.png (changed)"],
                                             lambda root: _crop(root / "scene/images/view_000.png")),
     "train data not prepared": Case(["train", "--data", "{R}/scene", "--out", "{R}/res/new_run", "--quiet"],
                                     ["{R}/scene"]),
@@ -280,6 +296,107 @@ EXISTING_CASES = {
                                        lambda root: (root / "res/run/model.pt").unlink()),
     "report of a missing results folder": Case(["report", "--results", "{R}/nowhere", "--out", "{R}/res/report"],
                                                ["{R}/nowhere"]),
+}
+
+
+def sideways_jpeg(rel: str, orientation: int, like: str = "scene/images/view_000.png") -> Callable[[Path], None]:
+    """Write ``rel``: the photo ``like`` as a phone stores a photo taken sideways (the pixels turned a
+    quarter, an EXIF Orientation tag ``orientation`` saying how to turn them back for display)."""
+    def apply(root: Path) -> None:
+        from PIL import Image
+
+        image = Image.open(root / like).convert("RGB")
+        stored = image.transpose(Image.Transpose.ROTATE_90 if orientation == 6 else Image.Transpose.ROTATE_270)
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        stored.save(root / rel, exif=exif, quality=95)
+    return apply
+
+
+def only_heic(root: Path) -> None:
+    for path in (root / "scene/images").iterdir():
+        path.with_suffix(".HEIC").write_bytes(b"\0\0\0\x18ftypheic")
+        path.unlink()
+
+
+def nan_surfels(rel: str) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        import torch
+
+        state = torch.load(root / rel, weights_only=False)
+        state["model"]["surfels"]["means"][0, 0] = float("nan")
+        torch.save(state, root / rel)
+    return apply
+
+
+def roi_center(value: float) -> Callable[[Path], None]:
+    def apply(root: Path) -> None:
+        path = root / "res/prepared/scene.json"
+        data = json.loads(path.read_text())
+        data["roi"]["center"][0] = value
+        path.write_text(json.dumps(data))
+    return apply
+
+
+PHOTO_CASES = {
+    "sfm: a photo stored sideways (EXIF orientation 6)": Case(
+        [*SFM, "{R}/res/new"], ["{R}/scene/images/view_004.jpg", "Orientation tag is 6", "exiftran -ai"],
+        sideways_jpeg("scene/images/view_004.jpg", 6)),
+    "sfm: a photo stored sideways (EXIF orientation 8)": Case(
+        [*SFM, "{R}/res/new"], ["{R}/scene/images/view_004.jpg", "Orientation tag is 8", "mogrify -auto-orient"],
+        sideways_jpeg("scene/images/view_004.jpg", 8)),
+    "masks: a photo stored sideways": Case(
+        [*MASKS, "{R}/res/new", "--source", "none"], ["{R}/scene/images/view_004.jpg", "Orientation tag is 6"],
+        sideways_jpeg("scene/images/view_004.jpg", 6)),
+    "masks: a mask stored sideways": Case(
+        [*MASKS, "{R}/res/new"], ["{R}/scene/transparent_masks/view_001.jpg", "Orientation tag is 8"],
+        lambda root: (sideways_jpeg("scene/transparent_masks/view_001.jpg", 8,
+                                    "scene/transparent_masks/view_001.png")(root),
+                      (root / "scene/transparent_masks/view_001.png").unlink())),
+    "sfm: a HEIC photo beside the others": Case(
+        [*SFM, "{R}/res/new"], ["{R}/scene/images", "IMG_0042.HEIC", "HEIC/HEIF", "beside", "heif-convert"],
+        write("scene/images/IMG_0042.HEIC", "ftypheic")),
+    "masks: a RAW photo beside the others": Case(
+        [*MASKS, "{R}/res/new"], ["IMG_0042.dng", "camera RAW", "darktable-cli"],
+        write("scene/images/IMG_0042.dng", "raw")),
+    "sfm: only HEIC photos": Case([*SFM, "{R}/res/new"], ["view_000.HEIC", "HEIC/HEIF", "no readable images",
+                                                          "heif-convert"], only_heic),
+    "sfm: byte-identical photos": Case(
+        [*SFM, "{R}/res/new"], ["view_001.png and view_009.png", "byte-identical", "delete one"],
+        lambda root: shutil.copy(root / "scene/images/view_001.png", root / "scene/images/view_009.png")),
+    "masks: byte-identical photos": Case(
+        [*MASKS, "{R}/res/new"], ["view_002.png and view_002_copy.png", "byte-identical"],
+        lambda root: shutil.copy(root / "scene/images/view_002.png", root / "scene/images/view_002_copy.png")),
+}
+
+MISMATCH_CASES = {
+    "prepare --sfm of another scene": Case(
+        ["prepare", "--scene-dir", "{R}/scene", "--sfm", "{R}/res/other/sfm", "--masks", "{R}/res/masks", "--out",
+         "{R}/res/new"], ["--sfm {R}/res/other/sfm", "belongs to other photos", "{R}/scene_b", "{R}/scene/images"]),
+    "prepare --masks of another scene": Case(
+        ["prepare", "--scene-dir", "{R}/scene", "--sfm", "{R}/res/sfm", "--masks", "{R}/res/other/masks", "--out",
+         "{R}/res/new"], ["--masks {R}/res/other/masks", "belongs to other photos", "{R}/scene_b"]),
+    "sfm --masks of another scene": Case(
+        [*SFM, "{R}/res/new", "--masks", "{R}/res/other/masks"], ["--masks {R}/res/other/masks", "other photos"]),
+    "prepare after a photo was removed": Case(
+        [*PREPARE, "{R}/res/new"], ["--sfm {R}/res/sfm", "view_003.png (removed)"],
+        lambda root: (root / "scene/images/view_003.png").unlink()),
+    "train resumes a run killed on another preparation": Case(
+        ["train", "--data", "{R}/res/other/prepared", "--out", "{R}/res/trained", "--quiet", "--config-json",
+         TINY_TRAINING, "--iterations", "4"],
+        ["{R}/res/trained/checkpoints/last.pt", "another prepared scene", "res/prepared",
+         "{R}/res/other/prepared"]),
+    "render a run of another scene": Case(
+        ["render", "--run", "{R}/res/trained", "--data", "{R}/res/other/prepared", "--quiet", "--out", "{R}/res/new"],
+        ["the run {R}/res/trained", "res/prepared", "{R}/res/other/prepared", "photos"]),
+    "render a model with NaN parameters": Case(
+        ["render", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--quiet", "--out", "{R}/res/new"],
+        ["{R}/res/trained/model.pt", "'means'", "non-finite"], nan_surfels("res/trained/model.pt")),
+    "train on a prepared scene with a NaN ROI centre": Case(
+        [*TRAIN_NEW], ["{R}/res/prepared/scene.json", "roi.center", "finite"], roi_center(float("nan"))),
+    "render on a prepared scene with an infinite ROI centre": Case(
+        ["render", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--quiet", "--out", "{R}/res/new"],
+        ["{R}/res/prepared/scene.json", "roi.center", "finite"], roi_center(float("inf"))),
 }
 
 
@@ -299,6 +416,8 @@ CASES = {
     **{f"model: {k}": v for k, v in MODEL_CASES.items()},
     **{f"config: {k}": v for k, v in CONFIG_CASES.items()},
     **{f"existing: {k}": v for k, v in EXISTING_CASES.items()},
+    **{f"photos: {k}": v for k, v in PHOTO_CASES.items()},
+    **{f"mismatch: {k}": v for k, v in MISMATCH_CASES.items()},
 }
 
 
@@ -332,3 +451,41 @@ def test_a_stage_replaces_its_own_output_and_fills_an_empty_folder(base, tmp_pat
     assert main(["masks", "--scene-dir", str(scene), "--out", str(out)]) == 0
     assert not (out / "stale.txt").exists()
     assert (out / ".rtsplat-output").is_file() and (out / "view_000.png").is_file()
+
+
+def test_photos_stored_upright_pass_and_a_raw_twin_is_named(base, tmp_path, capsys):
+    """The other side of the photo checks: a JPEG whose EXIF orientation says upright (1) is read, and a RAW
+    file beside the JPEG of the same name (a camera's RAW+JPEG pair) is skipped with a line naming it."""
+    from PIL import Image
+
+    scene = tmp_path / "scene"
+    shutil.copytree(base / "scene", scene)
+    exif = Image.Exif()
+    exif[0x0112] = 1
+    Image.open(scene / "images/view_000.png").convert("RGB").save(scene / "images/view_000.jpg", exif=exif)
+    (scene / "images/view_000.png").unlink()
+    (scene / "images/view_000.dng").write_bytes(b"raw sensor data")
+    assert main(["masks", "--scene-dir", str(scene), "--out", str(tmp_path / "masks")]) == 0
+    err = capsys.readouterr().err
+    assert "view_000.dng" in err and "skipped 1 file" in err
+    assert (tmp_path / "masks/view_000.png").is_file()
+
+
+def test_inputs_that_belong_together_pass_wherever_they_are(base, tmp_path, capsys):
+    """Fingerprints are of contents, not paths: the scene and its sfm and masks outputs copied elsewhere
+    still prepare, and the run renders on that new preparation of the same photos and SfM model."""
+    root = tmp_path / "moved"
+    for rel in ("scene", "res/sfm", "res/masks", "res/trained"):
+        shutil.copytree(base / rel, root / rel)
+    for summary in (root / "res").rglob("*.json"):
+        summary.write_text(summary.read_text().replace(str(base), str(root)))
+    assert main(["prepare", "--scene-dir", str(root / "scene"), "--sfm", str(root / "res/sfm"), "--masks",
+                 str(root / "res/masks"), "--out", str(root / "res/prepared2")]) == 0
+    assert main(["render", "--run", str(root / "res/trained"), "--data", str(root / "res/prepared2"), "--quiet",
+                 "--out", str(root / "res/renders"), "--warmup", "0"]) == 0
+    assert (root / "res/renders/color/view_000.png").is_file()
+    # a resume on the very folder it was trained on (copied: same contents) is accepted
+    shutil.copytree(base / "res/prepared", root / "res/prepared")
+    assert main(["train", "--data", str(root / "res/prepared"), "--out", str(root / "res/trained"), "--quiet",
+                 "--config-json", TINY_TRAINING, "--iterations", "3"]) == 0
+    assert "resumed from" in capsys.readouterr().err

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+
+import pytest
 
 from rtsplat.io.manifest import refresh_manifest, scene_manifest
 
@@ -65,3 +68,53 @@ def test_an_unreadable_manifest_is_rewritten(tmp_path):
     path.write_text("{truncated")
     refresh_manifest(scene, path)
     assert json.loads(path.read_text()) == scene_manifest(scene)
+
+
+def test_content_fingerprints_follow_contents_not_paths(tmp_path):
+    from rtsplat.io.manifest import FINGERPRINT_SAMPLE, file_fingerprint, folder_fingerprint
+
+    scene = _scene(tmp_path)
+    big = scene / "images" / "big.png"
+    data = bytearray(range(256)) * (3 * FINGERPRINT_SAMPLE // 256)  # 192 KiB: ends sampled, middle not
+    big.write_bytes(bytes(data))
+    first = folder_fingerprint(scene)
+    copy = tmp_path / "elsewhere" / "scene"
+    shutil.copytree(scene, copy)
+    assert folder_fingerprint(copy) == first  # moved or copied: same contents, same fingerprint
+
+    for offset, seen in ((0, True), (len(data) - 1, True), (len(data) // 2, False)):
+        changed = bytearray(data)
+        changed[offset] ^= 0xFF
+        big.write_bytes(bytes(changed))
+        assert (file_fingerprint(big) != file_fingerprint(copy / "images" / "big.png")) is seen, offset
+        assert (folder_fingerprint(scene) != first) is seen, offset
+    big.write_bytes(bytes(data))
+    (scene / "images" / "0001.png").rename(scene / "images" / "0001b.png")  # a renamed file
+    assert folder_fingerprint(scene) != first
+
+
+def test_made_from_other_photos_is_refused_naming_both(tmp_path):
+    from rtsplat.errors import PipelineError
+    from rtsplat.io.manifest import check_made_from_photos, photo_fingerprints
+
+    scene = _scene(tmp_path)
+    photos = photo_fingerprints(scene / "images")
+    assert sorted(photos) == ["0000.png", "0001.png", "0002.png"]
+    summary = {"photos": dict(photos), "scene_dir": str(scene)}
+    check_made_from_photos(tmp_path / "sfm", summary, "sfm", scene / "images", photos, "--sfm")  # passes
+    check_made_from_photos(tmp_path / "sfm", {}, "sfm", scene / "images", photos, "--sfm")  # no record: passes
+
+    (scene / "images" / "0001.png").write_bytes(b"edited")
+    (scene / "images" / "0002.png").unlink()
+    (scene / "images" / "0003.png").write_bytes(b"new")
+    now = photo_fingerprints(scene / "images")
+    with pytest.raises(PipelineError) as info:
+        check_made_from_photos(tmp_path / "sfm", summary, "sfm", scene / "images", now, "--sfm")
+    assert "0001.png (changed), 0003.png (added), 0002.png (removed)" in str(info.value)
+
+    other = {"a.jpg": "0" * 16, "b.jpg": "1" * 16}
+    with pytest.raises(PipelineError) as info:
+        check_made_from_photos(tmp_path / "masks", {"photos": other, "scene_dir": "/data/b"}, "masks",
+                               scene / "images", now, "--masks")
+    assert "belongs to other photos" in str(info.value) and "/data/b" in str(info.value)
+    assert str(scene / "images") in str(info.value)

@@ -171,6 +171,39 @@ def test_metrics_cli_writes_json_with_both_regions(trained, tmp_path):
     assert data["fps"] > 0 and data["machine"]["cpus"] >= 1
 
 
+def test_metrics_record_and_print_the_split_and_the_report_labels_it(trained, tmp_path, capsys):
+    """Renders of every view (training views included) are scored as such: the JSON records the split,
+    the printout says it is not a held-out score, the report's quality table labels the run."""
+    from rtsplat.cli import main
+    from rtsplat.report import Run, quality_rows
+
+    root, scene, _ = trained
+    render_run(root / "run", scene.root, tmp_path / "renders", split="all", progress=False, warmup=0)
+    out = tmp_path / "metrics.json"
+    assert main(["metrics", "--renders", str(tmp_path / "renders"), "--data", str(scene.root), "--out", str(out),
+                 "--lpips-weights", str(tmp_path / "none")]) == 0
+    data = json.loads(out.read_text())
+    assert data["split"] == "all" and set(data["views"]) == {c.name for c in scene.cameras}
+    captured = capsys.readouterr()
+    assert f"all views ({len(scene.cameras)})" in captured.out
+    assert "training views included" in captured.err
+    test_run = Run(scene="s", method="a", metrics={"split": "test", "mean": {}})
+    all_run = Run(scene="s", method="b", metrics=data)
+    assert [row[0] for row in quality_rows({"a": test_run, "b": all_run})] == ["a", "b [all views]"]
+
+
+def test_render_refuses_a_model_with_non_finite_parameters(trained, tmp_path):
+    from rtsplat.model.checkpoint import CheckpointError
+
+    root, scene, _ = trained
+    state = torch.load(root / "run" / "model.pt", weights_only=False)
+    state["model"]["surfels"]["opacity_logit"][3] = float("inf")
+    torch.save(state, tmp_path / "model.pt")
+    with pytest.raises(CheckpointError, match="'opacity_logit' holds 1 non-finite value") as info:
+        read_checkpoint(tmp_path / "model.pt")
+    assert str(tmp_path / "model.pt") in str(info.value)
+
+
 def test_decomposition_is_scored_against_ground_truth_layers_in_the_region(trained, tmp_path):
     """With ground-truth layers in <data>/gt_layers the metrics score our reflection and our transmission
     (scatter included: colour - reflection) on the transparent region, as an independent numpy PSNR says."""

@@ -11,6 +11,13 @@ Every image is returned as ``float32`` ``[H, W, 3]`` RGB, display-referred sRGB 
 OpenImageIO is used when installed (EXR, 16-bit, TIFF, ...), OpenCV otherwise. Unreadable or
 truncated files raise :class:`~rtsplat.errors.PipelineError` naming the file.
 
+Pixels are taken as the file stores them, by every stage: COLMAP (pycolmap 4.2) extracts features from
+the stored pixels and ignores the EXIF ``Orientation`` tag, so a file whose tag says it is displayed
+turned or mirrored (what phones write for photos held sideways) is refused by :func:`read_header` and
+every reader here, naming the file and the fix (rotate the pixels upright: ``exiftran -ai``, or
+``mogrify -auto-orient``). Nothing then disagrees on which way up an image is: SfM, the masks,
+prepare and the metrics all see the pixels a viewer shows.
+
 Masks are single-channel: ``read_mask`` returns ``bool [H, W]`` (white = transparent surface),
 ``write_mask`` writes 8-bit 0/255 PNGs.
 """
@@ -26,6 +33,26 @@ from rtsplat.errors import PipelineError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr", ".bmp", ".webp")
 FLOAT_EXTENSIONS = (".exr", ".hdr")
+# photo formats that are not read (not decoded by COLMAP, or needing a raw developer): named when found
+UNSUPPORTED_PHOTO_FORMATS = {
+    **{ext: "HEIC/HEIF" for ext in (".heic", ".heif", ".hif")},
+    ".avif": "AVIF",
+    ".jxl": "JPEG XL",
+    **{ext: "camera RAW" for ext in (".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2",
+                                     ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw", ".3fr", ".erf", ".kdc",
+                                     ".dcr", ".mrw", ".x3f", ".iiq", ".rwl", ".gpr")},
+}
+# EXIF Orientation values (TIFF tag 274) and how a viewer turns the stored pixels for display
+ORIENTATIONS = {
+    2: "mirrored left-right", 3: "turned 180 degrees", 4: "mirrored top-bottom",
+    5: "mirrored and turned 90 degrees", 6: "turned 90 degrees clockwise",
+    7: "mirrored and turned 90 degrees", 8: "turned 90 degrees counter-clockwise",
+}
+ORIENTATION_FIX = (
+    "rotate the pixels upright and reset the tag, e.g. `exiftran -ai *.jpg` in the folder (lossless, JPEG) "
+    "or `mogrify -auto-orient *.jpg` (ImageMagick), then re-run; SfM (COLMAP) reads the stored pixels and "
+    "ignores the tag"
+)
 
 
 @dataclass(frozen=True)
@@ -75,8 +102,35 @@ def _bad(path: Path, why: str) -> PipelineError:
     )
 
 
+def check_orientation(path: Path, orientation: int) -> None:
+    """Refuse a file whose EXIF orientation says it is displayed turned or mirrored (see the module docstring)."""
+    if orientation in (0, 1):
+        return
+    how = ORIENTATIONS.get(orientation, "an unknown orientation")
+    raise PipelineError(
+        f"the image is stored sideways or mirrored: its EXIF Orientation tag is {orientation} (displayed "
+        f"{how}); rtsplat reads every image as stored, so its pixels must be upright",
+        path=path,
+        fix=ORIENTATION_FIX,
+    )
+
+
+def _exif_orientation_pil(path: Path) -> int:
+    """The EXIF orientation of ``path`` read with Pillow (the OpenCV path's source of the tag); 1 without Pillow."""
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow comes with the pipeline's dependencies
+        return 1
+    try:
+        with Image.open(path) as im:
+            return int(im.getexif().get(0x0112, 1))
+    except Exception:  # unreadable: the decoder names the problem
+        return 1
+
+
 def read_header(path: str | Path) -> ImageHeader:
-    """Width, height and channel count without decoding the pixels."""
+    """Width, height and channel count without decoding the pixels; a file stored sideways
+    (EXIF orientation other than 1) raises :class:`PipelineError` (:func:`check_orientation`)."""
     path = Path(path)
     oiio = _oiio()
     if oiio is not None:
@@ -85,6 +139,7 @@ def read_header(path: str | Path) -> ImageHeader:
             raise _bad(path, oiio.geterror())
         spec = inp.spec()
         inp.close()
+        check_orientation(path, int(spec.get_int_attribute("Orientation", 1)))
         return ImageHeader(path, int(spec.width), int(spec.height), int(spec.nchannels))
     arr = _read_cv2(path)
     return ImageHeader(path, arr.shape[1], arr.shape[0], 1 if arr.ndim == 2 else arr.shape[2])
@@ -93,9 +148,10 @@ def read_header(path: str | Path) -> ImageHeader:
 def _read_cv2(path: Path) -> np.ndarray:
     import cv2
 
-    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # the stored pixels: no EXIF rotation
     if arr is None:
         raise _bad(path, "OpenCV could not decode it")
+    check_orientation(path, _exif_orientation_pil(path))
     if arr.ndim == 3:
         order = [2, 1, 0] + list(range(3, arr.shape[2]))
         arr = arr[..., order[: arr.shape[2]]] if arr.shape[2] >= 3 else arr
@@ -122,6 +178,7 @@ def _read_raw(path: Path) -> tuple[np.ndarray, bool]:
         raise _bad(path, oiio.geterror())
     try:
         spec = inp.spec()
+        check_orientation(path, int(spec.get_int_attribute("Orientation", 1)))
         is_float = spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE)
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if pixels is None or inp.has_error:
@@ -218,20 +275,103 @@ def area_downsample(image: np.ndarray, factor: int) -> np.ndarray:
     return crop.reshape(shape).mean(axis=(1, 3)).astype(np.float32)
 
 
-def validate_image_set(directory: str | Path, decode: bool = True, progress: bool = False) -> list[ImageHeader]:
-    """Check a scene's image folder: not empty, every file readable (fully decoded when ``decode``),
-    all the same size. Returns the headers in name order; raises :class:`PipelineError` otherwise."""
+def unsupported_photos(directory: str | Path) -> list[Path]:
+    """Files directly inside ``directory`` in a photo format that is not read (:data:`UNSUPPORTED_PHOTO_FORMATS`)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    return sorted((p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in UNSUPPORTED_PHOTO_FORMATS),
+                  key=lambda p: p.name)
+
+
+def _convert_fix(formats: set[str]) -> str:
+    ways = []
+    if "HEIC/HEIF" in formats or "AVIF" in formats or "JPEG XL" in formats:
+        ways.append("convert HEIC/AVIF/JPEG XL photos to JPEG, e.g. `heif-convert IMG_0001.HEIC IMG_0001.jpg` "
+                    "(libheif) or `mogrify -format jpg *.HEIC` (ImageMagick built with HEIC support)")
+    if "camera RAW" in formats:
+        ways.append("develop RAW files to 16-bit TIFF or JPEG, e.g. `darktable-cli IMG_0001.DNG IMG_0001.tif` or "
+                    "`dcraw -T -6 *.CR2`")
+    return "; ".join(ways) + f" (readable: {', '.join(IMAGE_EXTENSIONS)}), or move them out of the folder"
+
+
+def check_unsupported_photos(directory: Path, paths: list[Path], log=None) -> None:
+    """Photos in an unsupported format beside the readable ``paths``: one with a readable twin of the same
+    stem (a RAW+JPEG pair) is skipped and named through ``log``; any other is an error naming it and how to
+    convert it, as is a folder of unsupported photos only."""
+    others = unsupported_photos(directory)
+    if not others:
+        return
+    stems = {p.stem for p in paths}
+    twins = [p for p in others if p.stem in stems]
+    alone = [p for p in others if p.stem not in stems]
+    formats = {UNSUPPORTED_PHOTO_FORMATS[p.suffix.lower()] for p in others}
+    if alone:
+        shown = ", ".join(p.name for p in alone[:5]) + (f" and {len(alone) - 5} more" if len(alone) > 5 else "")
+        kinds = " and ".join(sorted({UNSUPPORTED_PHOTO_FORMATS[p.suffix.lower()] for p in alone}))
+        where = "beside the readable ones" if paths else "and no readable images"
+        raise PipelineError(
+            f"{len(alone)} photo(s) in a format rtsplat does not read ({kinds}) {where}: {shown}",
+            path=directory,
+            fix=_convert_fix(formats),
+        )
+    if log is not None:
+        shown = ", ".join(p.name for p in twins[:5]) + (f" and {len(twins) - 5} more" if len(twins) > 5 else "")
+        log(f"{directory}: skipped {len(twins)} file(s) in an unsupported format that have a readable copy of "
+            f"the same name (e.g. RAW beside JPEG): {shown}")
+
+
+def duplicate_photos(paths: list[Path]) -> tuple[Path, Path] | None:
+    """The first pair of byte-identical files among ``paths`` (same size, then same SHA-256), or None.
+    Only files that share their size with another are read."""
+    import hashlib
+    from collections import defaultdict
+
+    by_size: dict[int, list[Path]] = defaultdict(list)
+    for p in paths:
+        by_size[p.stat().st_size].append(p)
+    for group in by_size.values():
+        if len(group) < 2:
+            continue
+        seen: dict[str, Path] = {}
+        for p in group:
+            digest = hashlib.sha256()
+            with open(p, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    digest.update(chunk)
+            key = digest.hexdigest()
+            if key in seen:
+                return seen[key], p
+            seen[key] = p
+    return None
+
+
+def validate_image_set(directory: str | Path, decode: bool = True, progress: bool = False,
+                       log=None) -> list[ImageHeader]:
+    """Check a scene's image folder: not empty, no photo in an unsupported format without a readable copy
+    (:func:`check_unsupported_photos`; ``log`` is told of those skipped), no two byte-identical files, every
+    file readable (fully decoded when ``decode``) and stored upright (:func:`check_orientation`), all the
+    same size. Returns the headers in name order; raises :class:`PipelineError` otherwise."""
     from collections import Counter
 
     from tqdm import tqdm
 
     directory = Path(directory)
     paths = list_images(directory)
+    check_unsupported_photos(directory, paths, log)
     if not paths:
         raise PipelineError(
             "no images found" if directory.is_dir() else "image folder does not exist",
             path=directory,
             fix=f"put the scene's photos ({', '.join(IMAGE_EXTENSIONS[:4])}, ...) in this folder",
+        )
+    twins = duplicate_photos(paths)
+    if twins is not None:
+        raise PipelineError(
+            f"{twins[0].name} and {twins[1].name} are the same file (byte-identical): one photo would count as "
+            "two views",
+            path=twins[1],
+            fix=f"delete one of the two copies ({twins[1].name}, say) from {directory}",
         )
     headers = []
     for p in tqdm(paths, desc=f"checking {directory.parent.name}/{directory.name}", unit="img", disable=not progress):
@@ -244,10 +384,13 @@ def validate_image_set(directory: str | Path, decode: bool = True, progress: boo
     if len(sizes) > 1:
         (w, h), _ = sizes.most_common(1)[0]
         odd = next(x for x in headers if (x.width, x.height) != (w, h))
+        turned = (odd.width, odd.height) == (h, w)
         raise PipelineError(
             f"images of mixed sizes: this one is {odd.width}x{odd.height}, most are {w}x{h} "
-            f"({len(sizes)} different sizes in {directory})",
+            f"({len(sizes)} different sizes in {directory})"
+            + ("; it is the others turned sideways (portrait and landscape photos mixed)" if turned else ""),
             path=odd.path,
-            fix="use images from one camera at one resolution (resize or remove the odd ones)",
+            fix="use images from one camera at one resolution (resize or remove the odd ones)"
+            + ("; photos must be stored the same way up: remove the portrait (or landscape) ones" if turned else ""),
         )
     return headers

@@ -9,7 +9,8 @@ resume state::
      "training": {"iteration", "elapsed", "config", "optimizer", ...}}  # {} when there is none
 
 Files are written atomically (:func:`rtsplat.io.atomic.atomic_file`). Version-1 files (the model's
-settings inside the trainer's config) are read too.
+settings inside the trainer's config) are read too. A file whose surfel parameters or model buffers hold
+NaN or infinite values is refused when read, naming the file and the parameter.
 """
 
 from __future__ import annotations
@@ -109,6 +110,7 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Che
     else:
         raise CheckpointError(f"not an rtsplat checkpoint (version {CHECKPOINT_VERSION}); delete it", path=path)
     model = {**model, "settings": _settings_of_older_models(dict(model.get("settings", {})))}
+    _check_finite(path, model)
     try:
         return Checkpoint(
             effects=ActiveEffects(**model["effects"]),
@@ -120,6 +122,26 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Che
     except (ConfigError, KeyError, TypeError) as exc:
         raise CheckpointError(f"the model description does not fit this version of rtsplat ({exc})", path=path,
                               fix="retrain with this version, or use the version that wrote it") from exc
+
+
+def _check_finite(path: Path, model: dict) -> None:
+    """Refuse a model whose parameters or buffers hold NaN or infinite values (it would render flat grey)."""
+    for group in ("surfels", "buffers"):
+        tensors = model.get(group)
+        if not isinstance(tensors, dict):
+            continue
+        for name, value in tensors.items():
+            if not isinstance(value, Tensor) or not value.is_floating_point() or value.numel() == 0:
+                continue
+            bad = int((~torch.isfinite(value)).sum())
+            if bad:
+                raise CheckpointError(
+                    f"the model's {group[:-1] if group == 'buffers' else 'surfel'} parameter {name!r} holds {bad} "
+                    f"non-finite value(s) of {value.numel()} (NaN or infinity): the model is broken",
+                    path=path,
+                    fix="retrain (the trainer never writes a diverged state; this file was damaged or written "
+                    "elsewhere), or use an earlier copy of the model",
+                )
 
 
 def _settings_of_older_models(settings: dict) -> dict:

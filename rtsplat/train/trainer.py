@@ -108,6 +108,8 @@ class Trainer:
     ):
         self.cfg = cfg.validate()
         self.scene = scene
+        # the prepared scene this run trains on, recorded in its checkpoints (None: a scene without a folder)
+        self.data = scene.data_record() if scene.root is not None else None
         self.out = Path(out_dir)
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else self.out / "checkpoints"
         self.log = log
@@ -484,6 +486,7 @@ class Trainer:
             "cpu_elapsed": self.cpu_elapsed,
             "run_usage": None if (usage := self.run_usage()) is None else usage.to_dict(),
             "config": self.cfg.to_dict(),
+            "data": self.data,
             "optimizer": self.optimizer.state_dict(),
             "density": self.density.state_dict(),
             "frozen": self.frozen,
@@ -514,12 +517,24 @@ class Trainer:
             raise diverged_error(divergence, self.iteration, self.checkpoint_path, self.checkpoint_iteration)
 
     def load_checkpoint(self, path: Path, new_config: bool = False) -> None:
-        """Resume from ``path``. A config that differs from the checkpoint's (beyond
+        """Resume from ``path``. A checkpoint written training on another prepared scene (another
+        :meth:`~rtsplat.scene.PreparedScene.data_record` fingerprint) is an error naming both. A config
+        that differs from the checkpoint's (beyond
         :data:`rtsplat.train_config.RESUME_MAY_CHANGE`) is an error naming the keys, unless
         ``new_config`` (``--resume-with-new-config``), which logs them and trains on with this config."""
         checkpoint = read_checkpoint(path, self.device)
         if not checkpoint.training:
             raise CheckpointError("has no training state to resume from; delete it to start over", path=path)
+        recorded = checkpoint.training.get("data") or {}
+        fingerprint = recorded.get("fingerprint")
+        if self.data is not None and fingerprint and fingerprint != self.data["fingerprint"]:
+            raise CheckpointError(
+                f"was written training on another prepared scene: {recorded.get('path', '?')} (fingerprint "
+                f"{recorded['fingerprint']}); this run's data {self.data['path']} has fingerprint "
+                f"{self.data['fingerprint']}",
+                path=path, fix="pass the --data it was trained on to resume it, or use a new --out directory or "
+                "--no-resume to start over on this data",
+            )
         if checkpoint.effects != self.effects:
             raise CheckpointError(
                 f"written with effects {checkpoint.effects.to_dict()}, this run uses {self.effects.to_dict()}; "
