@@ -300,7 +300,9 @@ def test_segment_stage_writes_masks(onnx_models, tmp_path):
     d = tmp_path / "s"
     (d / "images").mkdir(parents=True)
     for i in range(3):
-        write_png(d / "images" / f"img{i}.png", _test_image())
+        image = _test_image().copy()
+        image[0, 0] = i / 10  # three photos, not one photo three times (byte-identical photos are refused)
+        write_png(d / "images" / f"img{i}.png", image)
     dec, enc = onnx_models["sam2"]
     cfg = MasksConfig(onnx=OnnxSegmenterConfig(model=dec, encoder=enc, box=BOX))
     s = make_masks(d, tmp_path / "out", cfg, progress=False)  # source auto: no mask folder -> onnx
