@@ -12,7 +12,9 @@ Two ways (function API :func:`make_masks`):
   logits out" model.
 
 Output folder: ``<stem>.png`` masks (8-bit 0/255 PNGs whatever the input format; only when there are
-masks) and ``summary.json`` with ``has_masks``, ``source`` and per-image coverage. A scene without
+masks) and ``summary.json`` with ``has_masks``, ``source``, per-image coverage and the content fingerprint
+of each photo (``photos``, :func:`rtsplat.io.manifest.photo_fingerprints`: ``rtsplat prepare`` refuses masks
+of other photos). A scene without
 masks gets ``has_masks: false`` and is trained without transparency.
 """
 

@@ -29,11 +29,14 @@ Output folder::
                           "mean_reprojection_error", "seconds", "acceptable", ...}],
                           "chosen_attempt", "choice", "reference_model", "pose_errors",
                           "refinement": {"registered", "mean_reprojection_error_before",
-                          "mean_reprojection_error", "seconds", "kept", "verdict", "pose_errors", ...}}
+                          "mean_reprojection_error", "seconds", "kept", "verdict", "pose_errors", ...},
+                          "scene_dir", "photos": {name: fingerprint}, "images_fingerprint"}
     sfm/sparse/0/        the model (copied from the dataset or computed)
     sfm/undistorted/     images/ and sparse/ after undistortion (only when needed)
 
-``model_dir``/``image_dir`` in the summary are what ``rtsplat prepare`` reads. An attempt's
+``model_dir``/``image_dir`` in the summary are what ``rtsplat prepare`` reads; ``photos`` (the content
+fingerprint of each photo, :func:`rtsplat.io.manifest.photo_fingerprints`) is what it compares with the
+scene's photos to refuse the SfM of another scene. ``--masks`` of other photos are refused the same way. An attempt's
 ``seconds`` include the feature extraction and matching it was the first to need.
 """
 
