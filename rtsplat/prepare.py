@@ -38,7 +38,7 @@ import numpy as np
 from rtsplat import __version__
 from rtsplat.config import PrepareConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
-from rtsplat.io.colmap import ColmapModel, ColmapView, load_model
+from rtsplat.io.colmap import ColmapModel, ColmapView, load_model, track_colours
 from rtsplat.io.images import (
     area_downsample,
     linear_to_srgb,
@@ -316,6 +316,32 @@ def downsample_factor(sizes: set[tuple[int, int]], cfg: PrepareConfig, images: P
     return factor, f"prepare.downsample {factor}"
 
 
+def _exposure(image: np.ndarray, observed: tuple[np.ndarray, np.ndarray] | None, size: tuple[int, int],
+              mask: np.ndarray | None) -> list[float] | None:
+    """The photo's log gain per channel against the SfM points it observed (the colour at each of its
+    keypoints that SfM tied to a 3D point, against that point's colour: its mean over every photo that saw
+    it), off the transparent mask; None with too few observations
+    (:func:`rtsplat.model.appearance.observed_log_gain`). ``image`` may be smaller than the camera's
+    ``size`` (pre-scaled): the keypoints are scaled to it."""
+    import torch
+
+    from rtsplat.model.appearance import observed_log_gain
+
+    if observed is None or len(observed[0]) == 0:
+        return None
+    xy, rgb = observed
+    h, w = image.shape[:2]
+    u = np.clip((xy[:, 0] * w / size[0]).astype(np.int64), 0, w - 1)
+    v = np.clip((xy[:, 1] * h / size[1]).astype(np.int64), 0, h - 1)
+    keep = np.ones(len(u), dtype=bool)
+    if mask is not None:  # the mask has the camera's size
+        row = np.clip(xy[:, 1].astype(np.int64), 0, mask.shape[0] - 1)
+        keep = ~mask[row, np.clip(xy[:, 0].astype(np.int64), 0, mask.shape[1] - 1)].astype(bool)
+    gain = observed_log_gain(torch.as_tensor(image[v[keep], u[keep]], dtype=torch.float32),
+                             torch.as_tensor(rgb[keep], dtype=torch.float32) / 255)
+    return None if gain is None else [round(float(g), 5) for g in gain]
+
+
 def _test_split(names: list[str], test_every: int) -> dict[str, str]:
     return {n: ("test" if i % test_every == 0 else "train") for i, n in enumerate(sorted(names))}
 
@@ -396,6 +422,8 @@ def prepare_scene(
     coverage: list[float] = []
     mask_views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     layer_source = scene_dir / "layers" / "linear"
+    tracks = track_colours(sfm["model_dir"])
+    exposure: dict[str, list[float] | None] = {}
     gt_layer_views = 0
     out_dir = Path(out_dir)
     with output_dir(out_dir, "prepare", inputs=inputs) as tmp:
@@ -424,8 +452,10 @@ def prepare_scene(
                     )
                 K[0] *= w / view.width
                 K[1] *= h / view.height
+                full = image
             else:
-                image = area_downsample(read_image(src), f)
+                full = read_image(src)
+                image = area_downsample(full, f)
                 h, w = image.shape[:2]
                 K[:2] /= f
             write_png(tmp / IMAGES_DIR / f"{stem}.png", image, bits=cfg.bit_depth)
@@ -464,6 +494,8 @@ def prepare_scene(
                 write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
                 coverage.append(float(small.mean()))
                 mask_views.append((K, view.world_to_camera, small))
+            exposure[stem] = _exposure(full, tracks.get(view.name), (view.width, view.height),
+                                       mask if has_masks else None)
             cameras.append(
                 CameraRecord(
                     name=stem,
@@ -498,6 +530,7 @@ def prepare_scene(
             has_transparency=has_masks,
             versions=versions,
             inputs=made_from,
+            exposure=exposure,
         )
         scene.save(tmp)
         scene.validate(check_files=True, where=tmp / "scene.json")

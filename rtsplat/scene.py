@@ -24,8 +24,10 @@ On disk::
       "source": "/path/to/dataset/scene",
       "has_transparency": true,
       "versions": {"rtsplat": "0.1.0", ...},
-      "inputs": {"images": fp, "sfm": fp, "masks": fp | null}   # content fingerprints of what it was made
-    }                                       # from (rtsplat.io.manifest); {} in scenes written before them
+      "inputs": {"images": fp, "sfm": fp, "masks": fp | null},  # content fingerprints of what it was made
+                                            # from (rtsplat.io.manifest); {} in scenes written before them
+      "exposure": {"IMG_0001": [r, g, b] | null, ...}  # each photo's log gain against the SfM points' colours
+    }                                       # (median over its observations; {} in scenes written before it)
 
 Cameras follow :mod:`rtsplat.camera` (OpenCV axes, world-to-camera, pixel corner at (0, 0)), sorted
 by name; the test split is every ``test_every``-th camera of that order starting with the first.
@@ -103,6 +105,9 @@ class PreparedScene:
     has_transparency: bool = False
     versions: dict[str, str] = field(default_factory=dict)
     inputs: dict[str, str | None] = field(default_factory=dict)  # content fingerprints: images, sfm, masks
+    # per view: its photo's log gain per channel against the SfM points it observed (prepare); None where too
+    # few observations; {} in scenes written before it
+    exposure: dict[str, list[float] | None] = field(default_factory=dict)
     format: int = FORMAT_VERSION
     root: Path | None = field(default=None, compare=False, repr=False)
 
@@ -201,7 +206,8 @@ class PreparedScene:
         try:
             cams = [CameraRecord(**c) for c in data["cameras"]]
             roi = Roi(**data["roi"])
-            keys = ("downsample", "resolution", "source", "has_transparency", "versions", "inputs", "format")
+            keys = ("downsample", "resolution", "source", "has_transparency", "versions", "inputs", "exposure",
+                    "format")
             rest = {k: data[k] for k in keys if k in data}
         except (KeyError, TypeError) as exc:
             raise PipelineError(
@@ -289,6 +295,9 @@ class PreparedScene:
             raise bad(f"roi.center {self.roi.center} and roi.radius {self.roi.radius} must be finite")
         if self.roi.source not in ("config", "masks", "estimated"):
             raise bad(f"roi.source must be 'config', 'masks' or 'estimated', got {self.roi.source!r}")
+        for name, gain in (self.exposure or {}).items():
+            if gain is not None and not (len(gain) == 3 and np.all(np.isfinite(np.asarray(gain, dtype=float)))):
+                raise bad(f"exposure of view {name!r} must be 3 finite numbers or null, got {gain!r}")
         if check_files:
             self._check_files(bad)
 

@@ -171,3 +171,41 @@ def test_per_view_appearance_raises_held_out_psnr_on_photos_of_varying_exposure(
                           log=lambda m: None)
         scores[mode] = trainer.train()["test_psnr"]
     assert scores["on"] > scores["off"] + 1.0, scores
+
+
+@pytest.mark.slow
+def test_prepare_measures_each_photos_exposure_at_the_sfm_observations(tmp_path):
+    """Half of the photos taken 0.2 darker (log gain): prepare's per-view gains, read at the keypoints SfM tied
+    to 3D points, put the two halves 0.2 apart, agree within each half, and make the scene call for
+    corrections."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fixtures_pipeline import make_corner_scene
+
+    from rtsplat.config import PrepareConfig, SfmConfig
+    from rtsplat.io.images import read_image, write_png
+    from rtsplat.prepare import prepare_scene
+    from rtsplat.scene import PreparedScene
+    from rtsplat.sfm import run_sfm
+
+    views = make_corner_scene(tmp_path / "s", n_views=12, width=200, height=150)
+    darker = {Path(v.name).stem for v in views[1::2]}
+    for v in views[1::2]:
+        path = tmp_path / "s" / "images" / v.name
+        write_png(path, read_image(path) * math.exp(-0.2))
+    run_sfm(tmp_path / "s", tmp_path / "sfm", SfmConfig(use_dataset_model=False, camera_model="PINHOLE"),
+            progress=False)
+    prepare_scene(tmp_path / "s", tmp_path / "sfm", tmp_path / "prepared", PrepareConfig(), progress=False)
+    exposure = PreparedScene.load(tmp_path / "prepared").exposure
+    measured = {name: gain for name, gain in exposure.items() if gain is not None}
+    assert len(measured) >= 10
+    dark = torch.tensor([g for n, g in measured.items() if n in darker])
+    bright = torch.tensor([g for n, g in measured.items() if n not in darker])
+    gap = dark.median(0).values - bright.median(0).values
+    assert torch.allclose(gap, torch.full((3,), -0.2), atol=0.03), gap
+    for group in (dark, bright):
+        assert float((group - group.median(0).values).abs().max()) < 0.03
+    spread = appearance_spread(torch.tensor(list(measured.values())))
+    assert spread is not None and spread >= APPEARANCE_SPREAD

@@ -79,6 +79,8 @@ def test_no_transparency_has_no_masks(tmp_path):
         (lambda d: d.update(format=99), "format 99"),
         (lambda d: d["cameras"][0].pop("K"), "malformed"),
         (lambda d: d["cameras"][0].update(width=31), "is 32x24, camera img0 says 31x24"),
+        (lambda d: d.update(exposure={"img0": [0.1, float("nan"), 0.0]}), "exposure of view 'img0' must be 3 finite"),
+        (lambda d: d.update(exposure={"img1": [0.1]}), "exposure of view 'img1' must be 3 finite"),
     ],
 )
 def test_validation_names_the_problem(tmp_path, mutate, message):

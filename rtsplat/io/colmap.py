@@ -119,6 +119,25 @@ def load_model(path: str | Path) -> ColmapModel:
     return ColmapModel(sorted(views, key=lambda v: v.name), xyz, rgb, err)
 
 
+def track_colours(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per registered image of the COLMAP model at ``path``: its observations of 3D points, as
+    (pixel coordinates [n, 2] with the pixel corner at (0, 0), the observed point's colour [n, 3] uint8).
+    The model must be readable (:func:`load_model` checks it)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(path))
+    colours = {point_id: point.color for point_id, point in rec.points3D.items()}
+    out = {}
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        seen = [(p.xy, colours[p.point3D_id]) for p in image.get_observation_points2D()
+                if p.point3D_id in colours]
+        xy = np.array([s[0] for s in seen], dtype=np.float64).reshape(-1, 2)
+        rgb = np.array([s[1] for s in seen], dtype=np.uint8).reshape(-1, 3)
+        out[image.name] = (xy, rgb)
+    return out
+
+
 _REDO = "re-run 'rtsplat sfm' (or COLMAP) or restore the model files"
 
 

@@ -20,6 +20,8 @@ import torch
 from torch import Tensor
 
 LOG_GAIN_LIMIT = 2.0  # exp(+-2): a 7x exposure change either way, beyond what a capture's auto-exposure does
+MIN_POINTS_PER_VIEW = 20  # a view with fewer usable point colours gives no gain estimate
+DARK = 0.04  # point or pixel colours below this (of 1) are left out: their ratios are mostly noise
 
 
 def apply_appearance(color: Tensor, correction: Tensor) -> Tensor:
@@ -51,3 +53,13 @@ def fit_appearance(rendered: Tensor, photo: Tensor, prior: float = 1e-2) -> Tens
     gain = torch.linalg.solve(a, b)[:, 0].clamp(math.exp(-LOG_GAIN_LIMIT), math.exp(LOG_GAIN_LIMIT))
     offset = (sy - gain * sx) / (n + lam)  # the best offset for the (clamped) gain
     return torch.cat([gain.log(), offset]).to(rendered.dtype)
+
+
+def observed_log_gain(seen: Tensor, reference: Tensor) -> Tensor | None:
+    """A photo's log gain per channel [3] from colours it shows of known points: the median over the
+    points of ``log(seen / reference)`` (both [n, 3] in [0, 1]), leaving out points where either colour
+    is darker than :data:`DARK`; None with fewer than :data:`MIN_POINTS_PER_VIEW` such points."""
+    keep = (seen > DARK).all(-1) & (reference > DARK).all(-1)
+    if int(keep.sum()) < MIN_POINTS_PER_VIEW:
+        return None
+    return (seen[keep] / reference[keep]).log().median(dim=0).values

@@ -54,7 +54,13 @@ from rtsplat.quality.lpips import load_lpips
 from rtsplat.raster import default_backend, rasterize
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
-from rtsplat.train.appearance import AppearanceCorrections, appearance_spread, decide_appearance, view_log_gains
+from rtsplat.train.appearance import (
+    AppearanceCorrections,
+    appearance_spread,
+    decide_appearance,
+    scene_log_gains,
+    view_log_gains,
+)
 from rtsplat.train.cameras import PoseCorrections, fit_corrections
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
@@ -135,11 +141,14 @@ class Trainer:
         train_pixels = sum(int(image.shape[0]) * int(image.shape[1]) for image in self.train_views.images)
         self.starting = plan_starting_surfels(self.points[0].shape[0], cfg.densify.initial_copies,
                                               starting_cap(cfg.densify, train_pixels))
-        self.appearance_spread = appearance_spread(view_log_gains(
-            self.train_views.cameras, self.train_views.images, self.train_views.masks, self.points[0].to(self.device),
-            self.points[1].to(self.device)))
+        gains, source = scene_log_gains(scene.exposure or {}, self.train_views.names), "SfM observations"
+        if gains is None:  # a scene prepared without the measurement
+            gains, source = view_log_gains(
+                self.train_views.cameras, self.train_views.images, self.train_views.masks,
+                self.points[0].to(self.device), self.points[1].to(self.device)), "the points projected"
+        self.appearance_spread = appearance_spread(gains)
         use_appearance, self.effect_reasons["appearance"] = decide_appearance(cfg.effects.appearance,
-                                                                             self.appearance_spread)
+                                                                             self.appearance_spread, source)
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
                            if use_appearance else None)
         self.test_appearance = torch.zeros(len(self.test_views), 6, device=self.device)
