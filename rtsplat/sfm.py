@@ -1,15 +1,15 @@
 """``rtsplat sfm``: camera poses and sparse points with pycolmap.
 
 Function API :func:`run_sfm`. When ``sfm.use_dataset_model`` is set and the dataset has ``sparse/0``
-(or, said in the log, the model files directly in ``sparse/``), that model is validated and used
-as-is (no SfM). Otherwise SfM runs from the images: SIFT extraction (one shared camera by default),
-matching (exhaustive for small sets, sequential for ordered captures; both vocabulary-free), mapping. The first attempt uses the configured settings;
-while views are missing from its largest model, further attempts (at most ``sfm.max_attempts`` in
-all) retry with settings suited to the failure (:mod:`rtsplat.sfm_attempts`). The attempt whose
-largest model registers the most views at an acceptable reprojection error is kept. Every
-attempt is logged and listed in the summary, with the reason for the choice. When the dataset has
-a model that is not used, every attempt's poses are compared with it after a similarity fit
-(:mod:`rtsplat.pose_eval`; the synthetic scenes ship their ground-truth cameras there).
+(or, said in the log, the model files directly in ``sparse/``), that model is validated and used as-is
+(no SfM). Otherwise SfM runs from the images: SIFT extraction (one shared camera by default), matching
+(exhaustive for small sets, sequential for ordered captures; both vocabulary-free), mapping. The first
+attempt uses the configured settings; while views are missing from its largest model, further attempts
+(at most ``sfm.max_attempts`` in all) retry with settings suited to the failure
+(:mod:`rtsplat.sfm_attempts`). The attempt whose largest model registers the most views at an acceptable
+reprojection error is kept. Every attempt is logged and listed in the summary, with the reason for the
+choice. When the dataset has a model that is not used, every attempt's poses are compared with it after
+a similarity fit (:mod:`rtsplat.pose_eval`; the synthetic scenes ship their ground-truth cameras there).
 
 With ``sfm.refine`` (default) the chosen model is then refined (:mod:`rtsplat.sfm_refine`): tracks
 from denser features triangulated with its poses, robust global bundle adjustment and outlier
