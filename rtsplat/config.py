@@ -397,8 +397,24 @@ def section_from_dict(section: str, data: dict[str, Any] | None, source: str = "
     return build(SceneConfig, {section: data or {}}).__getattribute__(section)
 
 
+def check_results_beside_data(cfg: PipelineConfig) -> None:
+    """``results`` must be a folder of its own: neither the ``data`` folder nor inside one of its scenes
+    (the stages never write into a dataset and would refuse every output there)."""
+    data, results = Path(cfg.data).expanduser().resolve(), Path(cfg.results).expanduser().resolve()
+    fix = "set 'results' to a folder of its own beside the datasets, e.g. results: results"
+    if results == data:
+        raise ConfigError(f"'results' ({cfg.results}) is the 'data' folder ({cfg.data}); every output would be "
+                          "written among the datasets", fix=fix)
+    for folder in (results, *results.parents):
+        if folder.parent == data and any((folder / part).is_dir() for part in ("images", "sparse")):
+            raise ConfigError(f"'results' ({cfg.results}) lies inside the scene {folder.name} of the 'data' "
+                              f"folder ({cfg.data}); dataset folders are never written", fix=fix)
+
+
 def discover_scenes(cfg: PipelineConfig) -> list[str]:
-    """Scenes listed in the config, else every ``<data>/<scene>`` with an ``images/`` folder."""
+    """Scenes listed in the config, else every ``<data>/<scene>`` with an ``images/`` folder; ``results``
+    checked first (:func:`check_results_beside_data`)."""
+    check_results_beside_data(cfg)
     data = Path(cfg.data)
     if cfg.scenes:
         missing = [s for s in cfg.scenes if not (data / s / "images").is_dir()]

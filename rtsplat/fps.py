@@ -21,6 +21,7 @@ from pathlib import Path
 from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.devices import resolve_device
 from rtsplat.io.atomic import write_json_atomic
+from rtsplat.io.outputs import check_output_file, json_with_keys
 from rtsplat.render import device_name, load_run, time_renders
 
 
@@ -57,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = stage_config_from_args(args, "render", {"warmup": args.warmup, "device": args.device,
                                                   "fps_rounds": args.rounds})
     resolve_device(cfg.device, key="--device" if args.device is not None else "render.device")
+    check_output_file(args.out, "fps", lambda path: json_with_keys(path, ("fps", "timing")),
+                      inputs=[args.run, args.data])
     info = measure_fps(args.run, args.data, args.out, rounds=cfg.fps_rounds, warmup=cfg.warmup,
                        backend=args.backend, device=cfg.device, scheduled_alone=args.scheduled_alone)
     timing = info["timing"]

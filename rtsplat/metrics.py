@@ -38,6 +38,7 @@ from torch import Tensor
 from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_json_atomic
+from rtsplat.io.outputs import check_output_file, json_with_keys
 from rtsplat.model.composite import transmission_with_scatter
 from rtsplat.quality import psnr, ssim_map
 from rtsplat.scene import GT_LAYERS_DIR
@@ -200,6 +201,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = stage_config_from_args(args, "metrics", {"lpips_weights": args.lpips_weights})
+    check_output_file(args.out, "metrics", lambda path: json_with_keys(path, ("mean", "views")),
+                      inputs=[args.renders, args.data, args.run, args.gt_layers])
     result = compute_metrics(args.renders, args.data, run_dir=args.run, lpips_weights=cfg.lpips_weights,
                              gt_layers=args.gt_layers)
     write_json_atomic(args.out, result)

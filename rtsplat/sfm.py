@@ -1,15 +1,15 @@
 """``rtsplat sfm``: camera poses and sparse points with pycolmap.
 
-Function API :func:`run_sfm`. When ``sfm.use_dataset_model`` is set and the dataset has ``sparse/0``,
-that model is validated and used as-is (no SfM). Otherwise SfM runs from the images: SIFT
-extraction (one shared camera by default), matching (exhaustive for small sets, sequential for
-ordered captures; both vocabulary-free), mapping. The first attempt uses the configured settings;
-while views are missing from its largest model, further attempts (at most ``sfm.max_attempts`` in
-all) retry with settings suited to the failure (:mod:`rtsplat.sfm_attempts`). The attempt whose
-largest model registers the most views at an acceptable reprojection error is kept. Every
-attempt is logged and listed in the summary, with the reason for the choice. When the dataset has
-a ``sparse/0`` that is not used, every attempt's poses are compared with it after a similarity fit
-(:mod:`rtsplat.pose_eval`; the synthetic scenes ship their ground-truth cameras there).
+Function API :func:`run_sfm`. When ``sfm.use_dataset_model`` is set and the dataset has ``sparse/0``
+(or, said in the log, the model files directly in ``sparse/``), that model is validated and used as-is
+(no SfM). Otherwise SfM runs from the images: SIFT extraction (one shared camera by default), matching
+(exhaustive for small sets, sequential for ordered captures; both vocabulary-free), mapping. The first
+attempt uses the configured settings; while views are missing from its largest model, further attempts
+(at most ``sfm.max_attempts`` in all) retry with settings suited to the failure
+(:mod:`rtsplat.sfm_attempts`). The attempt whose largest model registers the most views at an acceptable
+reprojection error is kept. Every attempt is logged and listed in the summary, with the reason for the
+choice. When the dataset has a model that is not used, every attempt's poses are compared with it after
+a similarity fit (:mod:`rtsplat.pose_eval`; the synthetic scenes ship their ground-truth cameras there).
 
 With ``sfm.refine`` (default) the chosen model is then refined (:mod:`rtsplat.sfm_refine`): tracks
 from denser features triangulated with its poses, robust global bundle adjustment and outlier
@@ -55,7 +55,7 @@ import numpy as np
 from rtsplat.config import SfmConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_json_atomic
-from rtsplat.io.colmap import is_model_dir, load_model
+from rtsplat.io.colmap import dataset_model_dir, load_model
 from rtsplat.io.images import list_images, read_mask, validate_image_set, write_mask
 from rtsplat.io.manifest import check_made_from_photos, photo_fingerprints, photos_fingerprint
 from rtsplat.io.outputs import check_output_dir, output_dir
@@ -90,11 +90,23 @@ class SfmSummary:
 
 
 def _check_registration(
-    registered: list[str], names: list[str], cfg: SfmConfig, where: Path, computed: bool, attempts: str = ""
+    registered: list[str], names: list[str], cfg: SfmConfig, where: Path, computed: bool, attempts: str = "",
+    images_dir: Path | None = None,
 ) -> None:
     total = len(names)
-    need = max(cfg.min_registered_images, int(round(cfg.min_registered_fraction * total)))
+    by_fraction = int(round(cfg.min_registered_fraction * total))
+    need = max(cfg.min_registered_images, by_fraction)
+    if total < cfg.min_registered_images:
+        raise PipelineError(
+            f"the scene has {total} image(s) but sfm.min_registered_images is {cfg.min_registered_images}: "
+            "at least that many must be registered",
+            path=images_dir or where,
+            fix=f"add photos (at least {cfg.min_registered_images} overlapping views in all), or lower "
+            f"sfm.min_registered_images (2 at the least) in the config",
+        )
     if len(registered) < need:
+        limit = (f"sfm.min_registered_images is {need}" if need == cfg.min_registered_images
+                 else f"sfm.min_registered_fraction {cfg.min_registered_fraction:g} of {total}")
         missing = sorted(set(names) - set(registered))
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
         if attempts:
@@ -103,12 +115,12 @@ def _check_registration(
             "take more overlapping, textured photos; raise sfm.max_attempts; or lower "
             "sfm.min_registered_fraction / sfm.min_registered_images"
             if computed
-            else "re-run COLMAP on all images, or delete sparse/0 so 'rtsplat sfm' computes a model, "
-            "or lower sfm.min_registered_fraction"
+            else f"re-run COLMAP on all images, or delete {where} so 'rtsplat sfm' computes a model, "
+            "or lower sfm.min_registered_fraction / sfm.min_registered_images"
         )
         raise PipelineError(
             f"only {len(registered)} of {total} images are registered in the COLMAP model "
-            f"(need at least {need}); not registered: {shown}",
+            f"(need at least {need}: {limit}); not registered: {shown}",
             path=where,
             fix=fix,
         )
@@ -124,9 +136,9 @@ def _colmap_masks(image_names: list[str], masks_dir: Path, out: Path) -> None:
 
 
 def _reference_poses(scene_dir: Path) -> tuple[Path, dict[str, np.ndarray]] | None:
-    """World-to-camera matrices of the dataset's own model (``sparse/0``), when it has one."""
-    given = scene_dir / "sparse" / "0"
-    if not is_model_dir(given):
+    """World-to-camera matrices of the dataset's own model (``sparse/0`` or ``sparse/``), when it has one."""
+    given = dataset_model_dir(scene_dir)
+    if given is None:
         return None
     try:
         model = load_model(given)
@@ -231,13 +243,16 @@ def run_sfm(
     if masks_dir is not None and (Path(masks_dir) / "summary.json").is_file():
         masks_summary = json.loads((Path(masks_dir) / "summary.json").read_text())
         check_made_from_photos(masks_dir, masks_summary, "masks", images_dir, photos, "--masks")
-    given = scene_dir / "sparse" / "0"
+    given = dataset_model_dir(scene_dir)
+    if given is not None and given.name == "sparse":
+        log(f"sfm: {given} holds a COLMAP model directly (no sparse/0 folder); "
+            + ("using it" if cfg.use_dataset_model else "comparing the computed poses with it"))
     attempts: list[AttemptResult] = []
     chosen, choice, pose_errors, reference_dir, refinement = None, "", None, None, None
     matcher = ""
     with output_dir(out_dir, "sfm", inputs=[scene_dir, masks_dir]) as tmp:
         model_dir = tmp / "sparse" / "0"
-        if cfg.use_dataset_model and is_model_dir(given):
+        if cfg.use_dataset_model and given is not None:
             model = load_model(given)  # validates
             absent = [v.name for v in model.views if not (images_dir / v.name).is_file()]
             if absent:
@@ -248,7 +263,8 @@ def run_sfm(
                     fix="restore those images, or set sfm.use_dataset_model: false (or delete sparse/0) so "
                     "'rtsplat sfm' computes a model from the images that are there",
                 )
-            _check_registration([v.name for v in model.views], names, cfg, given, computed=False)
+            _check_registration([v.name for v in model.views], names, cfg, given, computed=False,
+                                images_dir=images_dir)
             rec = pycolmap.Reconstruction(str(given))
             source = "dataset"
         else:
@@ -284,6 +300,7 @@ def run_sfm(
                     images_dir,
                     computed=True,
                     attempts=_attempts_text(attempts, len(names)),
+                    images_dir=images_dir,
                 )
                 if not best.acceptable:
                     raise PipelineError(

@@ -54,3 +54,53 @@ def test_atomic_dir_replaces_only_on_success(tmp_path):
         (tmp / "three").write_text("3")
     assert [p.name for p in final.iterdir()] == ["three"]
     assert [p.name for p in tmp_path.iterdir()] == ["result"]
+
+
+def test_torch_save_onto_a_full_disk_says_no_space_and_leaves_nothing(tmp_path, monkeypatch):
+    """torch.save reports a failed write as RuntimeError 'unexpected pos'; the OSError behind it names
+    the cause. /dev/full fails every write with ENOSPC, like a full disk."""
+    torch = pytest.importorskip("torch")
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full on this system")
+    from rtsplat.errors import PipelineError
+
+    target = tmp_path / "last.pt"
+    target.write_bytes(b"the previous checkpoint")
+    real_open = os.open
+    monkeypatch.setattr(os, "open", lambda path, flags, *a: real_open("/dev/full", os.O_WRONLY)
+                        if ".last.pt.tmp-" in str(path) else real_open(path, flags, *a))
+    with pytest.raises(PipelineError, match="no space left on device") as info, atomic_file(target, "wb") as fh:
+        torch.save({"x": torch.zeros(100000)}, fh)
+    assert info.value.path == str(target)
+    chain, error = [], info.value
+    while error is not None:
+        chain.append(str(error))
+        error = error.__cause__ or error.__context__
+    assert any("unexpected pos" in text for text in chain)  # torch's own report of the failed write
+    assert [p.name for p in tmp_path.iterdir()] == ["last.pt"] and target.read_bytes() == b"the previous checkpoint"
+
+
+def test_a_library_error_on_a_nearly_full_disk_is_named_as_one(tmp_path, monkeypatch):
+    """A RuntimeError that lost its OSError counts as a full disk only when the disk is nearly full."""
+    import shutil
+
+    from rtsplat.errors import PipelineError
+    from rtsplat.io import atomic
+
+    with pytest.raises(RuntimeError, match="lost"), atomic_file(tmp_path / "a.bin", "wb"):
+        raise RuntimeError("lost")
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(atomic.shutil, "disk_usage", lambda path: usage._replace(free=4096))
+    with pytest.raises(PipelineError, match="no space left on device, 4.0 KiB free"), \
+            atomic_file(tmp_path / "a.bin", "wb"):
+        raise RuntimeError("lost")
+    with pytest.raises(ValueError), atomic_file(tmp_path / "a.bin", "wb"):  # not a library's write error
+        raise ValueError("bad value")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_read_errors_of_inputs_pass_unchanged(tmp_path):
+    """An OSError about a file that is not the output (an input read inside the block) is not a write failure."""
+    with pytest.raises(PermissionError), atomic_dir(tmp_path / "out"):
+        raise PermissionError(13, "Permission denied", str(tmp_path / "input.png"))
+    assert list(tmp_path.iterdir()) == []

@@ -1,7 +1,9 @@
 """A catalogue of bad inputs, by stage: each case runs ``rtsplat <stage>`` in-process on a copy of a
 tiny scene and its stage outputs, and checks the exit status 1, that the message names the file or
 key at fault, and that no file or folder under the copy changed (inputs and earlier outputs intact,
-nothing partial left behind)."""
+nothing partial left behind). The write failures (a read-only folder, a full disk, a file or a folder
+in the way) are simulated with :mod:`write_faults`; training writes its run folder in place (what a
+killed run resumes from), so there only that folder may appear, without temporary files."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fixtures_pipeline import make_corner_scene  # noqa: E402
+from write_faults import no_space, read_only  # noqa: E402
 
 from rtsplat.cli import main  # noqa: E402
 from rtsplat.io.outputs import mark_output  # noqa: E402
@@ -49,7 +52,21 @@ def base(tmp_path_factory) -> Path:
     # a real run of two iterations on res/prepared, its resumable checkpoint kept as a killed run leaves it
     assert main(["train", "--data", str(root / "res/prepared"), "--out", str(root / "res/trained"), "--quiet",
                  "--config-json", TINY_TRAINING]) == 0
+    assert main(["render", "--run", str(root / "res/trained"), "--data", str(root / "res/prepared"), "--out",
+                 str(root / "res/renders"), "--quiet"]) == 0
+    for args, out in ((METRICS_ARGS, "res/metrics.json"), (FPS_ARGS, "res/fps.json")):
+        assert main([a.replace("{R}", str(root)) for a in args] + [str(root / out)]) == 0
+    results = root / "results/corner"  # the workflow's layout, for the report
+    for src, dst in (("res/trained", "runs/rtsplat"), ("res/renders", "renders/rtsplat"), ("res/prepared", "prepared")):
+        shutil.copytree(root / src, results / dst)
+    (results / "metrics").mkdir()
+    shutil.copy(root / "res/metrics.json", results / "metrics/rtsplat.json")
+    (root / "ro").mkdir()
     return root
+
+
+TINY_TRAIN = ('{"schedule": {"iterations": 2, "checkpoint_every": 1, "eval_every": 0}, '
+              '"cameras": {"test_fit_steps": 0, "final_fit_steps": 0}}')
 
 
 def tree_state(root: Path) -> dict[str, str]:
@@ -67,6 +84,9 @@ class Case:
     expect: list[str]  # each appears in the error message ("{R}" substituted)
     setup: Callable[[Path], None] | None = None
     marks: list = field(default_factory=list)
+    fault: str | None = None  # a key of FAULTS: how writing fails
+    fault_at: str = "ro"  # the folder (relative to the root) where it fails
+    may_create: str | None = None  # a folder (relative) that may appear: a training run written in place
 
 
 def patch(rel: str, offset: int, fmt: str, *values) -> Callable[[Path], None]:
@@ -98,6 +118,8 @@ TINY_TRAINING = json.dumps({
     "model": {"env_height": 8, "env_width": 16, "env_levels": 2, "mlp_width": 8},
     "cameras": {"final_fit_steps": 0, "test_fit_steps": 0},
 })
+METRICS_ARGS = ["metrics", "--renders", "{R}/res/renders", "--data", "{R}/res/prepared", "--out"]
+FPS_ARGS = ["fps", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--rounds", "1", "--warmup", "0", "--out"]
 SFM = ["sfm", "--scene-dir", "{R}/scene", "--out"]
 MASKS = ["masks", "--scene-dir", "{R}/scene", "--out"]
 PREPARE = ["prepare", "--scene-dir", "{R}/scene", "--sfm", "{R}/res/sfm", "--masks", "{R}/res/masks", "--out"]
@@ -397,6 +419,74 @@ MISMATCH_CASES = {
     "render on a prepared scene with an infinite ROI centre": Case(
         ["render", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--quiet", "--out", "{R}/res/new"],
         ["{R}/res/prepared/scene.json", "roi.center", "finite"], roi_center(float("inf"))),
+METRICS = [*METRICS_ARGS]
+FPS = [*FPS_ARGS]
+TRAINED_RENDER = ["render", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--quiet", "--out"]
+SYNTH = ["synth", "--scene", "dome", "--views", "40", "--width", "16", "--height", "16", "--spp", "1", "--out"]
+STAGE_OUTPUTS = {  # stage -> its argv up to --out and the name of its output there
+    "sfm": (SFM, "sfm"), "masks": (MASKS, "masks"), "prepare": (PREPARE, "prepared"), "train": (TRAIN, "run"),
+    "render": (TRAINED_RENDER, "renders"), "fps": (FPS, "fps.json"), "metrics": (METRICS, "m.json"),
+    "report": (["report", "--results", "{R}/results", "--out"], "report"), "synth": (SYNTH, "dome"),
+}
+READ_ONLY = ["read-only", "{R}/ro/"]  # the cause and the path (what follows depends on the stage)
+
+
+def _cases_per_stage() -> dict[str, Case]:
+    cases = {}
+    for stage, (argv, name) in STAGE_OUTPUTS.items():
+        train = "res/new" if stage == "train" else None
+        cases[f"{stage}: read-only folder"] = Case([*argv, f"{{R}}/ro/{name}"], READ_ONLY, fault="read-only")
+        cases[f"{stage}: a file where a folder is needed"] = Case(
+            [*argv, f"{{R}}/a_file/{name}"], ["{R}/a_file", "a file where a folder is needed"])
+        if stage != "synth":  # a full disk shows only after rendering the views: the other stages cover it
+            cases[f"{stage}: no space left"] = Case([*argv, f"{{R}}/res/new/{name}"],
+                                                    ["{R}/res/new/", "no space left on device"],
+                                                    fault="no space", fault_at="res/new", may_create=train)
+    return cases
+
+
+def _folder_named(rel: str, stage: str) -> Callable[[Path], None]:
+    """An output folder of ``stage`` with a folder named ``rel`` inside, where the stage writes a file."""
+    def apply(root: Path) -> None:
+        folder = root / "res/new"
+        (folder / rel).mkdir(parents=True)
+        mark_output(folder, stage)
+    return apply
+
+
+WRITE_CASES = {
+    **_cases_per_stage(),
+    "train: --checkpoint-dir read-only": Case([*TRAIN, "{R}/res/new", "--checkpoint-dir", "{R}/ro/ckpt"],
+                                              ["read-only", "{R}/ro/ckpt"], fault="read-only"),
+    "train: no space for the checkpoint": Case([*TRAIN, "{R}/res/new", "--config-json", TINY_TRAIN],
+                                               ["{R}/res/new/checkpoints/last.pt", "no space left on device"],
+                                               fault="no space for .pt", fault_at="res/new", may_create="res/new"),
+    "train: no space for the log": Case([*TRAIN, "{R}/res/new", "--config-json", TINY_TRAIN],
+                                        ["{R}/res/new/train_log.jsonl", "no space left on device"],
+                                        fault="no space for the log", fault_at="res/new", may_create="res/new"),
+    "train: a folder where config.json goes": Case(
+        [*TRAIN, "{R}/res/new"], ["{R}/res/new/config.json", "a folder where a file is to be written"],
+        _folder_named("config.json", "train")),
+    "metrics onto a folder": Case([*METRICS, "{R}/user"], ["{R}/user", "is a folder"]),
+    "metrics onto the renders": Case([*METRICS, "{R}/res/renders"], ["{R}/res/renders", "metrics input"]),
+    "metrics onto a render PNG": Case([*METRICS, "{R}/res/renders/color/view_000.png"],
+                                      ["{R}/res/renders/color/view_000.png", "metrics input"]),
+    "metrics onto a user's file": Case([*METRICS, "{R}/user/notes.txt"],
+                                       ["{R}/user/notes.txt", "not a result of 'rtsplat metrics'"]),
+    "metrics onto the fps JSON": Case([*METRICS, "{R}/res/fps.json"],
+                                      ["{R}/res/fps.json", "not a result of 'rtsplat metrics'"]),
+    "fps onto the metrics JSON": Case([*FPS, "{R}/res/metrics.json"],
+                                      ["{R}/res/metrics.json", "not a result of 'rtsplat fps'"]),
+    "fps onto a folder": Case([*FPS, "{R}/user"], ["{R}/user", "is a folder"]),
+    "train --checkpoint-dir is another stage's output": Case(
+        [*TRAIN, "{R}/res/new", "--checkpoint-dir", "{R}/res/sfm"],
+        ["{R}/res/sfm", "the --checkpoint-dir folder was written by 'rtsplat sfm'", "pass a --checkpoint-dir"]),
+    "train --checkpoint-dir is a user folder": Case(
+        [*TRAIN, "{R}/res/new", "--checkpoint-dir", "{R}/user"], ["{R}/user", "the --checkpoint-dir folder"]),
+    "sfm: 2 images with a model": Case(
+        ["sfm", "--scene-dir", "{R}/two", "--out", "{R}/res/new"],
+        ["{R}/two/images", "2 image(s)", "sfm.min_registered_images is 3"],
+        lambda root: make_corner_scene(root / "two", n_views=2, width=40, height=30, with_model=True)),
 }
 
 
@@ -418,25 +508,51 @@ CASES = {
     **{f"existing: {k}": v for k, v in EXISTING_CASES.items()},
     **{f"photos: {k}": v for k, v in PHOTO_CASES.items()},
     **{f"mismatch: {k}": v for k, v in MISMATCH_CASES.items()},
+    **{f"write: {k}": v for k, v in WRITE_CASES.items()},
+}
+
+FAULTS = {
+    "read-only": lambda monkeypatch, folder: read_only(monkeypatch, folder),
+    "no space": lambda monkeypatch, folder: no_space(monkeypatch, folder, lambda p: ".rtsplat-output" not in p.name),
+    "no space for .pt": lambda monkeypatch, folder: no_space(monkeypatch, folder, lambda p: ".pt" in p.name),
+    "no space for the log": lambda monkeypatch, folder: no_space(monkeypatch, folder,
+                                                                 lambda p: p.name == "train_log.jsonl"),
 }
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_bad_input_is_refused_and_changes_nothing(name, base, tmp_path, capsys):
+def test_bad_input_is_refused_and_changes_nothing(name, base, tmp_path, capsys, monkeypatch):
     case = CASES[name]
     root = tmp_path / "copy"
     shutil.copytree(base, root, symlinks=True)
-    for summary in (root / "res").rglob("*.json"):  # stage summaries record absolute paths
+    for summary in root.rglob("*.json"):  # stage summaries record absolute paths
         summary.write_text(summary.read_text().replace(str(base), str(root)))
     if case.setup is not None:
         case.setup(root)
     before = tree_state(root)
     argv = [a.replace("{R}", str(root)) for a in case.argv]
-    assert main(argv) == 1
+    restore = lambda: None  # noqa: E731
+    if case.fault is not None:
+        (root / case.fault_at).mkdir(parents=True, exist_ok=True)
+        before = tree_state(root)
+        restore = FAULTS[case.fault](monkeypatch, root / case.fault_at) or restore
+    try:
+        status = main(argv)
+    finally:
+        monkeypatch.undo()
+        restore()
+    assert status == 1
     err = capsys.readouterr().err
+    assert "Traceback" not in err
     for text in case.expect:
         assert text.replace("{R}", str(root)) in err, f"{text!r} not in the message:\n{err}"
-    assert tree_state(root) == before
+    after = tree_state(root)
+    if case.may_create is not None:
+        created = {rel for rel in set(after) - set(before)}
+        assert all(Path(rel).is_relative_to(case.may_create) for rel in created), created
+        assert not [rel for rel in created if ".tmp-" in rel], created
+        after = {rel: state for rel, state in after.items() if rel in before}
+    assert after == before
 
 
 def test_a_stage_replaces_its_own_output_and_fills_an_empty_folder(base, tmp_path):
@@ -489,3 +605,48 @@ def test_inputs_that_belong_together_pass_wherever_they_are(base, tmp_path, caps
     assert main(["train", "--data", str(root / "res/prepared"), "--out", str(root / "res/trained"), "--quiet",
                  "--config-json", TINY_TRAINING, "--iterations", "3"]) == 0
     assert "resumed from" in capsys.readouterr().err
+
+
+def test_a_half_written_last_log_line_is_dropped_on_resume(base, tmp_path, capsys):
+    """A run stopped while appending to train_log.jsonl (killed, or a full disk) resumes: the partial
+    last line is dropped and said so, and the log ends as whole records."""
+    run = tmp_path / "run"
+    shutil.copytree(base / "res/trained", run)
+    (run / "model.pt").unlink()
+    (run / "summary.json").unlink()
+    log = run / "train_log.jsonl"
+    whole = [line for line in log.read_text().splitlines() if line.strip()]
+    assert whole
+    log.write_text(log.read_text() + '{"iteration": 2, "seconds": 0.1, "lo')
+    argv = ["train", "--data", str(base / "res/prepared"), "--out", str(run), "--quiet", "--config-json", TINY_TRAIN,
+            "--iterations", "3"]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert f"{log}: dropped its half-written last line" in err
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [r["iteration"] for r in records][-1] == 3
+
+
+def test_a_model_directly_in_sparse_is_used_with_a_note(base, tmp_path, capsys):
+    scene = tmp_path / "scene"
+    shutil.copytree(base / "scene", scene)
+    for path in (scene / "sparse/0").iterdir():
+        path.rename(scene / "sparse" / path.name)
+    (scene / "sparse/0").rmdir()
+    assert main(["sfm", "--scene-dir", str(scene), "--out", str(tmp_path / "sfm")]) == 0
+    assert f"{scene / 'sparse'} holds a COLMAP model directly (no sparse/0 folder); using it" in capsys.readouterr().out
+    assert json.loads((tmp_path / "sfm/summary.json").read_text())["source"] == "dataset"
+
+
+def test_results_equal_to_data_is_a_config_error(tmp_path):
+    from rtsplat.config import discover_scenes, load_config_dict
+    from rtsplat.errors import ConfigError
+
+    make_corner_scene(tmp_path / "data" / "glass", n_views=2, width=40, height=30)
+    for results, words in ((tmp_path / "data", "is the 'data' folder"),
+                           (tmp_path / "data" / "glass" / "out", "lies inside the scene glass")):
+        cfg = load_config_dict({"data": str(tmp_path / "data"), "results": str(results)})
+        with pytest.raises(ConfigError) as info:
+            discover_scenes(cfg)
+        message = str(info.value)
+        assert "'results'" in message and "'data'" in message and words in message, message

@@ -118,3 +118,20 @@ def test_made_from_other_photos_is_refused_naming_both(tmp_path):
                                scene / "images", now, "--masks")
     assert "belongs to other photos" in str(info.value) and "/data/b" in str(info.value)
     assert str(scene / "images") in str(info.value)
+
+
+def test_a_project_copied_elsewhere_keeps_its_manifest(tmp_path):
+    """Copied with the files' modification times (cp -a, rsync -a), a project's manifests stay as
+    they are: they hold no absolute paths, so nothing reruns."""
+    import shutil
+
+    project = tmp_path / "project"
+    scene = _scene(project / "data")
+    path = refresh_manifest(scene, project / "results" / "scene" / "inputs.json")
+    assert str(tmp_path) not in path.read_text()
+    copy = tmp_path / "elsewhere"
+    shutil.copytree(project, copy)  # copy2: modification times kept
+    copied = copy / "results" / "scene" / "inputs.json"
+    os.utime(copied, ns=(1_000_000_000, 1_000_000_000))
+    refresh_manifest(copy / "data" / "scene", copied)
+    assert copied.stat().st_mtime_ns == 1_000_000_000

@@ -64,6 +64,16 @@ def is_model_dir(path: str | Path) -> bool:
     return all((path / f"{n}.bin").is_file() or (path / f"{n}.txt").is_file() for n in MODEL_FILES)
 
 
+def dataset_model_dir(scene_dir: str | Path) -> Path | None:
+    """The COLMAP model a dataset scene ships: ``sparse/0`` (COLMAP's own layout), else model files
+    directly in ``sparse/`` (how some datasets and exports store the one model); None when it has neither."""
+    sparse = Path(scene_dir) / "sparse"
+    for candidate in (sparse / "0", sparse):
+        if is_model_dir(candidate):
+            return candidate
+    return None
+
+
 def load_model(path: str | Path) -> ColmapModel:
     """Read a COLMAP model directory (binary or text) into :class:`ColmapModel`."""
     import pycolmap

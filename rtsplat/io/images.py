@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import write_bytes_atomic
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr", ".bmp", ".webp")
 FLOAT_EXTENSIONS = (".exr", ".hdr")
@@ -236,7 +237,7 @@ def to_uint(image: np.ndarray, bits: int = 8) -> np.ndarray:
 
 def write_png(path: str | Path, image: np.ndarray, bits: int = 8) -> None:
     """Write a float image in [0, 1] (``[H, W]`` or ``[H, W, 3]``), a uint8/uint16 image (as is) or a
-    bool mask as PNG."""
+    bool mask as PNG, atomically (:func:`rtsplat.io.atomic.write_bytes_atomic`)."""
     import cv2
 
     path = Path(path)
@@ -248,8 +249,11 @@ def write_png(path: str | Path, image: np.ndarray, bits: int = 8) -> None:
         data = to_uint(image, bits)
     if data.ndim == 3:
         data = np.ascontiguousarray(data[..., ::-1])  # RGB -> BGR for OpenCV
-    if not cv2.imwrite(str(path), data):
-        raise PipelineError("cannot write PNG", path=path, fix="check that the directory is writable")
+    ok, encoded = cv2.imencode(".png", data)
+    if not ok:
+        raise PipelineError(f"cannot encode a {data.dtype} image of shape {data.shape} as PNG", path=path,
+                            fix="pass an [H, W] or [H, W, 3] image")
+    write_bytes_atomic(path, encoded.tobytes())
 
 
 def write_mask(path: str | Path, mask: np.ndarray) -> None:

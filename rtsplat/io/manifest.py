@@ -23,12 +23,14 @@ from typing import Any
 
 from rtsplat.io.atomic import write_text_atomic
 
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 2
 
 
 def scene_manifest(scene_dir: str | Path) -> dict[str, Any]:
-    """``{"scene_dir": <resolved path>, "files": {relative path: [size, mtime_ns]}}`` for every file
-    under ``scene_dir`` whose path has no component starting with a dot (symbolic links followed)."""
+    """``{"scene": <the folder's name>, "files": {relative path: [size, mtime_ns]}}`` for every file
+    under ``scene_dir`` whose path has no component starting with a dot (symbolic links followed).
+    Only names relative to the data folder are stored, so a project folder moved or copied elsewhere
+    with its files' modification times (``cp -a``, ``rsync -a``) has the same manifest."""
     root = Path(scene_dir).resolve()
     files: dict[str, list[int]] = {}
     for folder, dirnames, filenames in os.walk(root, followlinks=True):
@@ -39,7 +41,7 @@ def scene_manifest(scene_dir: str | Path) -> dict[str, Any]:
             path = Path(folder, name)
             st = path.stat()
             files[path.relative_to(root).as_posix()] = [st.st_size, st.st_mtime_ns]
-    return {"version": MANIFEST_VERSION, "scene_dir": str(root), "files": dict(sorted(files.items()))}
+    return {"version": MANIFEST_VERSION, "scene": root.name, "files": dict(sorted(files.items()))}
 
 
 def refresh_manifest(scene_dir: str | Path, path: str | Path) -> Path:

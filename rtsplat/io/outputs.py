@@ -9,13 +9,15 @@ stage touches anything, :func:`check_output_dir` refuses an ``--out`` that
 - already exists with content but without this stage's marker (a folder of the user's, or another
   stage's output).
 
-:func:`output_dir` is :func:`rtsplat.io.atomic.atomic_dir` with that check and the marker.
+:func:`output_dir` is :func:`rtsplat.io.atomic.atomic_dir` with that check and the marker. A stage whose
+output is one file (metrics, fps) checks it with :func:`check_output_file`: no folder, no input, and an
+existing file only when it holds that stage's result.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -49,52 +51,54 @@ def _resolved(path: str | Path) -> Path:
 
 
 def check_output_dir(out: str | Path, stage: str, inputs: Iterable[str | Path | None] = (),
-                     containers: Iterable[str | Path | None] = ()) -> None:
+                     containers: Iterable[str | Path | None] = (), flag: str = "--out") -> None:
     """Raise :class:`PipelineError` unless ``stage`` may write (and replace) the folder ``out``.
 
     ``inputs``: folders or files the stage reads (None entries are skipped); ``out`` may be none of
     them, contain none and lie inside none. ``containers``: inputs inside which ``out`` may lie (the
-    report's results tree), though it may still be neither one of them nor contain one.
+    report's results tree), though it may still be neither one of them nor contain one. ``flag``: the
+    option that named ``out``, for the messages.
     """
     target = _resolved(out)
-    fix = "pass an --out of its own, e.g. a new folder under results/"
+    fix = f"pass {'an' if flag == '--out' else 'a'} {flag} of its own, e.g. a new folder under results/"
+    folder_is = "the output folder" if flag == "--out" else f"the {flag} folder"
     for kind, paths in (("input", inputs), ("container", containers)):
         for given in paths:
             if given is None:
                 continue
             inp = _resolved(given)
             if target == inp:
-                raise PipelineError(f"the output folder is the {stage} input {given}; writing it would "
+                raise PipelineError(f"{folder_is} is the {stage} input {given}; writing it would "
                                     "replace that input", path=out, fix=fix)
             if target in inp.parents:
-                raise PipelineError(f"the output folder contains the {stage} input {given}; writing it would "
+                raise PipelineError(f"{folder_is} contains the {stage} input {given}; writing it would "
                                     "delete that input", path=out, fix=fix)
             if kind == "input" and inp in target.parents:
-                raise PipelineError(f"the output folder lies inside the {stage} input {given}", path=out, fix=fix)
+                raise PipelineError(f"{folder_is} lies inside the {stage} input {given}", path=out, fix=fix)
     for folder in target.parents:
         if is_dataset_dir(folder):
-            raise PipelineError(f"the output folder lies inside the dataset folder {folder}", path=out,
+            raise PipelineError(f"{folder_is} lies inside the dataset folder {folder}", path=out,
                                 fix=fix + "; dataset folders are never written")
         other = output_stage(folder)
         if other is not None:
-            raise PipelineError(f"the output folder lies inside the output of 'rtsplat {other}' ({folder}), "
+            raise PipelineError(f"{folder_is} lies inside the output of 'rtsplat {other}' ({folder}), "
                                 "which would delete it when it runs again", path=out, fix=fix)
     if not target.exists():
         return
     if not target.is_dir():
-        raise PipelineError("the output exists and is not a folder", path=out,
+        raise PipelineError(f"{folder_is.replace('folder', 'path')} exists and is not a folder", path=out,
                             fix="pass the path of a folder (it is created), or remove that file yourself")
     found = output_stage(target)
     if found == stage:
         return
     if found is not None:
-        raise PipelineError(f"the output folder was written by 'rtsplat {found}', not 'rtsplat {stage}'",
+        raise PipelineError(f"{folder_is} was written by 'rtsplat {found}', not 'rtsplat {stage}'",
                             path=out, fix=fix)
     if is_dataset_dir(target):
-        raise PipelineError("the output folder is a dataset folder (it has images/ or sparse/); "
+        raise PipelineError(f"{folder_is} is a dataset folder (it has images/ or sparse/); "
                             f"'rtsplat {stage}' never replaces it", path=out, fix=fix)
     if any(target.iterdir()):
-        raise PipelineError(f"the output folder exists, is not empty and was not written by 'rtsplat {stage}' "
+        raise PipelineError(f"{folder_is} exists, is not empty and was not written by 'rtsplat {stage}' "
                             f"(it has no {MARKER} file)", path=out,
                             fix=fix + ", or delete that folder yourself if you no longer need it")
 
@@ -114,3 +118,33 @@ def output_dir(out: str | Path, stage: str, inputs: Iterable[str | Path | None] 
     with atomic_dir(out) as tmp:
         mark_output(tmp, stage)
         yield tmp
+
+
+def check_output_file(out: str | Path, stage: str, is_own: Callable[[Path], bool],
+                      inputs: Iterable[str | Path | None] = ()) -> None:
+    """Raise :class:`PipelineError` unless ``stage`` may write (and replace) the file ``out``: it is no
+    folder, none of ``inputs`` nor inside one of them, and a file already there is one ``stage`` wrote
+    (``is_own`` says so from its content), never another file of the user's or of a stage."""
+    target = _resolved(out)
+    fix = f"pass an --out of its own, e.g. a new <name>.json beside the other {stage} files"
+    for given in inputs:
+        if given is None:
+            continue
+        inp = _resolved(given)
+        if target == inp or inp in target.parents:
+            raise PipelineError(f"the output file is or lies inside the {stage} input {given}", path=out, fix=fix)
+    if target.is_dir():
+        raise PipelineError(f"the output is a folder; 'rtsplat {stage}' writes one file there", path=out,
+                            fix=f"pass the path of a file, e.g. {Path(out) / (stage + '.json')}")
+    if target.exists() and not is_own(target):
+        raise PipelineError(f"the output file exists and is not a result of 'rtsplat {stage}'; it is left as "
+                            "it is", path=out, fix=fix + ", or delete that file yourself if you no longer need it")
+
+
+def json_with_keys(path: Path, keys: Iterable[str]) -> bool:
+    """Whether ``path`` holds a JSON object with all of ``keys`` (False when it is unreadable)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and all(key in data for key in keys)

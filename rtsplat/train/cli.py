@@ -27,7 +27,7 @@ from pathlib import Path
 from rtsplat.config import PipelineConfig, add_config_arguments, load_config, trainer_options
 from rtsplat.devices import resolve_device
 from rtsplat.errors import ConfigError, PipelineError
-from rtsplat.io.atomic import write_json_atomic
+from rtsplat.io.atomic import write_errors, write_json_atomic
 from rtsplat.io.manifest import scene_manifest
 from rtsplat.io.outputs import check_output_dir, mark_output
 from rtsplat.train_config import TrainConfig
@@ -113,14 +113,17 @@ def run(args: argparse.Namespace) -> int:
     def log(msg: str) -> None:
         print(msg, file=sys.stderr)
 
-    if args.checkpoint_dir is not None:
-        claim_checkpoint_dir(args.checkpoint_dir, args.out, args.data, cfg, log)
-    args.out.mkdir(parents=True, exist_ok=True)
-    mark_output(args.out, "train")
-    trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=log, checkpoint_dir=args.checkpoint_dir)
-    trainer.train(resume=not args.no_resume, new_config=args.resume_with_new_config)
-    if args.checkpoint_dir is not None:
-        shutil.rmtree(args.checkpoint_dir)
+    # the run folder is written in place (it is what a killed run resumes from); a failure to write it or
+    # the checkpoint folder names the path (rtsplat.io.atomic.write_errors)
+    with write_errors(args.out, args.checkpoint_dir):
+        if args.checkpoint_dir is not None:
+            claim_checkpoint_dir(args.checkpoint_dir, args.out, args.data, cfg, log)
+        args.out.mkdir(parents=True, exist_ok=True)
+        mark_output(args.out, "train")
+        trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=log, checkpoint_dir=args.checkpoint_dir)
+        trainer.train(resume=not args.no_resume, new_config=args.resume_with_new_config)
+        if args.checkpoint_dir is not None:
+            shutil.rmtree(args.checkpoint_dir)
     return 0
 
 
@@ -136,7 +139,7 @@ def claim_checkpoint_dir(folder: Path, out: Path, data: Path, cfg: TrainConfig, 
         raise PipelineError("--checkpoint-dir is, contains or lies inside --out; it is removed when the run "
                             "finishes and is meant to outlive a deleted --out", path=folder,
                             fix="pass a folder beside --out, e.g. <results>/<scene>/checkpoints/<method>")
-    check_output_dir(folder, "train", inputs=[data])
+    check_output_dir(folder, "train", inputs=[data], flag="--checkpoint-dir")
     written_for = json.loads(json.dumps({"data": scene_manifest(data), "config": cfg.to_dict()}, default=str))
     record = folder / CHECKPOINT_RECORD
     if (folder / "last.pt").exists():

@@ -37,7 +37,7 @@ from torch import Tensor
 
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import write_text_atomic
+from rtsplat.io.atomic import write_errors, write_text_atomic
 from rtsplat.model.appearance import apply_appearance, fit_appearance, remove_appearance
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
@@ -604,7 +604,7 @@ class Trainer:
             self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
             if self.kept_log_path is not None and self.kept_log_path.exists() and not log_path.exists():
                 write_text_atomic(log_path, self.kept_log_path.read_text())
-            _truncate_log(log_path, self.iteration)
+            _truncate_log(log_path, self.iteration, self.log)
         else:
             log_path.unlink(missing_ok=True)
         _write_json(self.out / "config.json", cfg.to_dict())
@@ -622,7 +622,7 @@ class Trainer:
         # is read where the loop reads the device anyway (logging steps) and before every write
         watch_every_step = self.device.type == "cpu"
         bar = _progress(total, self.iteration, self.progress)
-        with open(log_path, "a") as log_file:
+        with write_errors(log_path), open(log_path, "a") as log_file:
             if cfg.schedule.eval_every > 0 and self.iteration == 0:  # the initialisation, for comparison
                 log_file.write(json.dumps({"iteration": 0, "seconds": 0.0, "cpu_seconds": 0.0,
                                            "surfels": len(self.model.surfels),
@@ -726,12 +726,32 @@ def best_test_psnr(log_path: Path, iteration: int, final: dict[str, float]) -> d
     return out
 
 
-def _truncate_log(path: Path, iteration: int) -> None:
-    """Drop log lines written after the checkpoint (they will be written again)."""
+def _truncate_log(path: Path, iteration: int, log: Callable[[str], None]) -> None:
+    """Drop log lines written after the checkpoint (they will be written again), and a last line that
+    a killed run or a full disk left half-written (said so through ``log``); a malformed line before
+    the last is an error naming it."""
     if not path.exists():
         return
-    lines = [line for line in path.read_text().splitlines() if line.strip()]
-    kept = [line for line in lines if json.loads(line)["iteration"] <= iteration]
+    text = path.read_text()
+    lines = text.splitlines()
+    records = []
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+            if not isinstance(record, dict) or not isinstance(record.get("iteration"), int):
+                raise ValueError("no iteration")
+        except ValueError as exc:
+            if number == len(lines):
+                log(f"{path}: dropped its half-written last line ({len(line)} characters; the run that wrote it "
+                    "stopped while writing it)")
+                break
+            raise PipelineError(f"line {number} of the training log is not a log record ({exc})", path=path,
+                                fix="delete that line (or the file) and run again; the log lines after the "
+                                "checkpoint are written again") from exc
+        records.append((record["iteration"], line))
+    kept = [line for it, line in records if it <= iteration]
     write_text_atomic(path, "".join(line + "\n" for line in kept))
 
 

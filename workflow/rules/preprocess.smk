@@ -4,6 +4,7 @@ import shlex
 from pathlib import Path
 
 from rtsplat.config import scene_config
+from rtsplat.io.colmap import dataset_model_dir
 
 
 def masks_inputs(wildcards):
@@ -20,8 +21,9 @@ def masks_inputs(wildcards):
 
 def sfm_inputs(wildcards):
     inputs = {"images": f"{DATA}/{wildcards.scene}/images", "manifest": inputs_manifest(wildcards)}
-    if scene_config(CFG, wildcards.scene).sfm.use_dataset_model and Path(DATA, wildcards.scene, "sparse", "0").is_dir():
-        inputs["model"] = f"{DATA}/{wildcards.scene}/sparse/0"
+    model = dataset_model_dir(Path(DATA, wildcards.scene))  # sparse/0, or a model directly in sparse/
+    if scene_config(CFG, wildcards.scene).sfm.use_dataset_model and model is not None:
+        inputs["model"] = str(model)
     if scene_config(CFG, wildcards.scene).sfm.use_masks:
         inputs["masks"] = out(wildcards.scene, "masks")
     return inputs
