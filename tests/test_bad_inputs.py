@@ -419,6 +419,9 @@ MISMATCH_CASES = {
     "render on a prepared scene with an infinite ROI centre": Case(
         ["render", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--quiet", "--out", "{R}/res/new"],
         ["{R}/res/prepared/scene.json", "roi.center", "finite"], roi_center(float("inf"))),
+}
+
+
 METRICS = [*METRICS_ARGS]
 FPS = [*FPS_ARGS]
 TRAINED_RENDER = ["render", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--quiet", "--out"]
