@@ -621,7 +621,7 @@ def test_a_half_written_last_log_line_is_dropped_on_resume(base, tmp_path, capsy
     whole = [line for line in log.read_text().splitlines() if line.strip()]
     assert whole
     log.write_text(log.read_text() + '{"iteration": 2, "seconds": 0.1, "lo')
-    argv = ["train", "--data", str(base / "res/prepared"), "--out", str(run), "--quiet", "--config-json", TINY_TRAIN,
+    argv = ["train", "--data", str(base / "res/prepared"), "--out", str(run), "--quiet", "--config-json", TINY_TRAINING,
             "--iterations", "3"]
     assert main(argv) == 0
     err = capsys.readouterr().err

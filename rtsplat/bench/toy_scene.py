@@ -97,6 +97,9 @@ def write_scene(root: Path, *, views: int = 12, width: int = 64, height: int = 4
     pts = surfels.means.numpy() + g.normal(0, 0.02, surfels.means.shape)
     rgb = (surfels.colors.numpy() * 255).astype(np.uint8)
     write_points_ply(root / "points.ply", pts, rgb)
-    scene = PreparedScene(cameras=records, roi=Roi([0.0, -0.3, 0.0], 1.0, roi_source), has_transparency=with_pane)
+    # what prepare measures at the SfM observations: each photo's own exposure (the points carry the true colours)
+    gains = exposures[:, :3].tolist() if exposures is not None else [[0.0, 0.0, 0.0]] * views
+    scene = PreparedScene(cameras=records, roi=Roi([0.0, -0.3, 0.0], 1.0, roi_source), has_transparency=with_pane,
+                          exposure={record.name: gains[i] for i, record in enumerate(records)})
     scene.save(root)
     return PreparedScene.load(root)

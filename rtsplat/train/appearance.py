@@ -16,7 +16,7 @@ balanced differently. ``rtsplat prepare`` measures each photo's log gain at the 
 3D points (``scene.json``'s ``exposure``: only where the photo really saw the point); for a prepared
 scene without it the points are projected into the training images (:func:`view_log_gains`), which
 also reads points hidden from a view and is noisier. Where the photos' gains spread by less than
-:data:`APPEARANCE_SPREAD` the corrections stay off.
+:data:`APPEARANCE_SPREAD` (:data:`PROJECTED_SPREAD` for projected points) the corrections stay off.
 """
 
 from __future__ import annotations
@@ -31,8 +31,9 @@ from rtsplat.model.appearance import observed_log_gain
 # largest channel) from which a scene gets per-view corrections. From SfM's observations the synthetic
 # scenes (one exposure) measure 0.000, two real phone captures 0.025 (22 of instant-ngp's fox photos) and
 # 0.035 (22 of TranspNeRF's glass photos); the projected points, noisier, measure 0.019 on the
-# one-exposure cabin, 0.019 on the fox and 0.049 on the glass
+# one-exposure cabin, 0.019 on the fox and 0.049 on the glass, 0.006-0.018 on the trainer tests' toy scenes
 APPEARANCE_SPREAD = 0.015
+PROJECTED_SPREAD = 0.03  # the same for gains read from the projected points (a scene prepared without them)
 MAX_POINTS = 100_000  # a larger cloud is read at every k-th point: a view's median needs far fewer
 
 
@@ -114,15 +115,17 @@ def appearance_spread(log_gains: Tensor) -> float | None:
     return float(((quartiles[1] - quartiles[0]) / 2).max())
 
 
-def decide_appearance(mode: str, spread: float | None, source: str = "SfM observations") -> tuple[bool, str]:
+def decide_appearance(mode: str, spread: float | None, source: str = "SfM observations",
+                      threshold: float = APPEARANCE_SPREAD) -> tuple[bool, str]:
     """Whether the per-view corrections are learnt: ``on``/``off`` as configured; ``auto`` iff the
-    photos' gains spread by at least :data:`APPEARANCE_SPREAD`. ``source`` names how the gains were read."""
+    photos' gains spread by at least ``threshold`` (:data:`APPEARANCE_SPREAD` for gains from SfM's
+    observations, :data:`PROJECTED_SPREAD` for projected points). ``source`` names how they were read."""
     measured = ("not measurable (too few views see the SfM points)" if spread is None
                 else f"{spread:.3f} (from {source})")
     if mode != "auto":
         return mode == "on", f"config: {mode}; the photos' exposure spread is {measured}"
     if spread is None:
         return False, f"auto: the photos' exposure spread is {measured}"
-    if spread >= APPEARANCE_SPREAD:
-        return True, f"auto: the photos' exposure spread is {measured} (>= {APPEARANCE_SPREAD})"
-    return False, f"auto: the photos' exposure spread is {measured} (< {APPEARANCE_SPREAD}: one exposure)"
+    if spread >= threshold:
+        return True, f"auto: the photos' exposure spread is {measured} (>= {threshold})"
+    return False, f"auto: the photos' exposure spread is {measured} (< {threshold}: one exposure)"

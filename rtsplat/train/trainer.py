@@ -55,6 +55,8 @@ from rtsplat.raster import default_backend, rasterize
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.appearance import (
+    APPEARANCE_SPREAD,
+    PROJECTED_SPREAD,
     AppearanceCorrections,
     appearance_spread,
     decide_appearance,
@@ -141,14 +143,15 @@ class Trainer:
         train_pixels = sum(int(image.shape[0]) * int(image.shape[1]) for image in self.train_views.images)
         self.starting = plan_starting_surfels(self.points[0].shape[0], cfg.densify.initial_copies,
                                               starting_cap(cfg.densify, train_pixels))
-        gains, source = scene_log_gains(scene.exposure or {}, self.train_views.names), "SfM observations"
+        gains, source, threshold = (scene_log_gains(scene.exposure or {}, self.train_views.names),
+                                    "SfM observations", APPEARANCE_SPREAD)
         if gains is None:  # a scene prepared without the measurement
-            gains, source = view_log_gains(
-                self.train_views.cameras, self.train_views.images, self.train_views.masks,
-                self.points[0].to(self.device), self.points[1].to(self.device)), "the points projected"
+            gains = view_log_gains(self.train_views.cameras, self.train_views.images, self.train_views.masks,
+                                   self.points[0].to(self.device), self.points[1].to(self.device))
+            source, threshold = "the points projected", PROJECTED_SPREAD
         self.appearance_spread = appearance_spread(gains)
-        use_appearance, self.effect_reasons["appearance"] = decide_appearance(cfg.effects.appearance,
-                                                                             self.appearance_spread, source)
+        use_appearance, self.effect_reasons["appearance"] = decide_appearance(
+            cfg.effects.appearance, self.appearance_spread, source, threshold)
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
                            if use_appearance else None)
         self.test_appearance = torch.zeros(len(self.test_views), 6, device=self.device)
