@@ -120,9 +120,9 @@ class SfmConfig:
         "mean reprojection error",
     )
     refine_skip_reprojection_error: float = _f(
-        0.6,
+        0.25,
         help="refinement: skipped when the chosen attempt registers every view at a mean reprojection error at most "
-        "this (px); 0: always refine",
+        "this (px), about what the refinement reaches from attempts at 0.3-0.6 px; 0: always refine",
         minimum=0.0,
     )
     refine_features: Literal["attempt", "denser"] = _f(
