@@ -86,7 +86,7 @@ class SfmSummary:
     model_dir: str
     image_dir: str
     matcher: str = ""  # matcher of the chosen attempt ("" for a dataset model)
-    matcher_reason: str = ""  # why the first attempt used the matcher it did
+    matcher_reason: str = ""  # why that matcher (the first attempt's choice, and the retry's when it changed it)
     mean_track_length: float | None = None  # observations per 3D point of the written model
     unregistered: list[str] = field(default_factory=list)
     attempts: list[dict] = field(default_factory=list)  # AttemptResult fields, in the order they ran
@@ -264,6 +264,10 @@ def run_sfm(
                 first = first_settings(cfg, matcher)
                 rec, attempts, chosen, choice = _reconstruct(store, first, ref[1] if ref else None, log)
                 best = attempts[chosen]
+                if best.settings["matcher"] != first.matcher:
+                    matcher_reason = (
+                        f"first {first.matcher} ({matcher_reason}); the chosen attempt {best.name}: {best.reason}"
+                    )
                 matcher = best.settings["matcher"]
                 log(f"sfm: chose {choice}")
                 if rec is None or best.registered == 0:
