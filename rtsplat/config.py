@@ -44,13 +44,23 @@ SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / 
 class SfmConfig:
     """Structure from motion (pycolmap)."""
 
-    matcher: Literal["auto", "exhaustive", "sequential"] = _f(
+    matcher: Literal["auto", "exhaustive", "sequential", "vocabtree"] = _f(
         "auto",
-        help="feature matching: exhaustive for small sets, sequential for ordered captures; "
-        "auto picks exhaustive up to exhaustive_max_images images",
+        help="feature matching: exhaustive (every pair), sequential (neighbours in capture order, cyclic) or "
+        "vocabtree (retrieval, needs vocab_tree_path); auto: exhaustive up to exhaustive_max_images images, "
+        "sequential for larger captures whose EXIF times or numbered names order them, else vocabtree when "
+        "vocab_tree_path is set, else exhaustive",
     )
-    exhaustive_max_images: int = _f(150, help="auto matcher: exhaustive up to this many images", minimum=2)
-    sequential_overlap: int = _f(10, help="sequential matcher: neighbours matched per image", minimum=1)
+    exhaustive_max_images: int = _f(60, help="auto matcher: exhaustive up to this many images", minimum=2)
+    sequential_overlap: int = _f(
+        10,
+        help="sequential matcher: each image with this many successors (and those at power-of-two distances beyond)",
+        minimum=1,
+    )
+    vocab_tree_path: str | None = _f(
+        None,
+        help="COLMAP vocabulary tree file for the vocabtree matcher (none ships with pycolmap; nothing is downloaded)",
+    )
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = _f(
         "SIMPLE_RADIAL", help="COLMAP camera model; models with distortion are undistorted to PINHOLE"
     )
@@ -105,9 +115,23 @@ class SfmConfig:
     )
     refine: bool = _f(
         True,
-        help="after the chosen attempt: tracks from denser features (more, weaker SIFT features, guided matching) "
-        "triangulated with its poses, then rounds of robust global bundle adjustment, track completion and "
-        "outlier filtering; kept when it keeps every view at a lower mean reprojection error",
+        help="after the chosen attempt: tracks rebuilt with its poses (see refine_features), then rounds of robust "
+        "global bundle adjustment, track completion and outlier filtering; kept when it keeps every view at a lower "
+        "mean reprojection error",
+    )
+    refine_skip_reprojection_error: float = _f(
+        0.25,
+        help="refinement: skipped when the chosen attempt registers every view at a mean reprojection error at most "
+        "this (px), about what the refinement reaches from attempts at 0.3-0.6 px; 0: always refine",
+        minimum=0.0,
+    )
+    refine_features: Literal["attempt", "denser"] = _f(
+        "attempt",
+        help="refinement tracks: attempt = the chosen attempt's features and matches (no extraction or matching); "
+        "denser = more, weaker SIFT features matched (guided) on the pairs that share points or are neighbours by pose",
+    )
+    refine_pose_neighbours: int = _f(
+        8, help="refine_features denser: each view is matched with this many nearest views by camera centre", minimum=0
     )
     refine_max_reprojection_error: float = _f(
         1.0,

@@ -92,3 +92,21 @@ def test_layering(sources, forbidden):
         via = reachable(name)
         violations += [f"{name} reaches {t}: {_chain(name, t, via)}" for t in sorted(via) if _within(t, forbidden)]
     assert not violations, "\n".join(violations)
+
+
+# the parts of the sfm stage, lowest first: each imports only parts before it (the orchestrator last)
+SFM_PARTS = ("rtsplat.sfm.stats", "rtsplat.sfm.matching", "rtsplat.sfm.attempts", "rtsplat.sfm.refine",
+             "rtsplat.sfm.stage")
+
+
+def test_sfm_parts_import_downward():
+    assert set(SFM_PARTS) == {name for name in MODULES if name.startswith("rtsplat.sfm.")}
+    violations = []
+    for k, name in enumerate(SFM_PARTS):
+        for target in sorted(direct_imports(name) & set(SFM_PARTS)):
+            if target not in SFM_PARTS[:k]:
+                violations.append(f"{name} imports {target}")
+    assert not violations, "\n".join(violations)
+    # one orchestrator: only the stage runs the attempts and the refinement
+    assert {"rtsplat.sfm.attempts", "rtsplat.sfm.refine"} <= direct_imports("rtsplat.sfm.stage")
+    assert direct_imports("rtsplat.sfm") & set(SFM_PARTS) == {"rtsplat.sfm.stage"}

@@ -115,6 +115,13 @@ def test_real_sfm_registers_fixture_and_recovers_poses(tmp_path, capsys):
     assert summary["registered"] >= 11
     assert summary["mean_reprojection_error"] < 1.0
     assert summary["num_points"] > 100
+    # the matcher, why, and the seconds of every step that ran, in the summary and the CLI's output
+    assert summary["matcher"] == "exhaustive" and summary["matcher_reason"] == "sfm.matcher is exhaustive"
+    assert "SfM (exhaustive matching: sfm.matcher is exhaustive)" in out
+    steps = summary["step_seconds"]
+    assert {"image_check", "feature_extraction", "matching", "mapping", "undistortion"} <= set(steps)
+    assert all(v > 0 for v in steps.values()) and sum(steps.values()) <= summary["seconds"]
+    assert "sfm seconds per step: image_check" in out
     # SIMPLE_RADIAL -> undistorted PINHOLE images and model
     assert summary["undistorted"]
     model = load_model(summary["model_dir"])
@@ -338,35 +345,152 @@ def test_compare_poses_recovers_a_known_similarity():
     assert compare_poses({"a": np.eye(4)}, {"a": np.eye(4)}) is None
 
 
-def test_refinement_keeps_every_view_and_lowers_the_reprojection_error(tmp_path):
-    """The refinement of the chosen model (denser tracks, robust global bundle adjustment, filtering)
-    keeps every registered view, lowers the mean reprojection error and is what gets written; with
-    sfm.refine off the chosen attempt's model is written as it was."""
+@pytest.mark.parametrize("features", ["attempt", "denser"])
+def test_refinement_keeps_every_view_and_lowers_the_reprojection_error(tmp_path, features):
+    """The refinement of the chosen model (tracks rebuilt with its poses, robust global bundle adjustment,
+    filtering) keeps every registered view, lowers the mean reprojection error and is what gets written;
+    with sfm.refine_features attempt it extracts and matches nothing, with denser it matches only the
+    pairs the model needs. With sfm.refine off the chosen attempt's model is written as it was."""
     make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150, with_model=True)
-    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=1)
+    # sfm.refine_skip_reprojection_error 0: refine however accurate the attempt is
+    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=1,
+                    refine_skip_reprojection_error=0.0, refine_features=features)
     lines: list[str] = []
     s = run_sfm(tmp_path / "s", tmp_path / "sfm", cfg, progress=False, log=lines.append)
     print("\n".join(lines))
     chosen = s.attempts[s.chosen_attempt]
     r = s.refinement
-    assert r is not None and r["kept"], r
+    assert r is not None and r["kept"] and not r["skipped"], r
     assert r["registered"] == chosen["registered"] == s.registered == 10
     assert r["mean_reprojection_error_before"] == pytest.approx(chosen["mean_reprojection_error"])
     assert r["mean_reprojection_error"] < r["mean_reprojection_error_before"]
     assert r["mean_reprojection_error"] < cfg.refine_max_reprojection_error
-    assert r["seconds"] > 0 and r["settings"]["guided_matching"]
+    assert r["seconds"] > 0 and r["features"] == features
+    steps = r["step_seconds"]
+    assert steps["refinement_triangulation"] > 0 and steps["refinement_bundle_adjustment"] > 0
+    if features == "attempt":
+        assert r["settings"] == chosen["settings"] and r["matched_pairs"] is None
+        assert "refinement_feature_extraction" not in steps and "refinement_matching" not in steps
+    else:
+        assert r["settings"]["guided_matching"] and steps["refinement_matching"] > 0
+        assert 9 <= r["matched_pairs"] <= 45  # at least a chain through the 10 views, at most every pair
+    # the summary's step seconds include the refinement's
+    for step, seconds in steps.items():
+        assert s.step_seconds[step] == pytest.approx(seconds, abs=2e-3)
     # the written model is the refined one
     assert s.mean_reprojection_error == pytest.approx(r["mean_reprojection_error"])
     assert s.num_points == r["num_points"] == load_model(s.model_dir).xyz.shape[0]
     assert s.pose_errors == r["pose_errors"] and s.pose_errors["compared"] == 10
     assert any(line.startswith("sfm refinement: 10 registered") for line in lines)
 
-    off = run_sfm(tmp_path / "s", tmp_path / "sfm_off", replace(cfg, refine=False), progress=False, log=lambda x: None)
-    assert off.refinement is None
-    chosen_off = off.attempts[off.chosen_attempt]
-    assert off.mean_reprojection_error == pytest.approx(chosen_off["mean_reprojection_error"])
-    assert off.num_points == chosen_off["num_points"]
-    assert off.pose_errors == chosen_off["pose_errors"]
+    if features == "attempt":
+        off = run_sfm(tmp_path / "s", tmp_path / "sfm_off", replace(cfg, refine=False), progress=False,
+                      log=lambda x: None)
+        assert off.refinement is None
+        chosen_off = off.attempts[off.chosen_attempt]
+        assert off.mean_reprojection_error == pytest.approx(chosen_off["mean_reprojection_error"])
+        assert off.num_points == chosen_off["num_points"]
+        assert off.pose_errors == chosen_off["pose_errors"]
+
+
+def test_refinement_is_skipped_when_the_chosen_model_is_accurate(tmp_path):
+    """A chosen attempt that registers every view at a mean reprojection error at most
+    sfm.refine_skip_reprojection_error is written as it is, and the summary says why; the same scene
+    with the threshold below that error is refined."""
+    make_corner_scene(tmp_path / "s", n_views=8, width=160, height=120)
+    base = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=1, matcher="exhaustive")
+    skipped = run_sfm(tmp_path / "s", tmp_path / "a", replace(base, refine_skip_reprojection_error=5.0),
+                      progress=False, log=lambda x: None)
+    chosen = skipped.attempts[skipped.chosen_attempt]
+    assert chosen["registered"] == 8 and chosen["mean_reprojection_error"] <= 5.0
+    r = skipped.refinement
+    assert r["skipped"] and not r["kept"] and "sfm.refine_skip_reprojection_error 5" in r["verdict"]
+    assert skipped.mean_reprojection_error == pytest.approx(chosen["mean_reprojection_error"])
+    assert not any(k.startswith("refinement") for k in skipped.step_seconds)
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["refinement"]["skipped"] and summary["step_seconds"] == skipped.step_seconds
+    # below the attempt's error: refined
+    threshold = 0.5 * chosen["mean_reprojection_error"]
+    refined = run_sfm(tmp_path / "s", tmp_path / "b", replace(base, refine_skip_reprojection_error=threshold),
+                      progress=False, log=lambda x: None)
+    assert not refined.refinement["skipped"] and refined.step_seconds["refinement_bundle_adjustment"] > 0
+
+
+def test_refinement_needed_rule():
+    """The skip rule on the chosen attempt's statistics: every view and an error at most the threshold."""
+    from rtsplat.sfm.attempts import AttemptResult
+    from rtsplat.sfm.refine import refinement_needed
+
+    cfg = SfmConfig(refine_skip_reprojection_error=0.6)
+    accurate = AttemptResult(name="configured", reason="", settings={}, registered=97, mean_reprojection_error=0.53)
+    assert refinement_needed(accurate, 97, cfg)[0] is False
+    assert "0.530 px" in refinement_needed(accurate, 97, cfg)[1]
+    assert refinement_needed(accurate, 98, cfg) == (True, "1 view(s) unregistered")
+    coarse = replace(accurate, mean_reprojection_error=0.61)
+    needed, why = refinement_needed(coarse, 97, cfg)
+    assert needed and "0.610 px above 0.6" in why
+    assert refinement_needed(accurate, 97, replace(cfg, refine_skip_reprojection_error=0.0))[0] is True
+    assert refinement_needed(accurate, 97, replace(cfg, refine=False)) == (False, "sfm.refine is off")
+
+
+def test_sequential_pairs_cover_neighbours_and_close_the_loop():
+    from rtsplat.sfm.matching import sequential_pairs
+
+    names = [f"{i:04d}.jpg" for i in range(40)]
+    pairs = sequential_pairs(names, overlap=3)
+    assert len(pairs) == len(set(pairs)) and all(a < b for a, b in pairs)
+    index = {n: i for i, n in enumerate(names)}
+    dist = {min(abs(index[a] - index[b]), 40 - abs(index[a] - index[b])) for a, b in pairs}  # cyclic distance
+    assert dist == {1, 2, 3, 4, 8, 16}
+    assert ("0000.jpg", "0039.jpg") in pairs and ("0001.jpg", "0038.jpg") in pairs  # the end meets the start
+    assert len(pairs) == 40 * 6  # distance 32 is distance 8 around the loop: counted once
+    assert len(sequential_pairs(names[:3], overlap=10)) == 3
+
+
+def _write_jpegs(folder: Path, names: list[str], times: list[str] | None = None) -> None:
+    from PIL import Image
+
+    folder.mkdir(parents=True)
+    for k, name in enumerate(names):
+        exif = Image.Exif()
+        if times is not None:
+            exif.get_ifd(0x8769)[0x9003] = times[k]
+        Image.new("RGB", (16, 12), (k, 0, 0)).save(folder / name, exif=exif)
+
+
+def test_matcher_is_chosen_by_the_capture(tmp_path):
+    """Small sets: exhaustive; larger numbered or EXIF-timed captures: sequential, in capture order;
+    larger unordered sets without a vocabulary tree: exhaustive, saying why; a missing tree file is a
+    config error naming the key."""
+    from rtsplat.errors import ConfigError
+    from rtsplat.sfm.matching import capture_order, choose_matcher
+
+    numbered = [f"IMG_{i}.jpg" for i in range(1, 13)]  # IMG_10 sorts before IMG_2 by name
+    _write_jpegs(tmp_path / "numbered", numbered)
+    order = capture_order(tmp_path / "numbered", sorted(numbered))
+    assert order.ordered and order.names == numbered and "number" in order.reason
+    cfg = SfmConfig(exhaustive_max_images=20)
+    matcher, why = choose_matcher(cfg, order)
+    assert matcher == "exhaustive" and "66 pairs" in why
+    matcher, why = choose_matcher(replace(cfg, exhaustive_max_images=10), order)
+    assert matcher == "sequential" and "capture order" in why
+
+    # EXIF capture times order shuffled names
+    shuffled = [f"{c}.jpg" for c in "qwertyuiopas"]
+    times = [f"2024:05:01 10:00:{k:02d}" for k in range(12)]
+    _write_jpegs(tmp_path / "timed", shuffled, times)
+    order = capture_order(tmp_path / "timed", sorted(shuffled))
+    assert order.ordered and order.names == shuffled and "EXIF" in order.reason
+    assert choose_matcher(replace(cfg, exhaustive_max_images=10), order)[0] == "sequential"
+
+    _write_jpegs(tmp_path / "plain", shuffled)
+    order = capture_order(tmp_path / "plain", sorted(shuffled))
+    assert not order.ordered
+    matcher, why = choose_matcher(replace(cfg, exhaustive_max_images=10), order)
+    assert matcher == "exhaustive" and "no vocabulary tree" in why
+    assert choose_matcher(replace(cfg, matcher="sequential"), order) == ("sequential", "sfm.matcher is sequential")
+    with pytest.raises(ConfigError, match="sfm.vocab_tree_path"):
+        choose_matcher(replace(cfg, matcher="vocabtree", vocab_tree_path=str(tmp_path / "missing.bin")), order)
 
 
 def test_refinement_matches_views_by_name_when_the_database_numbers_them_differently(tmp_path):
@@ -376,16 +500,19 @@ def test_refinement_matches_views_by_name_when_the_database_numbers_them_differe
     import pycolmap
 
     from rtsplat.pose_eval import compare_poses
-    from rtsplat.sfm_attempts import AttemptRunner, denser_features, first_settings
-    from rtsplat.sfm_refine import refine_model
+    from rtsplat.sfm.attempts import denser_features, first_settings, run_attempt
+    from rtsplat.sfm.matching import FeatureStore, capture_order
+    from rtsplat.sfm.refine import refine_model
+    from rtsplat.sfm.stats import StepSeconds
 
     views = make_corner_scene(tmp_path / "s", n_views=10, width=200, height=150)
     names = [v.name for v in views]
-    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=2)
+    cfg = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=2, refine_features="denser")
     (tmp_path / "work").mkdir()
-    runner = AttemptRunner(tmp_path / "s" / "images", names, tmp_path / "work", cfg, None)
-    first = first_settings(cfg, len(names))
-    attempt, rec = runner.run(0, "configured", "", first)
+    images = tmp_path / "s" / "images"
+    store = FeatureStore(images, capture_order(images, names), tmp_path / "work", cfg, None, StepSeconds())
+    first = first_settings(cfg, "exhaustive")
+    attempt, rec = run_attempt(store, 0, "configured", "", first)
     assert attempt.registered == 10, attempt
     # the same views, poses and camera under image and frame ids in reverse order
     (camera_id,) = rec.cameras
@@ -395,14 +522,14 @@ def test_refinement_matches_views_by_name_when_the_database_numbers_them_differe
     for image_id, image in rec.images.items():
         new = pycolmap.Image(name=image.name, camera_id=camera_id, image_id=reversed_ids[image_id])
         permuted.add_image_with_trivial_frame(new, image.cam_from_world())
-    db = pycolmap.Database.open(str(runner.match_database(denser_features(first))))
+    db = pycolmap.Database.open(str(store.features(denser_features(first))))
     try:
         db_ids = {im.name: im.image_id for im in db.read_all_images()}
     finally:
         db.close()
     assert sum(permuted.find_image_with_name(n).image_id != db_ids[n] for n in names) >= 8
 
-    result, refined = refine_model(permuted, runner, first, cfg, tmp_path / "refined")
+    result, refined = refine_model(permuted, store, first, first, cfg, tmp_path / "refined")
     print(result)
     assert result.kept and result.registered == 10, result.verdict
     assert result.mean_reprojection_error < cfg.refine_max_reprojection_error

@@ -398,3 +398,20 @@ def validate_image_set(directory: str | Path, decode: bool = True, progress: boo
             + ("; photos must be stored the same way up: remove the portrait (or landscape) ones" if turned else ""),
         )
     return headers
+
+
+def capture_time(path: str | Path) -> str | None:
+    """The EXIF capture time of an image ("YYYY:MM:DD HH:MM:SS", with sub-seconds when recorded), None without one."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            sub = exif.get_ifd(0x8769)  # the Exif sub-IFD: DateTimeOriginal, SubsecTimeOriginal
+    except (OSError, ValueError, SyntaxError):
+        return None
+    when = sub.get(0x9003) or exif.get(0x0132)  # DateTimeOriginal, else DateTime
+    if not isinstance(when, str) or not when.strip():
+        return None
+    subsec = sub.get(0x9291)
+    return when.strip() + (f".{str(subsec).strip()}" if subsec else "")

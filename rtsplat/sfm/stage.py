@@ -1,43 +1,50 @@
-"""``rtsplat sfm``: camera poses and sparse points with pycolmap.
+"""``rtsplat sfm``: the stage's orchestrator, :func:`run_sfm`.
 
-Function API :func:`run_sfm`. When ``sfm.use_dataset_model`` is set and the dataset has ``sparse/0``
-(or, said in the log, the model files directly in ``sparse/``), that model is validated and used as-is
-(no SfM). Otherwise SfM runs from the images: SIFT extraction (one shared camera by default), matching
-(exhaustive for small sets, sequential for ordered captures; both vocabulary-free), mapping. The first
-attempt uses the configured settings; while views are missing from its largest model, further attempts
-(at most ``sfm.max_attempts`` in all) retry with settings suited to the failure
-(:mod:`rtsplat.sfm_attempts`). The attempt whose largest model registers the most views at an acceptable
-reprojection error is kept. Every attempt is logged and listed in the summary, with the reason for the
-choice. When the dataset has a model that is not used, every attempt's poses are compared with it after
-a similarity fit (:mod:`rtsplat.pose_eval`; the synthetic scenes ship their ground-truth cameras there).
+When ``sfm.use_dataset_model`` is set and the dataset has ``sparse/0``
+(or, said in the log, the model files directly in ``sparse/``), that model is validated and
+used as-is (no SfM). Otherwise SfM runs from the images, each step timed:
 
-With ``sfm.refine`` (default) the chosen model is then refined (:mod:`rtsplat.sfm_refine`): tracks
-from denser features triangulated with its poses, robust global bundle adjustment and outlier
-filtering. The refined model is written when it keeps every view at a lower mean reprojection
-error; the refinement is logged and listed in the summary either way, and ``pose_errors`` are
-those of the model written.
+1. the matcher is chosen from the capture (:mod:`rtsplat.sfm.matching`: exhaustive for small sets,
+   sequential for larger ordered captures, retrieval with a vocabulary tree when one is given);
+2. attempts (:mod:`rtsplat.sfm.attempts`): SIFT extraction (one shared camera by default), matching,
+   mapping. The first attempt uses the configured settings; while views are missing from its largest
+   model, further attempts (at most ``sfm.max_attempts`` in all) retry with settings suited to the
+   failure. The attempt whose largest model registers the most views at an acceptable reprojection
+   error is kept. When the dataset has a ``sparse/0`` that is not used, every attempt's poses are
+   compared with it after a similarity fit (:mod:`rtsplat.pose_eval`; the synthetic scenes ship their
+   ground-truth cameras there);
+3. with ``sfm.refine`` (default) the chosen model is refined (:mod:`rtsplat.sfm.refine`) unless it
+   already registers every view at a mean reprojection error at most
+   ``sfm.refine_skip_reprojection_error``; the refined model is written when it keeps every view at a
+   lower mean reprojection error; the refinement (or why it was skipped) is listed in the summary
+   either way, and ``pose_errors`` are those of the model written.
 
 Either way, a camera model with distortion is undistorted to PINHOLE (images and model), and the
 stage fails with a clear message (the unregistered images and the attempts) when too few images
-register; the output folder is then left as it was.
+register; the output folder is then left as it was. :mod:`rtsplat.sfm.stats` holds the model
+statistics every step reports and the per-step seconds.
 
 Output folder::
 
     sfm/summary.json     {"model_dir", "image_dir", "source": "dataset"|"sfm", "undistorted",
-                          "registered", "total", "mean_reprojection_error", "unregistered",
+                          "registered", "total", "num_points", "mean_reprojection_error",
+                          "mean_track_length", "unregistered", "matcher", "matcher_reason",
                           "attempts": [{"name", "reason", "settings", "registered", "models",
-                          "mean_reprojection_error", "seconds", "acceptable", ...}],
+                          "mean_reprojection_error", "seconds", "step_seconds", "acceptable", ...}],
                           "chosen_attempt", "choice", "reference_model", "pose_errors",
-                          "refinement": {"registered", "mean_reprojection_error_before",
-                          "mean_reprojection_error", "seconds", "kept", "verdict", "pose_errors", ...},
+                          "refinement": {"skipped", "verdict", "registered", "mean_reprojection_error_before",
+                          "mean_reprojection_error", "seconds", "step_seconds", "kept", "pose_errors", ...},
+                          "seconds", "step_seconds": {step: seconds},
                           "scene_dir", "photos": {name: fingerprint}, "images_fingerprint"}
     sfm/sparse/0/        the model (copied from the dataset or computed)
     sfm/undistorted/     images/ and sparse/ after undistortion (only when needed)
 
 ``model_dir``/``image_dir`` in the summary are what ``rtsplat prepare`` reads; ``photos`` (the content
 fingerprint of each photo, :func:`rtsplat.io.manifest.photo_fingerprints`) is what it compares with the
-scene's photos to refuse the SfM of another scene. ``--masks`` of other photos are refused the same way. An attempt's
-``seconds`` include the feature extraction and matching it was the first to need.
+scene's photos to refuse the SfM of another scene. ``--masks`` of other photos are refused the same way.
+``step_seconds``
+names the steps of :data:`rtsplat.sfm.stats.STEPS` that ran; an attempt's ``seconds`` include the
+feature extraction and matching it was the first to need.
 """
 
 from __future__ import annotations
@@ -56,12 +63,22 @@ from rtsplat.config import SfmConfig, add_config_arguments, stage_config_from_ar
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.colmap import dataset_model_dir, load_model
-from rtsplat.io.images import list_images, read_mask, validate_image_set, write_mask
+from rtsplat.io.images import read_mask, validate_image_set, write_mask
 from rtsplat.io.manifest import check_made_from_photos, photo_fingerprints, photos_fingerprint
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.pose_eval import compare_poses
-from rtsplat.sfm_attempts import AttemptResult, AttemptRunner, better, describe, first_settings, next_attempt
-from rtsplat.sfm_refine import describe_refinement, refine_model
+from rtsplat.sfm.attempts import (
+    AttemptResult,
+    AttemptSettings,
+    better,
+    describe,
+    first_settings,
+    next_attempt,
+    run_attempt,
+)
+from rtsplat.sfm.matching import FeatureStore, capture_order, choose_matcher
+from rtsplat.sfm.refine import RefinementResult, describe_refinement, refine_model, refinement_needed
+from rtsplat.sfm.stats import StepSeconds, model_stats
 
 
 @dataclass
@@ -76,6 +93,8 @@ class SfmSummary:
     model_dir: str
     image_dir: str
     matcher: str = ""  # matcher of the chosen attempt ("" for a dataset model)
+    matcher_reason: str = ""  # why that matcher (the first attempt's choice, and the retry's when it changed it)
+    mean_track_length: float | None = None  # observations per 3D point of the written model
     unregistered: list[str] = field(default_factory=list)
     attempts: list[dict] = field(default_factory=list)  # AttemptResult fields, in the order they ran
     chosen_attempt: int | None = None  # index into attempts
@@ -87,6 +106,7 @@ class SfmSummary:
     scene_dir: str = ""  # the dataset scene it was made from (for messages)
     images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
     photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
+    step_seconds: dict[str, float] = field(default_factory=dict)  # seconds per step (rtsplat.sfm.stats.STEPS)
 
 
 def _check_registration(
@@ -154,25 +174,12 @@ def _rec_poses(rec) -> dict[str, np.ndarray]:
     }
 
 
-def _reconstruct(
-    images_dir: Path,
-    names: list[str],
-    work: Path,
-    cfg: SfmConfig,
-    masks_dir: Path | None,
-    reference: dict[str, np.ndarray] | None,
-    log,
-):
+def _reconstruct(store: FeatureStore, first, reference: dict[str, np.ndarray] | None, log):
     """Attempts until every view registers or the ladder ends.
 
-    Returns (chosen rec, attempts, its index, choice, the AttemptRunner, the first attempt's settings).
+    Returns (chosen rec, attempts, its index, choice).
     """
-    mask_dir = None
-    if masks_dir is not None and cfg.use_masks:
-        mask_dir = work / "colmap_masks"
-        _colmap_masks(names, masks_dir, mask_dir)
-    runner = AttemptRunner(images_dir, names, work, cfg, mask_dir)
-    first = first_settings(cfg, len(names))
+    cfg, names = store.cfg, store.names
     attempts: list[AttemptResult] = []
     recs = []
     best: int | None = None
@@ -180,7 +187,7 @@ def _reconstruct(
     while step is not None and len(attempts) < cfg.max_attempts:
         name, reason, settings = step
         log(f"sfm attempt {len(attempts) + 1}/{cfg.max_attempts}: {name} ({reason})")
-        result, rec = runner.run(len(attempts), name, reason, settings)
+        result, rec = run_attempt(store, len(attempts), name, reason, settings)
         if rec is not None and reference is not None:
             errors = compare_poses(_rec_poses(rec), reference)
             result.pose_errors = asdict(errors) if errors else None
@@ -193,7 +200,7 @@ def _reconstruct(
         if chosen.acceptable and not chosen.unregistered:
             break
         missing = chosen.unregistered if chosen.registered else list(names)
-        poor = runner.poorly_matched(settings, missing)
+        poor = store.poorly_matched(settings, settings.matcher, missing)
         step = next_attempt([a.name for a in attempts], first, chosen if chosen.registered else None, poor)
     chosen = attempts[best]
     if len(attempts) == 1:
@@ -206,7 +213,7 @@ def _reconstruct(
         choice = f"attempt {best + 1} ({chosen.name}, {chosen.registered}/{len(names)}) {why}; others: {others}"
         if chosen.unregistered and len(attempts) < cfg.max_attempts:
             choice += "; no further step suits the failure"
-    return recs[best], attempts, best, choice, runner, first
+    return recs[best], attempts, best, choice
 
 
 def _attempts_text(attempts: list[AttemptResult], total: int) -> str:
@@ -237,7 +244,9 @@ def run_sfm(
     images_dir = scene_dir / "images"
     out_dir = Path(out_dir)
     check_output_dir(out_dir, "sfm", inputs=[scene_dir, masks_dir])
-    headers = validate_image_set(images_dir, decode=True, progress=progress, log=log)
+    times = StepSeconds()
+    with times.step("image_check"):
+        headers = validate_image_set(images_dir, decode=True, progress=progress, log=log)
     names = [h.path.name for h in headers]
     photos = photo_fingerprints(images_dir)
     if masks_dir is not None and (Path(masks_dir) / "summary.json").is_file():
@@ -249,7 +258,7 @@ def run_sfm(
             + ("using it" if cfg.use_dataset_model else "comparing the computed poses with it"))
     attempts: list[AttemptResult] = []
     chosen, choice, pose_errors, reference_dir, refinement = None, "", None, None, None
-    matcher = ""
+    matcher, matcher_reason = "", ""
     with output_dir(out_dir, "sfm", inputs=[scene_dir, masks_dir]) as tmp:
         model_dir = tmp / "sparse" / "0"
         if cfg.use_dataset_model and given is not None:
@@ -273,17 +282,22 @@ def run_sfm(
                     "SfM needs at least 2 images", path=images_dir, fix="add more overlapping photos of the scene"
                 )
             ref = _reference_poses(scene_dir)
+            order = capture_order(images_dir, names)
+            matcher, matcher_reason = choose_matcher(cfg, order)
+            log(f"sfm: {matcher} matching: {matcher_reason}")
             with tempfile.TemporaryDirectory(prefix="rtsplat-sfm-", dir=tmp) as work:
-                rec, attempts, chosen, choice, runner, first = _reconstruct(
-                    images_dir,
-                    names,
-                    Path(work),
-                    cfg,
-                    Path(masks_dir) if masks_dir else None,
-                    ref[1] if ref else None,
-                    log,
-                )
+                mask_dir = None
+                if masks_dir is not None and cfg.use_masks:
+                    mask_dir = Path(work) / "colmap_masks"
+                    _colmap_masks(names, Path(masks_dir), mask_dir)
+                store = FeatureStore(images_dir, order, Path(work), cfg, mask_dir, times)
+                first = first_settings(cfg, matcher)
+                rec, attempts, chosen, choice = _reconstruct(store, first, ref[1] if ref else None, log)
                 best = attempts[chosen]
+                if best.settings["matcher"] != first.matcher:
+                    matcher_reason = (
+                        f"first {first.matcher} ({matcher_reason}); the chosen attempt {best.name}: {best.reason}"
+                    )
                 matcher = best.settings["matcher"]
                 log(f"sfm: chose {choice}")
                 if rec is None or best.registered == 0:
@@ -313,15 +327,29 @@ def run_sfm(
                 if ref is not None:
                     pose_errors = best.pose_errors
                 if cfg.refine:
-                    log(f"sfm refinement of attempt {chosen + 1} ({best.name})")
-                    refinement, refined = refine_model(rec, runner, first, cfg, Path(work) / "refined")
-                    if ref is not None:
-                        errors = compare_poses(_rec_poses(refined), ref[1])
-                        refinement.pose_errors = asdict(errors) if errors else None
+                    needed, why = refinement_needed(best, len(names), cfg)
+                    if not needed:
+                        refinement = RefinementResult(
+                            settings=best.settings,
+                            rounds=0,
+                            max_reprojection_error=cfg.refine_max_reprojection_error,
+                            skipped=True,
+                            features=cfg.refine_features,
+                            verdict=why,
+                        )
+                    else:
+                        log(f"sfm refinement of attempt {chosen + 1} ({best.name}): {why}")
+                        chosen_settings = AttemptSettings(**best.settings)
+                        refinement, refined = refine_model(
+                            rec, store, chosen_settings, first, cfg, Path(work) / "refined"
+                        )
+                        if ref is not None:
+                            errors = compare_poses(_rec_poses(refined), ref[1])
+                            refinement.pose_errors = asdict(errors) if errors else None
+                        if refinement.kept:
+                            rec = refined
+                            pose_errors = refinement.pose_errors
                     log(f"sfm refinement: {describe_refinement(refinement)}")
-                    if refinement.kept:
-                        rec = refined
-                        pose_errors = refinement.pose_errors
             if ref is not None:
                 reference_dir = str(ref[0])
             source = "sfm"
@@ -332,28 +360,29 @@ def run_sfm(
         final_model, final_images = out_dir / "sparse" / "0", images_dir.resolve()
         if distorted:
             und = tmp / "undistorted"
-            pycolmap.undistort_images(str(und), str(model_dir), str(images_dir), output_type="COLMAP")
+            with times.step("undistortion"):
+                pycolmap.undistort_images(str(und), str(model_dir), str(images_dir), output_type="COLMAP")
             final_model = out_dir / "undistorted" / "sparse"
             final_images = out_dir.resolve() / "undistorted" / "images"
             rec = pycolmap.Reconstruction(str(und / "sparse"))
             shutil.rmtree(und / "stereo", ignore_errors=True)  # dense-stereo scaffolding we do not use
             for script in und.glob("*.sh"):
                 script.unlink()
-        registered = {rec.image(i).name for i in rec.reg_image_ids()}
+        stats = model_stats(rec, names)
         summary = SfmSummary(
             source=source,
-            registered=len(registered),
+            registered=stats.registered,
             total=len(names),
-            num_points=int(rec.num_points3D()),
-            mean_reprojection_error=(
-                float(rec.compute_mean_reprojection_error()) if rec.compute_num_observations() > 0 else None
-            ),
+            num_points=stats.num_points,
+            mean_reprojection_error=stats.mean_reprojection_error,
+            mean_track_length=stats.mean_track_length,
             undistorted=distorted,
             camera_model=",".join(sorted({c.model_name for c in cams})),
             model_dir=str(final_model.resolve()),
             image_dir=str(final_images),
             matcher=matcher,
-            unregistered=[n for n in names if n not in registered],
+            matcher_reason=matcher_reason,
+            unregistered=stats.unregistered,
             attempts=[asdict(a) for a in attempts],
             chosen_attempt=chosen,
             choice=choice,
@@ -364,6 +393,7 @@ def run_sfm(
             scene_dir=str(scene_dir.resolve()),
             images_fingerprint=photos_fingerprint(photos),
             photos=photos,
+            step_seconds=times.as_dict(),
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
     return summary
@@ -373,7 +403,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene-dir", type=Path, required=True, help="dataset scene (<data>/<scene>)")
     parser.add_argument("--out", type=Path, required=True, help="output folder (results/<scene>/sfm)")
     parser.add_argument("--masks", type=Path, help="output of 'rtsplat masks' (used when sfm.use_masks)")
-    parser.add_argument("--matcher", choices=["auto", "exhaustive", "sequential"], help="override sfm.matcher")
+    parser.add_argument(
+        "--matcher", choices=["auto", "exhaustive", "sequential", "vocabtree"], help="override sfm.matcher"
+    )
     parser.add_argument("--num-threads", type=int, help="override sfm.num_threads (the workflow passes its threads)")
     add_config_arguments(parser)
 
@@ -382,7 +414,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = stage_config_from_args(args, "sfm", {"matcher": args.matcher, "num_threads": args.num_threads})
     s = run_sfm(args.scene_dir, args.out, cfg, args.masks)
     err = "n/a" if s.mean_reprojection_error is None else f"{s.mean_reprojection_error:.3f} px"
-    how = "model from the dataset" if s.source == "dataset" else f"SfM ({s.matcher} matching)"
+    how = "model from the dataset" if s.source == "dataset" else f"SfM ({s.matcher} matching: {s.matcher_reason})"
     pose = ""
     if s.pose_errors:
         pose = (
@@ -395,10 +427,13 @@ def run(args: argparse.Namespace) -> int:
         + (", undistorted to PINHOLE" if s.undistorted else "")
         + (f", {len(s.attempts)} attempt(s)" if s.attempts else "")
         + (", refined" if s.refinement and s.refinement["kept"] else "")
+        + (", refinement skipped" if s.refinement and s.refinement["skipped"] else "")
         + (f", {s.seconds:.0f} s" if s.attempts else "")
         + pose
     )
+    if s.attempts:
+        print("sfm seconds per step: " + ", ".join(f"{k} {v:.1f}" for k, v in s.step_seconds.items()))
     return 0
 
 
-__all__ = ["SfmSummary", "run_sfm", "list_images"]
+__all__ = ["SfmSummary", "add_arguments", "run", "run_sfm"]
