@@ -38,7 +38,7 @@ import numpy as np
 from rtsplat import __version__
 from rtsplat.config import PrepareConfig, add_config_arguments, stage_config_from_args
 from rtsplat.errors import PipelineError
-from rtsplat.io.colmap import ColmapModel, ColmapView, load_model, track_colours
+from rtsplat.io.colmap import ColmapModel, ColmapView, load_model
 from rtsplat.io.images import (
     area_downsample,
     linear_to_srgb,
@@ -367,7 +367,7 @@ def prepare_scene(
     check_made_from_photos(sfm_dir, sfm, "sfm", scene_dir / "images", photos, "--sfm")
     if masks_dir is not None:
         check_made_from_photos(masks_dir, masks, "masks", scene_dir / "images", photos, "--masks")
-    model = load_model(sfm["model_dir"])
+    model = load_model(sfm["model_dir"], observations=True)  # the observations measure each photo's exposure
     image_dir = Path(sfm["image_dir"])
     has_masks = bool(masks.get("has_masks"))
     made_from = {
@@ -422,7 +422,6 @@ def prepare_scene(
     coverage: list[float] = []
     mask_views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     layer_source = scene_dir / "layers" / "linear"
-    tracks = track_colours(sfm["model_dir"])
     exposure: dict[str, list[float] | None] = {}
     gt_layer_views = 0
     out_dir = Path(out_dir)
@@ -494,7 +493,7 @@ def prepare_scene(
                 write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
                 coverage.append(float(small.mean()))
                 mask_views.append((K, view.world_to_camera, small))
-            exposure[stem] = _exposure(full, tracks.get(view.name), (view.width, view.height),
+            exposure[stem] = _exposure(full, model.observations.get(view.name), (view.width, view.height),
                                        mask if has_masks else None)
             cameras.append(
                 CameraRecord(

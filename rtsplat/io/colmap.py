@@ -51,6 +51,9 @@ class ColmapModel:
     xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     rgb: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.uint8))
     errors: np.ndarray = field(default_factory=lambda: np.zeros((0,)))
+    # per image name, with load_model(observations=True): its observations of 3D points, as (pixel
+    # coordinates [n, 2] with the pixel corner at (0, 0), the observed point's colour [n, 3] uint8)
+    observations: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     def view(self, name: str) -> ColmapView:
         for v in self.views:
@@ -74,8 +77,9 @@ def dataset_model_dir(scene_dir: str | Path) -> Path | None:
     return None
 
 
-def load_model(path: str | Path) -> ColmapModel:
-    """Read a COLMAP model directory (binary or text) into :class:`ColmapModel`."""
+def load_model(path: str | Path, observations: bool = False) -> ColmapModel:
+    """Read a COLMAP model directory (binary or text) into :class:`ColmapModel`; with ``observations``
+    also every registered image's observations of 3D points (:attr:`ColmapModel.observations`)."""
     import pycolmap
 
     path = Path(path)
@@ -126,16 +130,11 @@ def load_model(path: str | Path) -> ColmapModel:
     if not np.isfinite(xyz).all():
         bad = int((~np.isfinite(xyz).all(1)).sum())
         raise PipelineError(f"{bad} 3D point(s) have a non-finite position", path=path, fix=_REDO)
-    return ColmapModel(sorted(views, key=lambda v: v.name), xyz, rgb, err)
+    return ColmapModel(sorted(views, key=lambda v: v.name), xyz, rgb, err,
+                       _observations(rec) if observations else {})
 
 
-def track_colours(path: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per registered image of the COLMAP model at ``path``: its observations of 3D points, as
-    (pixel coordinates [n, 2] with the pixel corner at (0, 0), the observed point's colour [n, 3] uint8).
-    The model must be readable (:func:`load_model` checks it)."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(str(path))
+def _observations(rec) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     colours = {point_id: point.color for point_id, point in rec.points3D.items()}
     out = {}
     for image_id in rec.reg_image_ids():

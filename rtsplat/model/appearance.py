@@ -24,17 +24,20 @@ MIN_POINTS_PER_VIEW = 20  # a view with fewer usable point colours gives no gain
 DARK = 0.04  # point or pixel colours below this (of 1) are left out: their ratios are mostly noise
 
 
+def _gain(correction: Tensor) -> Tensor:
+    """The per-channel gain of ``correction``, its log clamped to +-:data:`LOG_GAIN_LIMIT` so that a wild
+    value cannot overflow."""
+    return correction[:3].clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT).exp()
+
+
 def apply_appearance(color: Tensor, correction: Tensor) -> Tensor:
-    """``color`` [..., 3] seen through ``correction`` [6] (log gain per channel, offset per channel).
-    The log gain is clamped to +-:data:`LOG_GAIN_LIMIT` so that a wild value cannot overflow."""
-    gain = correction[:3].clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT).exp()
-    return color * gain + correction[3:]
+    """``color`` [..., 3] seen through ``correction`` [6] (log gain per channel, offset per channel)."""
+    return color * _gain(correction) + correction[3:]
 
 
 def remove_appearance(photo: Tensor, correction: Tensor) -> Tensor:
     """The inverse of :func:`apply_appearance`: ``photo`` brought back to the model's colours."""
-    gain = correction[:3].clamp(-LOG_GAIN_LIMIT, LOG_GAIN_LIMIT).exp()
-    return (photo - correction[3:]) / gain
+    return (photo - correction[3:]) / _gain(correction)
 
 
 def fit_appearance(rendered: Tensor, photo: Tensor, prior: float = 1e-2) -> Tensor:

@@ -443,18 +443,25 @@ class Trainer:
         :meth:`rtsplat.camera.Camera.corrected`; empty without pose refinement."""
         if self.poses is None:
             return {}
-        pairs = [*zip(self.train_views.names, self.poses.values().tolist(), strict=True),
-                 *zip(self.test_views.names, self.test_corrections.tolist(), strict=True)]
-        return dict(pairs)
+        return self._by_view(self.poses.values(), self.test_corrections)
 
     def appearance_corrections(self) -> dict[str, list[float]]:
         """Every view's appearance correction by name (log gain, offset per channel), for
         :func:`rtsplat.model.appearance.apply_appearance`; empty where appearance is not learnt."""
         if self.appearance is None:
             return {}
-        pairs = [*zip(self.train_views.names, self.appearance.detached().tolist(), strict=True),
-                 *zip(self.test_views.names, self.test_appearance.tolist(), strict=True)]
-        return dict(pairs)
+        return self._by_view(self.appearance.detached(), self.test_appearance)
+
+    def _by_view(self, train: Tensor, test: Tensor) -> dict[str, list[float]]:
+        """Per-view rows of the training and the test views, by view name (what a checkpoint keeps)."""
+        return {**dict(zip(self.train_views.names, train.tolist(), strict=True)),
+                **dict(zip(self.test_views.names, test.tolist(), strict=True))}
+
+    def _restore_test_rows(self, rows: Tensor, saved: dict[str, list[float]]) -> None:
+        """Copy into ``rows`` [test views, ...] the saved rows of the test views that have one."""
+        for index, name in enumerate(self.test_views.names):
+            if name in saved:
+                rows[index] = torch.as_tensor(saved[name], device=self.device)
 
     def appearance_summary(self) -> dict:
         """Whether appearance is learnt, why, and the mean absolute log gain and offset of the views."""
@@ -570,16 +577,10 @@ class Trainer:
         self.frozen = state["frozen"].to(self.device)
         if self.poses is not None and state.get("poses") is not None:
             self.poses.load_state_dict(state["poses"])
-        saved = state.get("camera_corrections", {})
-        for index, name in enumerate(self.test_views.names):
-            if name in saved:
-                self.test_corrections[index] = torch.as_tensor(saved[name], device=self.device)
+        self._restore_test_rows(self.test_corrections, state.get("camera_corrections", {}))
         if self.appearance is not None and state.get("appearance") is not None:
             self.appearance.load_state_dict(state["appearance"])
-        saved = state.get("appearance_corrections", {})
-        for index, name in enumerate(self.test_views.names):
-            if name in saved:
-                self.test_appearance[index] = torch.as_tensor(saved[name], device=self.device)
+        self._restore_test_rows(self.test_appearance, state.get("appearance_corrections", {}))
         self.any_frozen = bool(self.frozen.any())
         self.near_fit = state.get("near_fit")
         self.order = list(state["order"])
