@@ -166,11 +166,36 @@ class OnnxSegmenterConfig:
 
 
 @dataclass
+class MaskPropagationConfig:
+    """Masks carried from a few marked views to the others through the SfM cameras (masks.source: propagate)."""
+
+    grid: int = _f(128, help="voxels along the longest side of the marked object's box (visual hull)", minimum=16)
+    refine: Literal["auto", "grabcut", "none"] = _f(
+        "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; none: kept as "
+        "projected; auto: whichever matches the marked masks better when each marked view is left out in turn"
+    )
+    grabcut_iterations: int = _f(4, help="GrabCut iterations", minimum=1)
+    ring: float = _f(
+        0.15, help="GrabCut: probable-background ring around the projected hull, as a fraction of its size",
+        exclusiveMinimum=0.0,
+    )
+    min_kept: float = _f(
+        0.5, help="a GrabCut result keeping less than this fraction of the projected hull is dropped for the "
+        "projection (glass that looks like what is behind it)", minimum=0.0, maximum=1.0,
+    )
+    work_size: int = _f(1024, help="longest image side the projection and GrabCut work at", minimum=64)
+    min_part: float = _f(
+        0.05, help="hull parts smaller than this fraction of the largest part are dropped", minimum=0.0, maximum=1.0
+    )
+
+
+@dataclass
 class MasksConfig:
     """Transparent-surface masks (white = see-through surface)."""
 
-    source: Literal["auto", "ingest", "onnx", "none"] = _f(
-        "auto", help="auto: ingest <scene>/<dir> when present, else segment when onnx.model is set, else none"
+    source: Literal["auto", "ingest", "propagate", "onnx", "none"] = _f(
+        "auto", help="auto: ingest <scene>/<dir> when every photo has a mask there (or allow_missing), propagate "
+        "when only some have one (the marked views), else segment when onnx.model is set, else none"
     )
     dir: str = _f(
         "transparent_masks",
@@ -191,6 +216,9 @@ class MasksConfig:
     max_coverage: float = _f(0.5, help="ingest with polarity auto: a larger mean coverage means inverted masks",
                              exclusiveMinimum=0.0, maximum=1.0)
     onnx: OnnxSegmenterConfig = _f(help="the ONNX segmenter", factory=OnnxSegmenterConfig)
+    propagate: MaskPropagationConfig = _f(
+        help="masks of the marked views carried to the others (source propagate)", factory=MaskPropagationConfig
+    )
 
 
 @dataclass

@@ -1,0 +1,420 @@
+"""Transparent masks carried from a few marked views to every view through the SfM cameras.
+
+The masks of the marked views (at least :data:`MIN_MARKED`) carve a voxel grid: a voxel stays when every
+marked view that has it in frame sees it inside its mask (dilated by half a voxel's footprint), at least
+two marked views have it in frame, and every marked view whose mask does not touch the image border (the
+whole object is in frame) has it in frame. The grid covers the box that holds most SfM points; a coarse
+pass finds the hull, a finer grid over the hull's box refines it (:func:`visual_hull`). Connected parts
+much smaller than the largest are dropped.
+
+Every other registered view gets the hull's silhouette: the hull's boundary voxels projected with the
+view's camera (COLMAP models with distortion through pycolmap), each splatted as a disc of half its
+projected size, holes filled (:func:`project_hull`). A visual hull holds the object, so the silhouette is
+the object's mask plus the excess of the few marked directions. OpenCV's GrabCut on the view's image,
+seeded with the silhouette as probable foreground, a ring around it as probable background and the rest
+as background, can cut that excess where the image shows an edge (:func:`refine_with_grabcut`); when it
+keeps less than ``min_kept`` of the silhouette the silhouette is kept. Whether GrabCut helps depends on
+how much the glass differs from what it shows: ``refine: auto`` decides per scene by leaving each marked
+view out in turn and comparing both with its given mask (:func:`choose_refinement`).
+
+Each mask's source is recorded: ``given`` (a marked view), ``propagated``, ``empty`` (the hull does not
+project into the view) or ``unregistered`` (SfM has no pose for the photo: empty mask). Large images are
+processed at ``work_size`` pixels on their longest side and the mask is scaled back."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtsplat.config import MaskPropagationConfig
+from rtsplat.errors import PipelineError
+from rtsplat.io.colmap import ColmapModel, ColmapView
+
+MIN_MARKED = 3  # fewer marked views do not bound the object in depth
+COARSE_GRID = 48  # voxels along the longest side of the first pass
+
+
+@dataclass
+class PropagatedMask:
+    name: str
+    mask: np.ndarray  # bool [H, W] at the photo's size
+    source: str  # "given" | "propagated" | "empty" | "unregistered"
+    refined: bool = False  # propagated and GrabCut's result kept
+
+
+@dataclass
+class Hull:
+    """Boundary voxels of the visual hull: centres [N, 3] and the voxel size."""
+
+    points: np.ndarray
+    step: float
+    num_voxels: int
+
+
+# ----------------------------------------------------------------------------------------------
+# cameras
+
+
+def project_points(view: ColmapView, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel coordinates [N, 2] (pixel corner at (0, 0)), depth [N] and in-front [N] bool of world
+    points in ``view``, with the camera model's distortion."""
+    cam = xyz @ view.world_to_camera[:3, :3].T + view.world_to_camera[:3, 3]
+    z = cam[:, 2]
+    front = z > 1e-9
+    uv = np.full((len(xyz), 2), -1e9)
+    if not front.any():
+        return uv, z, front
+    if view.has_distortion:
+        import pycolmap
+
+        camera = pycolmap.Camera.create_from_model_name(1, view.model, 1.0, view.width, view.height)
+        camera.params = view.params.tolist()
+        uv[front] = np.asarray(camera.img_from_cam(np.ascontiguousarray(cam[front])), dtype=np.float64)[:, :2]
+    else:
+        K = view.K
+        uv[front] = cam[front, :2] / z[front, None] * np.diag(K)[:2] + K[:2, 2]
+    return uv, z, front
+
+
+def focal(view: ColmapView) -> float:
+    return float(0.5 * (view.K[0, 0] + view.K[1, 1]))
+
+
+def suggest_views(model: ColmapModel, count: int = 5, exclude: tuple[str, ...] = ()) -> list[str]:
+    """``count`` registered views spread around the capture: farthest-point sampling over the camera
+    centres, starting from the view farthest from their mean (views in ``exclude`` count as chosen)."""
+    names = [v.name for v in model.views]
+    centres = np.stack([v.center for v in model.views]) if names else np.zeros((0, 3))
+    if not names:
+        return []
+    chosen = [names.index(n) for n in exclude if n in names]
+    if not chosen:
+        chosen = [int(np.argmax(np.linalg.norm(centres - centres.mean(0), axis=1)))]
+    dist = np.min(np.linalg.norm(centres[:, None] - centres[chosen][None], axis=2), axis=1)
+    picks = [] if exclude else list(chosen)
+    while len(picks) < min(count, len(names) - len(exclude)):
+        i = int(np.argmax(dist))
+        picks.append(i)
+        dist = np.minimum(dist, np.linalg.norm(centres - centres[i], axis=1))
+    return [names[i] for i in picks]
+
+
+# ----------------------------------------------------------------------------------------------
+# the hull
+
+
+def _grid(lo: np.ndarray, hi: np.ndarray, cells: int) -> tuple[np.ndarray, tuple[int, int, int], float]:
+    step = float((hi - lo).max()) / cells
+    shape = tuple(int(max(1, np.ceil((hi[i] - lo[i]) / step))) for i in range(3))
+    axes = [lo[i] + step * (np.arange(shape[i]) + 0.5) for i in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    return points, shape, step
+
+
+def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    import cv2
+
+    if radius <= 0:
+        return mask
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    return cv2.dilate(mask.astype(np.uint8), kernel) > 0
+
+
+def _votes(points: np.ndarray, step: float, marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[np.ndarray, ...]:
+    """Per point: how many marked views have it in frame, and a [views, N] bool of "in frame and inside
+    the view's mask" (each mask dilated by the voxels' footprint) and "in frame" ."""
+    inside = np.zeros((len(marked), len(points)), bool)
+    seen = np.zeros((len(marked), len(points)), bool)
+    for k, (view, mask) in enumerate(marked):
+        uv, z, front = project_points(view, points)
+        if not front.any():
+            continue
+        half_voxel = 0.5 * focal(view) * step / np.median(z[front])  # pixels
+        grown = _dilate(mask, int(np.round(half_voxel)))
+        u = np.floor(uv[:, 0]).astype(np.int64)
+        v = np.floor(uv[:, 1]).astype(np.int64)
+        h, w = mask.shape
+        visible = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        seen[k] = visible
+        inside[k, visible] = grown[v[visible], u[visible]]
+    return seen, inside
+
+
+def _whole_in_frame(mask: np.ndarray) -> bool:
+    """Whether the marked object lies inside the frame (its mask does not touch the image border)."""
+    return not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+
+
+def _carve(points, step, marked) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxels no marked view rules out: outside a view's mask where it has them in frame, or out of frame
+    (or behind) in a view whose mask shows the whole object."""
+    seen, inside = _votes(points, step, marked)
+    whole = np.array([_whole_in_frame(mask) for _, mask in marked])
+    keep = ~(seen & ~inside).any(0) & ~(~seen & whole[:, None]).any(0) & (seen.sum(0) >= min(2, len(marked)))
+    return keep, seen, inside
+
+
+def scene_bound(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """The box the hull is searched in: the 1st-99th percentile box of the SfM points grown by half its
+    size, or without points a box of the median camera distance around the marked views' common look-at
+    point."""
+    centres = np.stack([v.center for v, _ in marked])
+    if len(model.xyz) >= 20:
+        lo, hi = np.percentile(model.xyz, 1, axis=0), np.percentile(model.xyz, 99, axis=0)
+        pad = 0.5 * (hi - lo) + 1e-6
+        return lo - pad, hi + pad
+    dirs = np.stack([v.forward for v, _ in marked])
+    A = sum(np.eye(3) - np.outer(d, d) for d in dirs)
+    b = sum((np.eye(3) - np.outer(d, d)) @ c for d, c in zip(dirs, centres, strict=True))
+    target = np.linalg.lstsq(A, b, rcond=None)[0]
+    radius = float(np.median(np.linalg.norm(centres - target, axis=1)))
+    return target - radius, target + radius
+
+
+def _disagreeing(seen: np.ndarray, inside: np.ndarray, names: list[str]) -> tuple[list[str], int]:
+    """The marked views that exclude the voxels most views mark, and how many views mark those."""
+    agree = inside.sum(0)
+    best = int(agree.max(initial=0))
+    if best == 0:
+        return names, 0
+    top = agree == best
+    return [n for k, n in enumerate(names) if (seen[k, top] & ~inside[k, top]).any()], best
+
+
+def visual_hull(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]], settings: MaskPropagationConfig,
+                source: str = "") -> Hull:
+    """The hull's boundary voxels (coarse pass over :func:`scene_bound`, fine pass over its box)."""
+    from scipy import ndimage
+
+    names = [v.name for v, _ in marked]
+    lo, hi = scene_bound(model, marked)
+    points, shape, step = _grid(lo, hi, COARSE_GRID)
+    keep, seen, inside = _carve(points, step, marked)
+    if not keep.any():
+        views, best = _disagreeing(seen, inside, names)
+        raise PipelineError(
+            f"the marked views' masks share no 3D region (at most {best} of {len(names)} marked views agree on a "
+            f"point; views that disagree: {', '.join(views)})",
+            path=source or None,
+            fix="check those masks mark the same object (same polarity, the whole see-through surface), or "
+            "remove them from the marked views",
+        )
+    part = points[keep]
+    lo, hi = part.min(0) - 1.5 * step, part.max(0) + 1.5 * step
+    points, shape, step = _grid(lo, hi, settings.grid)
+    keep, _, _ = _carve(points, step, marked)
+    occupied = keep.reshape(shape)
+    labels, count = ndimage.label(occupied)
+    if count > 1:
+        sizes = np.bincount(labels.ravel())[1:]
+        occupied = np.isin(labels, 1 + np.flatnonzero(sizes >= settings.min_part * sizes.max()))
+    boundary = occupied & ~ndimage.binary_erosion(occupied)
+    return Hull(points=points[boundary.ravel()], step=step, num_voxels=int(occupied.sum()))
+
+
+# ----------------------------------------------------------------------------------------------
+# per view
+
+
+def project_hull(hull: Hull, view: ColmapView, scale: float = 1.0) -> np.ndarray:
+    """The hull's silhouette in ``view`` (bool, the view's size times ``scale``): every boundary voxel
+    splatted as a disc of half its projected size, holes filled."""
+    import cv2
+    from scipy import ndimage
+
+    h, w = int(round(view.height * scale)), int(round(view.width * scale))
+    out = np.zeros((h, w), bool)
+    uv, z, front = project_points(view, hull.points)
+    uv = uv * scale
+    radius = np.zeros(len(z), np.int64)
+    radius[front] = np.round(0.5 * focal(view) * scale * hull.step / z[front]).astype(np.int64)
+    u = np.floor(uv[:, 0]).astype(np.int64)
+    v = np.floor(uv[:, 1]).astype(np.int64)
+    near = front & (u >= -radius) & (u < w + radius) & (v >= -radius) & (v < h + radius)
+    if not near.any():
+        return out
+    for r in np.unique(radius[near]):
+        sel = near & (radius == r)
+        pad = int(r) + 1
+        canvas = np.zeros((h + 2 * pad, w + 2 * pad), np.uint8)
+        canvas[v[sel] + pad, u[sel] + pad] = 1
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(r) + 1, 2 * int(r) + 1))
+        out |= cv2.dilate(canvas, kernel)[pad:-pad, pad:-pad] > 0
+    return ndimage.binary_fill_holes(out)
+
+
+def refine_with_grabcut(image: np.ndarray, silhouette: np.ndarray,
+                        settings: MaskPropagationConfig) -> np.ndarray | None:
+    """GrabCut of ``image`` (float RGB [H, W, 3]) seeded by ``silhouette``: probable foreground inside, probable
+    background in a ring around it, background beyond; None when the result keeps less than ``min_kept``."""
+    import cv2
+
+    area = int(silhouette.sum())
+    if area < 16:
+        return None
+    ys, xs = np.nonzero(silhouette)
+    size = max(ys.max() - ys.min(), xs.max() - xs.min()) + 1
+    ring = max(3, int(round(settings.ring * size)))
+    h, w = silhouette.shape
+    y0, y1 = max(0, ys.min() - 2 * ring), min(h, ys.max() + 2 * ring + 1)
+    x0, x1 = max(0, xs.min() - 2 * ring), min(w, xs.max() + 2 * ring + 1)
+    crop = silhouette[y0:y1, x0:x1]
+    seeds = np.full(crop.shape, cv2.GC_BGD, np.uint8)
+    seeds[_dilate(crop, ring)] = cv2.GC_PR_BGD
+    seeds[crop] = cv2.GC_PR_FGD
+    if not (seeds == cv2.GC_BGD).any():  # GrabCut needs background samples: the crop's border
+        seeds[[0, -1], :] = cv2.GC_BGD
+        seeds[:, [0, -1]] = cv2.GC_BGD
+    pixels = np.ascontiguousarray((np.clip(image[y0:y1, x0:x1, :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(pixels, seeds, None, bgd, fgd, settings.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        return None
+    cut = np.zeros_like(silhouette)
+    cut[y0:y1, x0:x1] = (seeds == cv2.GC_FGD) | (seeds == cv2.GC_PR_FGD)
+    if cut.sum() < settings.min_kept * area:
+        return None
+    return cut
+
+
+def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    import cv2
+
+    if mask.shape == (height, width):
+        return mask
+    return cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR) >= 0.5
+
+
+def propagate_masks(
+    model: ColmapModel,
+    marked: dict[str, np.ndarray],
+    names: list[str],
+    read_image: Callable[[str], np.ndarray],
+    settings: MaskPropagationConfig | None = None,
+    size_of: Callable[[str], tuple[int, int]] | None = None,
+    source: str = "",
+) -> Iterator[PropagatedMask]:
+    """One mask per photo in ``names`` (in that order) from the masks of the ``marked`` photos (bool [H, W]
+    at the photo's size), with the registered views of ``model``. ``read_image(name)`` gives a photo as float
+    RGB; ``size_of(name)`` (width, height) is asked for photos SfM did not register (empty masks). Raises
+    :class:`PipelineError` for too few marked views, marked views without a pose, masks of another size than
+    the camera, and marks without a common 3D region; ``source`` names the mask folder in those messages."""
+    settings = settings or MaskPropagationConfig()
+    views = {v.name: v for v in model.views}
+    check_marked(model, marked, source)
+    marked_views = [(views[n], marked[n]) for n in sorted(marked)]
+    hull = visual_hull(model, marked_views, settings, source)
+    refine = settings.refine
+    if refine == "auto":
+        refine = choose_refinement(model, marked_views, read_image, settings)
+    for name in names:
+        if name in marked:
+            yield PropagatedMask(name, marked[name], "given")
+            continue
+        view = views.get(name)
+        if view is None:
+            w, h = size_of(name) if size_of else (1, 1)
+            yield PropagatedMask(name, np.zeros((h, w), bool), "unregistered")
+            continue
+        scale = _work_scale(view, settings)
+        silhouette = project_hull(hull, view, scale)
+        if not silhouette.any():
+            yield PropagatedMask(name, np.zeros((view.height, view.width), bool), "empty")
+            continue
+        refined = None
+        if refine == "grabcut":
+            refined = refine_with_grabcut(_work_image(read_image, view, silhouette.shape), silhouette, settings)
+        mask = silhouette if refined is None else refined
+        yield PropagatedMask(name, _resize_mask(mask, view.width, view.height), "propagated", refined is not None)
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = int((a | b).sum())
+    return 1.0 if union == 0 else float((a & b).sum()) / union
+
+
+def _work_scale(view: ColmapView, settings: MaskPropagationConfig) -> float:
+    return min(1.0, settings.work_size / max(view.width, view.height))
+
+
+def _work_image(read_image: Callable[[str], np.ndarray], view: ColmapView, shape: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    image = read_image(view.name)
+    if image.shape[:2] != shape:
+        image = cv2.resize(image, shape[::-1], interpolation=cv2.INTER_AREA)
+    return image
+
+
+def choose_refinement(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
+                      read_image: Callable[[str], np.ndarray], settings: MaskPropagationConfig) -> str:
+    """``grabcut`` or ``none``, whichever matches the marked masks better when each marked view in turn is
+    left out of the hull and its mask is propagated from the others (mean IoU; ties keep the projection).
+    The hull of one view fewer is looser, which favours GrabCut slightly."""
+    scores = {"grabcut": [], "none": []}
+    for k, (view, mask) in enumerate(marked):
+        others = marked[:k] + marked[k + 1:]
+        try:
+            hull = visual_hull(model, others, settings)
+        except PipelineError:
+            continue
+        scale = _work_scale(view, settings)
+        silhouette = project_hull(hull, view, scale)
+        if not silhouette.any():
+            continue
+        truth = _resize_mask(mask, *silhouette.shape[::-1])
+        cut = refine_with_grabcut(_work_image(read_image, view, silhouette.shape), silhouette, settings)
+        scores["none"].append(_iou(silhouette, truth))
+        scores["grabcut"].append(_iou(silhouette if cut is None else cut, truth))
+    if not scores["none"]:
+        return "none"
+    return "grabcut" if np.mean(scores["grabcut"]) > np.mean(scores["none"]) else "none"
+
+
+def check_marked(model: ColmapModel, marked: dict[str, np.ndarray], source: str = "") -> None:
+    """Refuse fewer than :data:`MIN_MARKED` marked views (suggesting views to mark), marked views SfM did not
+    register, masks whose size is not the camera's, and marks all from one side of the object."""
+    views = {v.name: v for v in model.views}
+    if len(marked) < MIN_MARKED:
+        suggestion = suggest_views(model, 5 - len(marked), exclude=tuple(n for n in marked if n in views))
+        raise PipelineError(
+            f"{len(marked)} marked view(s) ({', '.join(sorted(marked)) or 'none'}); propagating masks needs at "
+            f"least {MIN_MARKED}, spread around the object",
+            path=source or None,
+            fix=f"add masks for {', '.join(suggestion)} (views spread around the capture), or give every photo a "
+            "mask (masks.source: ingest)",
+        )
+    missing = sorted(n for n in marked if n not in views)
+    if missing:
+        others = suggest_views(model, len(missing), exclude=tuple(n for n in marked if n in views))
+        raise PipelineError(
+            f"marked view(s) without a camera pose (SfM did not register them): {', '.join(missing)}",
+            path=source or None,
+            fix=f"mark registered views instead, e.g. {', '.join(others)}, or make SfM register those photos",
+        )
+    for name in sorted(marked):
+        view, mask = views[name], marked[name]
+        if mask.shape != (view.height, view.width):
+            raise PipelineError(
+                f"the mask of {name} is {mask.shape[1]}x{mask.shape[0]} but its camera is {view.width}x{view.height}",
+                path=source or None,
+                fix="export the mask at the photo's resolution",
+            )
+        if not mask.any():
+            raise PipelineError(
+                f"the mask of marked view {name} is empty", path=source or None,
+                fix="mark the see-through surface in white, or remove the empty mask",
+            )
+    dirs = np.stack([views[n].forward for n in marked])
+    spread = np.degrees(np.arccos(np.clip(dirs @ dirs.T, -1.0, 1.0))).max()
+    if spread < 10.0:
+        suggestion = suggest_views(model, 2, exclude=tuple(marked))
+        raise PipelineError(
+            f"the marked views look at the object from one side (their directions differ by at most {spread:.1f} "
+            "degrees): the object's depth is not bounded",
+            path=source or None,
+            fix=f"mark views from other sides too, e.g. {', '.join(suggestion)}",
+        )
