@@ -54,7 +54,7 @@ IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 @dataclass
 class MasksSummary:
     has_masks: bool
-    source: str  # "ingest" | "onnx" | "none"
+    source: str  # "ingest" | "propagate" | "onnx" | "none"
     num_images: int
     mean_coverage: float = 0.0
     coverage: dict[str, float] = field(default_factory=dict)
@@ -63,6 +63,10 @@ class MasksSummary:
     polarity_reason: str = ""
     mask_kinds: dict[str, int] = field(default_factory=dict)  # ingest: how many masks of each kind
     without_mask: list[str] = field(default_factory=list)  # ingest with allow_missing: photos given empty masks
+    marked: list[str] = field(default_factory=list)  # propagate: the photos whose masks were given
+    mask_sources: dict[str, str] = field(default_factory=dict)  # propagate: per photo given | propagated | empty
+    # | unregistered (rtsplat.masks_propagate.PropagatedMask.source)
+    refined: list[str] = field(default_factory=list)  # propagate: photos whose propagated mask GrabCut refined
     scene_dir: str = ""  # the dataset scene they were made for (for messages)
     images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
     photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
@@ -478,19 +482,89 @@ def segment_masks(images: list[Path], out: Path, cfg: MasksConfig, progress: boo
     return coverage, seg.kind
 
 
+def resolve_source(scene_dir: str | Path, cfg: MasksConfig, images: list[Path] | None = None) -> str:
+    """``masks.source`` with ``auto`` decided: ingest when every photo has a mask in ``<scene>/<masks.dir>``
+    (or ``masks.allow_missing``), propagate when only some have one, else onnx when a model is set, else none."""
+    if cfg.source != "auto":
+        return cfg.source
+    mask_dir = Path(scene_dir) / cfg.dir
+    if not list_images(mask_dir):
+        return "onnx" if cfg.onnx.model else "none"
+    if cfg.allow_missing:
+        return "ingest"
+    images = images if images is not None else list_images(Path(scene_dir) / "images")
+    found = match_masks(images, mask_dir)
+    return "ingest" if all(m is not None for m in found.values()) else "propagate"
+
+
+def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | None, out: Path, cfg: MasksConfig,
+                          progress: bool) -> tuple[dict[str, float], dict[str, str], list[str], str, str]:
+    """Masks of the photos that have one in ``mask_dir`` (the marked views) carried to every photo through the
+    cameras of ``<sfm_dir>/sparse/0`` (:func:`rtsplat.masks_propagate.propagate_masks`), written to ``out``.
+    Returns the per-image coverage, each photo's mask source, the photos GrabCut refined, the polarity and why."""
+    from tqdm import tqdm
+
+    from rtsplat.io.colmap import is_model_dir, load_model
+    from rtsplat.io.images import read_raw_pixels
+    from rtsplat.masks_propagate import propagate_masks
+
+    if sfm_dir is None or not is_model_dir(Path(sfm_dir) / "sparse" / "0"):
+        raise PipelineError(
+            "propagating masks from the marked views needs the SfM cameras (sfm/sparse/0)",
+            path=sfm_dir if sfm_dir is not None else "--sfm",
+            fix="run 'rtsplat sfm' first and pass its folder as --sfm (the workflow does this for masks.source "
+            "propagate; sfm.use_masks must then be false)",
+        )
+    model = load_model(Path(sfm_dir) / "sparse" / "0")
+    found = match_masks(images, mask_dir)
+    by_name = {img.name: img for img in images}
+    marked = {}
+    for img, mpath in found.items():
+        if mpath is None:
+            continue
+        mask, _ = interpret_mask(read_raw_pixels(mpath), cfg.threshold, mpath, mpath.suffix.lower() in LOSSY_EXTENSIONS)
+        header = read_header(img)
+        if mask.shape != (header.height, header.width):
+            raise PipelineError(
+                f"mask is {mask.shape[1]}x{mask.shape[0]} but image {img.name} is {header.width}x{header.height}",
+                path=mpath,
+                fix="export the mask at the image's resolution (masks of images_N folders do not fit images/)",
+            )
+        marked[img.name] = mask
+    polarity, reason = decide_polarity({n: float(m.mean()) for n, m in marked.items()}, cfg)
+    if polarity == "black":
+        marked = {n: ~m for n, m in marked.items()}
+
+    def size_of(name: str) -> tuple[int, int]:
+        header = read_header(by_name[name])
+        return header.width, header.height
+
+    coverage, sources, refined = {}, {}, []
+    results = propagate_masks(model, marked, sorted(by_name), lambda n: read_image(by_name[n]), cfg.propagate,
+                              size_of, str(mask_dir))
+    for result in tqdm(results, total=len(by_name), desc="propagate", unit="img", disable=not progress):
+        stem = by_name[result.name].stem
+        write_mask(out / f"{stem}.png", result.mask)
+        coverage[stem] = float(result.mask.mean())
+        sources[result.name] = result.source
+        if result.refined:
+            refined.append(result.name)
+    return coverage, sources, refined, polarity, reason
+
+
 def make_masks(
-    scene_dir: str | Path, out_dir: str | Path, cfg: MasksConfig | None = None, progress: bool = True
+    scene_dir: str | Path, out_dir: str | Path, cfg: MasksConfig | None = None, progress: bool = True,
+    sfm_dir: str | Path | None = None,
 ) -> MasksSummary:
-    """Ingest or segment the masks of ``<scene_dir>/images`` into ``out_dir`` (atomically)."""
+    """Ingest, propagate (with the SfM result ``sfm_dir``) or segment the masks of ``<scene_dir>/images`` into
+    ``out_dir`` (atomically)."""
     cfg = cfg or MasksConfig()
     scene_dir = Path(scene_dir)
-    check_output_dir(out_dir, "masks", inputs=[scene_dir])
+    check_output_dir(out_dir, "masks", inputs=[scene_dir, sfm_dir])
     images = [h.path for h in validate_image_set(scene_dir / "images", decode=False, log=_log)]
     mask_dir = scene_dir / cfg.dir
-    source = cfg.source
-    if source == "auto":
-        source = "ingest" if list_images(mask_dir) else ("onnx" if cfg.onnx.model else "none")
-    if source == "ingest" and not mask_dir.is_dir():
+    source = resolve_source(scene_dir, cfg, images)
+    if source in ("ingest", "propagate") and not mask_dir.is_dir():
         raise PipelineError(
             "mask folder not found",
             path=mask_dir,
@@ -499,8 +573,8 @@ def make_masks(
     if source != "none":
         check_unique_stems(images)
     photos = photo_fingerprints(scene_dir / "images")
-    with output_dir(out_dir, "masks", inputs=[scene_dir]) as tmp:
-        kind, polarity, reason, kinds, missing = "", "white", "", {}, []
+    with output_dir(out_dir, "masks", inputs=[scene_dir, sfm_dir]) as tmp:
+        kind, polarity, reason, kinds, missing, sources, refined = "", "white", "", {}, [], {}, []
         if source == "ingest":
             coverage, kinds, missing = ingest_masks(images, mask_dir, tmp, cfg, progress)
             without = {Path(name).stem for name in missing}
@@ -509,6 +583,9 @@ def make_masks(
                 for stem in set(coverage) - without:
                     write_mask(tmp / f"{stem}.png", ~read_mask(tmp / f"{stem}.png"))
                     coverage[stem] = 1.0 - coverage[stem]
+        elif source == "propagate":
+            coverage, sources, refined, polarity, reason = propagate_from_marked(
+                images, mask_dir, None if sfm_dir is None else Path(sfm_dir), tmp, cfg, progress)
         elif source == "onnx":
             coverage, kind = segment_masks(images, tmp, cfg, progress)
         else:
@@ -524,6 +601,9 @@ def make_masks(
             polarity_reason=reason,
             mask_kinds=kinds,
             without_mask=missing,
+            marked=sorted(n for n, s in sources.items() if s == "given"),
+            mask_sources=sources,
+            refined=refined,
             scene_dir=str(scene_dir.resolve()),
             images_fingerprint=photos_fingerprint(photos),
             photos=photos,
@@ -535,15 +615,18 @@ def make_masks(
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene-dir", type=Path, required=True, help="dataset scene (<data>/<scene>)")
     parser.add_argument("--out", type=Path, required=True, help="output folder (results/<scene>/masks)")
-    parser.add_argument("--source", choices=["auto", "ingest", "onnx", "none"], help="override masks.source")
+    parser.add_argument("--source", choices=["auto", "ingest", "propagate", "onnx", "none"],
+                        help="override masks.source")
+    parser.add_argument("--sfm", type=Path, help="output of 'rtsplat sfm' (needed by masks.source propagate)")
     add_config_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     cfg = stage_config_from_args(args, "masks", {"source": args.source})
-    s = make_masks(args.scene_dir, args.out, cfg)
+    s = make_masks(args.scene_dir, args.out, cfg, sfm_dir=args.sfm)
     if s.has_masks:
-        how = "ingested" if s.source == "ingest" else f"segmented with ONNX ({s.model_kind})"
+        how = {"ingest": "ingested", "propagate": f"propagated from {len(s.marked)} marked views"}.get(
+            s.source, f"segmented with ONNX ({s.model_kind})")
         cover = f"{100 * s.mean_coverage:.2f}%"
         print(f"masks {args.scene_dir}: {s.num_images} masks {how}, mean coverage {cover}")
         if s.source == "ingest":
@@ -552,6 +635,16 @@ def run(args: argparse.Namespace) -> int:
             if s.without_mask:
                 print(f"masks {args.scene_dir}: {len(s.without_mask)} photo(s) without a mask read as having no "
                       f"see-through surface (masks.allow_missing), e.g. {s.without_mask[0]}")
+        if s.source == "propagate":
+            counts = {src: sum(v == src for v in s.mask_sources.values()) for src in set(s.mask_sources.values())}
+            print(f"masks {args.scene_dir}: marked {', '.join(s.marked)}; " + ", ".join(
+                f"{n} {src}" for src, n in sorted(counts.items())) + f"; {len(s.refined)} refined with GrabCut")
+            for src, why in (("empty", "the marked region does not project into them"),
+                             ("unregistered", "SfM gave them no pose")):
+                names = [n for n, v in s.mask_sources.items() if v == src]
+                if names:
+                    print(f"masks {args.scene_dir}: empty masks for {len(names)} photo(s), {why}: "
+                          + ", ".join(names[:10]) + (" ..." if len(names) > 10 else ""))
     else:
         print(f"masks {args.scene_dir}: no masks (the scene is trained without transparency)")
     return 0
