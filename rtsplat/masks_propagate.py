@@ -123,8 +123,8 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def _votes(points: np.ndarray, step: float, marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[np.ndarray, ...]:
-    """Per point: how many marked views have it in frame, and a [views, N] bool of "in frame and inside
-    the view's mask" (each mask dilated by the voxels' footprint) and "in frame" ."""
+    """[views, N] bool: whether each marked view has the point in frame, and whether it sees it inside its
+    mask (dilated by half the voxels' footprint)."""
     inside = np.zeros((len(marked), len(points)), bool)
     seen = np.zeros((len(marked), len(points)), bool)
     for k, (view, mask) in enumerate(marked):
@@ -147,13 +147,15 @@ def _whole_in_frame(mask: np.ndarray) -> bool:
     return not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
 
 
-def _carve(points, step, marked) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Voxels no marked view rules out: outside a view's mask where it has them in frame, or out of frame
-    (or behind) in a view whose mask shows the whole object."""
+def _carve(points, step, marked) -> tuple[np.ndarray, np.ndarray]:
+    """Voxels no marked view rules out, and [views, N] bool of "this view does not rule the voxel out". A view
+    rules a voxel out when it has it in frame outside its mask, or when the voxel is out of frame (or
+    behind) and the view's mask shows the whole object."""
     seen, inside = _votes(points, step, marked)
     whole = np.array([_whole_in_frame(mask) for _, mask in marked])
-    keep = ~(seen & ~inside).any(0) & ~(~seen & whole[:, None]).any(0) & (seen.sum(0) >= min(2, len(marked)))
-    return keep, seen, inside
+    agree = np.where(seen, inside, ~whole[:, None])
+    keep = agree.all(0) & (seen.sum(0) >= min(2, len(marked)))
+    return keep, agree
 
 
 def scene_bound(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
@@ -173,14 +175,12 @@ def scene_bound(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]])
     return target - radius, target + radius
 
 
-def _disagreeing(seen: np.ndarray, inside: np.ndarray, names: list[str]) -> tuple[list[str], int]:
-    """The marked views that exclude the voxels most views mark, and how many views mark those."""
-    agree = inside.sum(0)
-    best = int(agree.max(initial=0))
-    if best == 0:
-        return names, 0
-    top = agree == best
-    return [n for k, n in enumerate(names) if (seen[k, top] & ~inside[k, top]).any()], best
+def _disagreeing(agree: np.ndarray, names: list[str]) -> tuple[list[str], int]:
+    """The marked views that rule out the voxels most views keep, and how many views keep those."""
+    votes = agree.sum(0)
+    best = int(votes.max(initial=0))
+    top = votes == best
+    return [n for k, n in enumerate(names) if not agree[k, top].all()], best
 
 
 def visual_hull(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]], settings: MaskPropagationConfig,
@@ -191,9 +191,9 @@ def visual_hull(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
     names = [v.name for v, _ in marked]
     lo, hi = scene_bound(model, marked)
     points, shape, step = _grid(lo, hi, COARSE_GRID)
-    keep, seen, inside = _carve(points, step, marked)
+    keep, agree = _carve(points, step, marked)
     if not keep.any():
-        views, best = _disagreeing(seen, inside, names)
+        views, best = _disagreeing(agree, names)
         raise PipelineError(
             f"the marked views' masks share no 3D region (at most {best} of {len(names)} marked views agree on a "
             f"point; views that disagree: {', '.join(views)})",
@@ -204,7 +204,7 @@ def visual_hull(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
     part = points[keep]
     lo, hi = part.min(0) - 1.5 * step, part.max(0) + 1.5 * step
     points, shape, step = _grid(lo, hi, settings.grid)
-    keep, _, _ = _carve(points, step, marked)
+    keep, _ = _carve(points, step, marked)
     occupied = keep.reshape(shape)
     labels, count = ndimage.label(occupied)
     if count > 1:

@@ -3,8 +3,23 @@
 import shlex
 from pathlib import Path
 
-from rtsplat.config import scene_config
+from rtsplat.config import ConfigError, scene_config
 from rtsplat.io.colmap import dataset_model_dir
+from rtsplat.masks import resolve_source
+
+
+def propagates_masks(scene):
+    """Whether the scene's masks are propagated from marked views (then the masks rule needs the SfM result)."""
+    cfg = scene_config(CFG, scene)
+    if resolve_source(Path(DATA, scene), cfg.masks) != "propagate":
+        return False
+    if cfg.sfm.use_masks:
+        raise ConfigError(
+            f"scene {scene}: masks propagated from marked views need the SfM cameras, and sfm.use_masks needs the masks",
+            path="config: sfm.use_masks",
+            fix="set sfm.use_masks: false for this scene, or give every photo a mask",
+        )
+    return True
 
 
 def masks_inputs(wildcards):
@@ -12,6 +27,8 @@ def masks_inputs(wildcards):
     cfg = scene_config(CFG, wildcards.scene).masks
     if Path(DATA, wildcards.scene, cfg.dir).is_dir():
         inputs["dataset_masks"] = f"{DATA}/{wildcards.scene}/{cfg.dir}"
+    if propagates_masks(wildcards.scene):
+        inputs["sfm"] = out(wildcards.scene, "sfm")
     onnx = cfg.onnx
     for key in ("model", "encoder"):
         if getattr(onnx, key):
@@ -27,6 +44,10 @@ def sfm_inputs(wildcards):
     if scene_config(CFG, wildcards.scene).sfm.use_masks:
         inputs["masks"] = out(wildcards.scene, "masks")
     return inputs
+
+
+def masks_sfm_arg(wildcards, input):
+    return f"--sfm {shlex.quote(str(input.sfm))}" if "sfm" in input.keys() else ""
 
 
 def sfm_masks_arg(wildcards, input):
@@ -45,10 +66,12 @@ rule masks:
     params:
         scene_dir=scene_dir,
         cfg=stage_json("masks"),
+        sfm=masks_sfm_arg,
     conda:
         ENV
     shell:
-        "{RTSPLAT} masks --scene-dir {params.scene_dir:q} --out {output:q} --config-json {params.cfg} > {log:q} 2>&1"
+        "{RTSPLAT} masks --scene-dir {params.scene_dir:q} --out {output:q} {params.sfm} --config-json {params.cfg} "
+        "> {log:q} 2>&1"
 
 
 rule sfm:

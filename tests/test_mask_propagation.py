@@ -1,0 +1,175 @@
+"""Masks propagated from a few marked views (rtsplat.masks_propagate, masks.source propagate) on a small
+ray-cast scene whose true masks are known (tests/masks_scene.py)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rtsplat.config import MaskPropagationConfig, MasksConfig
+from rtsplat.errors import PipelineError
+from rtsplat.io.colmap import ColmapImage, ColmapPoints, ColmapView, write_sparse_model
+from rtsplat.io.images import read_mask, write_mask, write_png
+from rtsplat.masks import make_masks
+from rtsplat.masks_propagate import check_marked, project_hull, propagate_masks, suggest_views, visual_hull
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from masks_scene import look_at, render, ring_model  # noqa: E402
+
+VIEWS = 16
+FAST = MaskPropagationConfig(grid=64)
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum()) / max(int((a | b).sum()), 1)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    model = ring_model(VIEWS)
+    return model, {v.name: render(v) for v in model.views}
+
+
+def _propagate(model, rendered, marked, refine):
+    cfg = MaskPropagationConfig(grid=64, refine=refine)
+    names = [v.name for v in model.views]
+    return list(propagate_masks(model, {n: rendered[n][1] for n in marked}, names, lambda n: rendered[n][0], cfg))
+
+
+@pytest.mark.parametrize("refine", ["none", "auto"])
+def test_masks_from_five_marked_views_match_the_true_masks(scene, refine):
+    model, rendered = scene
+    marked = suggest_views(model, 5)
+    results = _propagate(model, rendered, marked, refine)
+    assert [r.name for r in results] == [v.name for v in model.views]
+    scores = [iou(r.mask, rendered[r.name][1]) for r in results if r.source == "propagated"]
+    assert len(scores) == VIEWS - 5
+    assert all(r.source == "given" for r in results if r.name in marked)
+    assert np.mean(scores) >= 0.85
+    assert min(scores) >= 0.7
+
+
+def test_the_hull_silhouette_holds_the_object(scene):
+    # a visual hull contains the object: its projection covers (nearly) every true mask pixel
+    model, rendered = scene
+    marked = [(model.view(n), rendered[n][1]) for n in suggest_views(model, 4)]
+    hull = visual_hull(model, marked, FAST)
+    for view in model.views:
+        silhouette, truth = project_hull(hull, view), rendered[view.name][1]
+        assert (silhouette & truth).sum() >= 0.97 * truth.sum()
+        assert silhouette.sum() <= 2.0 * truth.sum()
+
+
+def test_suggested_views_are_spread_around_the_capture(scene):
+    model, _ = scene
+    picks = suggest_views(model, 4)
+    assert len(set(picks)) == 4
+    centres = np.stack([model.view(n).center for n in picks])
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=2)[np.triu_indices(4, 1)]
+    ring_step = np.linalg.norm(model.views[0].center - model.views[1].center)
+    assert gaps.min() > 2.5 * ring_step  # no two neighbours on the ring of 16
+
+
+def test_too_few_marked_views_suggests_views_to_mark(scene):
+    model, rendered = scene
+    with pytest.raises(PipelineError, match="at least 3") as err:
+        check_marked(model, {n: rendered[n][1] for n in ("view_000.png", "view_008.png")})
+    suggested = err.value.fix.split("add masks for ")[1].split(" (")[0].split(", ")
+    assert len(suggested) == 3 and all(s in rendered for s in suggested)
+    assert not {"view_000.png", "view_008.png"} & set(suggested)
+
+
+def test_marked_views_without_a_pose_are_named(scene):
+    model, rendered = scene
+    marked = {n: rendered[n][1] for n in ("view_000.png", "view_005.png", "view_010.png")}
+    marked["IMG_lost.png"] = rendered["view_003.png"][1]
+    with pytest.raises(PipelineError, match=r"SfM did not register them\): IMG_lost.png"):
+        check_marked(model, marked)
+
+
+def test_marks_from_one_side_are_refused(scene):
+    model, rendered = scene
+    near = ring_model(400).views[0:6:2]  # three cameras 1.8 degrees apart at one height
+    one_side = type(model)(near, model.xyz)
+    marked = {v.name: render(v)[1] for v in near}
+    with pytest.raises(PipelineError, match="from one side"):
+        check_marked(one_side, marked)
+
+
+def test_disagreeing_marks_name_the_views(scene):
+    model, rendered = scene
+    marked = {n: rendered[n][1].copy() for n in ("view_000.png", "view_005.png", "view_010.png")}
+    wrong = np.zeros_like(marked["view_005.png"])
+    wrong[:10, :10] = True  # the corner of the picture: no point there is inside the other two masks
+    marked["view_005.png"] = wrong
+    with pytest.raises(PipelineError, match="share no 3D region") as err:
+        list(propagate_masks(model, marked, ["view_001.png"], lambda n: rendered[n][0], FAST))
+    assert "view_005.png" in str(err.value)
+
+
+# ----------------------------------------------------------------------------------------------
+# the stage
+
+
+def _write_scene(root: Path, model, rendered, marked, mask_size=None) -> tuple[Path, Path]:
+    scene = root / "scene"
+    (scene / "images").mkdir(parents=True)
+    (scene / "transparent_masks").mkdir()
+    for name, (image, mask) in rendered.items():
+        write_png(scene / "images" / name, image)
+        if name in marked:
+            if mask_size is not None:
+                mask = np.zeros(mask_size[::-1], bool)
+                mask[2:8, 2:8] = True
+            write_mask(scene / "transparent_masks" / name, mask)
+    images = [ColmapImage(v.name, v.K, v.world_to_camera, v.width, v.height) for v in model.views]
+    write_sparse_model(root / "sfm" / "sparse" / "0", images,
+                       ColmapPoints(model.xyz, np.full((len(model.xyz), 3), 128, np.uint8), [[] for _ in model.xyz]))
+    return scene, root / "sfm"
+
+
+def test_stage_propagates_and_records_each_masks_source(scene, tmp_path):
+    model, rendered = scene
+    rendered = dict(rendered)
+    marked = suggest_views(model, 5)
+    away = ColmapView("view_away.png", 96, 72, "PINHOLE", model.views[0].params, model.views[0].K,
+                      look_at(np.array([3.0, 0.0, 0.0]), np.array([6.0, 0.0, 0.0])))
+    rendered[away.name] = render(away)
+    lost_image, lost_mask = render(model.views[3])
+    rendered["view_lost.png"] = (lost_image[::-1].copy(), lost_mask[::-1].copy())  # a photo SfM did not register
+    model = type(model)(model.views + [away], model.xyz)
+    scene_dir, sfm = _write_scene(tmp_path, model, rendered, marked)
+    cfg = MasksConfig(propagate=FAST)  # source auto: some photos have a mask
+    summary = make_masks(scene_dir, tmp_path / "masks", cfg, progress=False, sfm_dir=sfm)
+    assert summary.source == "propagate" and summary.has_masks
+    assert sorted(summary.marked) == sorted(marked)
+    assert summary.mask_sources["view_away.png"] == "empty"
+    assert summary.mask_sources["view_lost.png"] == "unregistered"
+    assert sum(s == "propagated" for s in summary.mask_sources.values()) == VIEWS - 5
+    written = json.loads((tmp_path / "masks" / "summary.json").read_text())
+    assert written["mask_sources"] == summary.mask_sources
+    assert not read_mask(tmp_path / "masks" / "view_away.png").any()
+    assert not read_mask(tmp_path / "masks" / "view_lost.png").any()
+    scores = [iou(read_mask(tmp_path / "masks" / n), rendered[n][1])
+              for n, s in summary.mask_sources.items() if s == "propagated"]
+    assert np.mean(scores) >= 0.85
+
+
+def test_stage_refuses_marked_masks_of_another_size(scene, tmp_path):
+    model, rendered = scene
+    scene_dir, sfm = _write_scene(tmp_path, model, rendered, suggest_views(model, 3), mask_size=(48, 36))
+    with pytest.raises(PipelineError, match="mask is 48x36 but image") as err:
+        make_masks(scene_dir, tmp_path / "masks", MasksConfig(source="propagate", propagate=FAST), progress=False,
+                   sfm_dir=sfm)
+    assert "transparent_masks" in str(err.value)
+
+
+def test_stage_without_the_sfm_result_says_what_to_pass(scene, tmp_path):
+    model, rendered = scene
+    scene_dir, _ = _write_scene(tmp_path, model, rendered, suggest_views(model, 3))
+    with pytest.raises(PipelineError, match="needs the SfM cameras"):
+        make_masks(scene_dir, tmp_path / "masks", MasksConfig(propagate=FAST), progress=False)
