@@ -183,6 +183,10 @@ class MaskPropagationConfig:
         0.5, help="a GrabCut result keeping less than this fraction of the projected hull is dropped for the "
         "projection (glass that looks like what is behind it)", minimum=0.0, maximum=1.0,
     )
+    occlusion: bool = _f(
+        True, help="SfM points in front of the marked object hide it: they keep a marked view from carving what "
+        "they hide, and leave it out of the propagated masks"
+    )
     work_size: int = _f(1024, help="longest image side the projection and GrabCut work at", minimum=64)
     min_part: float = _f(
         0.05, help="hull parts smaller than this fraction of the largest part are dropped", minimum=0.0, maximum=1.0

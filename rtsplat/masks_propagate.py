@@ -122,11 +122,41 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), kernel) > 0
 
 
-def _votes(points: np.ndarray, step: float, marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[np.ndarray, ...]:
-    """[views, N] bool: whether each marked view has the point in frame, and whether it sees it inside its
-    mask (dilated by half the voxels' footprint)."""
+def opaque_depth(view: ColmapView, xyz: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """Depth of the nearest SfM point at each pixel of ``view`` (its size times ``scale``; inf where none):
+    each point covers a disc of the mean spacing of the points in frame, so a sparse surface hides
+    what lies behind it."""
+    import cv2
+
+    h, w = int(round(view.height * scale)), int(round(view.width * scale))
+    depth = np.full((h, w), np.inf, np.float32)
+    if not len(xyz):
+        return depth
+    uv, z, front = project_points(view, xyz)
+    u = np.floor(uv[:, 0] * scale).astype(np.int64)
+    v = np.floor(uv[:, 1] * scale).astype(np.int64)
+    ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    if not ok.any():
+        return depth
+    np.minimum.at(depth, (v[ok], u[ok]), z[ok].astype(np.float32))
+    radius = int(max(1, round(np.sqrt(h * w / ok.sum()))))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    return cv2.erode(depth, kernel)
+
+
+def _occluded(depth: np.ndarray, z: np.ndarray, step: float) -> np.ndarray:
+    """Whether an opaque depth lies clearly in front of ``z`` (two voxels and 2% of the depth)."""
+    with np.errstate(invalid="ignore"):  # inf - inf where neither has a depth: not hidden
+        return depth < z - 2.0 * step - 0.02 * z
+
+
+def _votes(points: np.ndarray, step: float, marked: list[tuple[ColmapView, np.ndarray]],
+           xyz: np.ndarray) -> tuple[np.ndarray, ...]:
+    """[views, N] bool: whether each marked view has the point in frame, whether it sees it inside its mask
+    (dilated by half the voxels' footprint), and whether SfM points ``xyz`` hide it there."""
     inside = np.zeros((len(marked), len(points)), bool)
     seen = np.zeros((len(marked), len(points)), bool)
+    hidden = np.zeros((len(marked), len(points)), bool)
     for k, (view, mask) in enumerate(marked):
         uv, z, front = project_points(view, points)
         if not front.any():
@@ -139,7 +169,10 @@ def _votes(points: np.ndarray, step: float, marked: list[tuple[ColmapView, np.nd
         visible = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         seen[k] = visible
         inside[k, visible] = grown[v[visible], u[visible]]
-    return seen, inside
+        if len(xyz):
+            depth = opaque_depth(view, xyz)
+            hidden[k, visible] = _occluded(depth[v[visible], u[visible]], z[visible], step)
+    return seen, inside, hidden
 
 
 def _whole_in_frame(mask: np.ndarray) -> bool:
@@ -147,14 +180,15 @@ def _whole_in_frame(mask: np.ndarray) -> bool:
     return not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
 
 
-def _carve(points, step, marked) -> tuple[np.ndarray, np.ndarray]:
+def _carve(points, step, marked, xyz) -> tuple[np.ndarray, np.ndarray]:
     """Voxels no marked view rules out, and [views, N] bool of "this view does not rule the voxel out". A view
-    rules a voxel out when it has it in frame outside its mask, or when the voxel is out of frame (or
-    behind) and the view's mask shows the whole object."""
-    seen, inside = _votes(points, step, marked)
+    rules a voxel out when it has it in frame outside its mask with no SfM point of ``xyz`` in front, or when
+    the voxel is out of frame (or behind) and the view's mask shows the whole object. A kept voxel is seen
+    unhidden inside the masks of at least two views."""
+    seen, inside, hidden = _votes(points, step, marked, xyz)
     whole = np.array([_whole_in_frame(mask) for _, mask in marked])
-    agree = np.where(seen, inside, ~whole[:, None])
-    keep = agree.all(0) & (seen.sum(0) >= min(2, len(marked)))
+    agree = np.where(seen, inside | hidden, ~whole[:, None])
+    keep = agree.all(0) & ((seen & inside & ~hidden).sum(0) >= min(2, len(marked)))
     return keep, agree
 
 
@@ -191,7 +225,8 @@ def visual_hull(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
     names = [v.name for v, _ in marked]
     lo, hi = scene_bound(model, marked)
     points, shape, step = _grid(lo, hi, COARSE_GRID)
-    keep, agree = _carve(points, step, marked)
+    occluders = model.xyz if settings.occlusion else np.zeros((0, 3))
+    keep, agree = _carve(points, step, marked, occluders)
     if not keep.any():
         views, best = _disagreeing(agree, names)
         raise PipelineError(
@@ -204,7 +239,7 @@ def visual_hull(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
     part = points[keep]
     lo, hi = part.min(0) - 1.5 * step, part.max(0) + 1.5 * step
     points, shape, step = _grid(lo, hi, settings.grid)
-    keep, _ = _carve(points, step, marked)
+    keep, _ = _carve(points, step, marked, occluders)
     occupied = keep.reshape(shape)
     labels, count = ndimage.label(occupied)
     if count > 1:
@@ -218,14 +253,15 @@ def visual_hull(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
 # per view
 
 
-def project_hull(hull: Hull, view: ColmapView, scale: float = 1.0) -> np.ndarray:
+def project_hull(hull: Hull, view: ColmapView, scale: float = 1.0, occluders: np.ndarray | None = None) -> np.ndarray:
     """The hull's silhouette in ``view`` (bool, the view's size times ``scale``): every boundary voxel
-    splatted as a disc of half its projected size, holes filled."""
+    splatted as a disc of half its projected size, holes filled; with ``occluders`` (SfM points) the
+    pixels where those lie clearly in front of the hull's nearest voxel are left out."""
     import cv2
     from scipy import ndimage
 
     h, w = int(round(view.height * scale)), int(round(view.width * scale))
-    out = np.zeros((h, w), bool)
+    nearest = np.full((h, w), np.inf, np.float32)
     uv, z, front = project_points(view, hull.points)
     uv = uv * scale
     radius = np.zeros(len(z), np.int64)
@@ -234,15 +270,20 @@ def project_hull(hull: Hull, view: ColmapView, scale: float = 1.0) -> np.ndarray
     v = np.floor(uv[:, 1]).astype(np.int64)
     near = front & (u >= -radius) & (u < w + radius) & (v >= -radius) & (v < h + radius)
     if not near.any():
-        return out
+        return np.zeros((h, w), bool)
     for r in np.unique(radius[near]):
         sel = near & (radius == r)
         pad = int(r) + 1
-        canvas = np.zeros((h + 2 * pad, w + 2 * pad), np.uint8)
-        canvas[v[sel] + pad, u[sel] + pad] = 1
+        canvas = np.full((h + 2 * pad, w + 2 * pad), np.inf, np.float32)
+        np.minimum.at(canvas, (v[sel] + pad, u[sel] + pad), z[sel].astype(np.float32))
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(r) + 1, 2 * int(r) + 1))
-        out |= cv2.dilate(canvas, kernel)[pad:-pad, pad:-pad] > 0
-    return ndimage.binary_fill_holes(out)
+        nearest = np.minimum(nearest, cv2.erode(canvas, kernel)[pad:-pad, pad:-pad])
+    covered = np.isfinite(nearest)
+    out = ndimage.binary_fill_holes(covered)
+    if occluders is None or not len(occluders) or not covered.any():
+        return out
+    nearest[out & ~covered] = np.median(nearest[covered])
+    return out & ~_occluded(opaque_depth(view, occluders, scale), nearest, hull.step)
 
 
 def refine_with_grabcut(image: np.ndarray, silhouette: np.ndarray,
@@ -307,6 +348,7 @@ def propagate_masks(
     check_marked(model, marked, source)
     marked_views = [(views[n], marked[n]) for n in sorted(marked)]
     hull = visual_hull(model, marked_views, settings, source)
+    occluders = model.xyz if settings.occlusion else None
     refine = settings.refine
     if refine == "auto":
         refine = choose_refinement(model, marked_views, read_image, settings)
@@ -320,7 +362,7 @@ def propagate_masks(
             yield PropagatedMask(name, np.zeros((h, w), bool), "unregistered")
             continue
         scale = _work_scale(view, settings)
-        silhouette = project_hull(hull, view, scale)
+        silhouette = project_hull(hull, view, scale, occluders)
         if not silhouette.any():
             yield PropagatedMask(name, np.zeros((view.height, view.width), bool), "empty")
             continue
@@ -362,7 +404,7 @@ def choose_refinement(model: ColmapModel, marked: list[tuple[ColmapView, np.ndar
         except PipelineError:
             continue
         scale = _work_scale(view, settings)
-        silhouette = project_hull(hull, view, scale)
+        silhouette = project_hull(hull, view, scale, model.xyz if settings.occlusion else None)
         if not silhouette.any():
             continue
         truth = _resize_mask(mask, *silhouette.shape[::-1])

@@ -64,6 +64,22 @@ def test_the_hull_silhouette_holds_the_object(scene):
         assert silhouette.sum() <= 2.0 * truth.sum()
 
 
+def test_sfm_points_in_front_of_the_object_hide_it(scene):
+    # a wall of points halfway between the camera and the object, over the upper half of the picture
+    model, rendered = scene
+    marked = [(model.view(n), rendered[n][1]) for n in suggest_views(model, 5)]
+    hull = visual_hull(model, marked, FAST)
+    view = model.views[1]
+    R, centre = view.world_to_camera[:3, :3], view.center
+    x, y = np.meshgrid(np.linspace(-1.0, 1.0, 60), np.linspace(-1.0, 0.0, 30))
+    wall = np.stack([x.ravel(), y.ravel(), np.full(x.size, 1.5)], 1) @ R + centre  # camera -> world
+    free, hidden = project_hull(hull, view), project_hull(hull, view, occluders=wall)
+    rows = np.arange(view.height)
+    upper, lower = rows < view.height / 2 - 3, rows > view.height / 2 + 3
+    assert free[upper].sum() > 50 and not hidden[upper].any()
+    assert free[lower].sum() > 50 and (hidden == free)[lower].all()
+
+
 def test_suggested_views_are_spread_around_the_capture(scene):
     model, _ = scene
     picks = suggest_views(model, 4)

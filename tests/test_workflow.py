@@ -195,7 +195,8 @@ def test_masks_of_a_few_marked_views_make_the_masks_rule_wait_for_sfm(tmp_path):
     make_corner_scene(tmp_path / "data" / "marked", n_views=9, width=160, height=120, with_masks=True)
     for mask in sorted((tmp_path / "data" / "marked" / "transparent_masks").iterdir())[3:]:
         mask.unlink()  # three marked views: masks.source auto propagates them
-    r = snakemake(tmp_path, "-n", "-p", str(tmp_path / "results" / "marked" / "masks"), config=_config(tmp_path, overrides={}))
+    target = str(tmp_path / "results" / "marked" / "masks")
+    r = snakemake(tmp_path, "-n", "-p", target, config=_config(tmp_path, overrides={}))
     assert r.returncode == 0, r.stderr + r.stdout
     out = r.stdout + r.stderr
     assert _job_counts(out)["sfm"] == 1
@@ -203,7 +204,7 @@ def test_masks_of_a_few_marked_views_make_the_masks_rule_wait_for_sfm(tmp_path):
     assert f"--sfm {tmp_path}/results/marked/sfm" in masks
     # sfm.use_masks would make sfm wait for the masks that wait for sfm: refused, naming the key
     config = _config(tmp_path, overrides={}, defaults={"sfm": {"use_masks": True}})
-    r = snakemake(tmp_path, "-n", str(tmp_path / "results" / "marked" / "masks"), config=config)
+    r = snakemake(tmp_path, "-n", target, config=config)
     assert r.returncode != 0 and "sfm.use_masks" in r.stdout + r.stderr
 
 
