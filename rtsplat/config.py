@@ -198,8 +198,9 @@ class MasksConfig:
     """Transparent-surface masks (white = see-through surface)."""
 
     source: Literal["auto", "ingest", "propagate", "onnx", "none"] = _f(
-        "auto", help="auto: ingest <scene>/<dir> when every photo has a mask there (or allow_missing), propagate "
-        "when only some have one (the marked views), else segment when onnx.model is set, else none"
+        "auto", help="auto: when <scene>/<dir> has masks, propagate them if fewer than half the photos have one "
+        "(the marked views; not with allow_missing), else ingest them; without masks segment when onnx.model is "
+        "set, else none"
     )
     dir: str = _f(
         "transparent_masks",

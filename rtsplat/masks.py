@@ -433,8 +433,9 @@ def ingest_masks(
             f"no mask for image {first.name} ({len(missing)} of {len(images)} photos have none): looked for "
             f"{first.name}, {first.stem}.<image extension> and {first.name}.png",
             path=mask_dir,
-            fix="add the missing masks, or set masks.allow_missing: true to read those photos as having no "
-            "see-through surface (empty masks)",
+            fix="add the missing masks, set masks.allow_missing: true to read those photos as having no "
+            "see-through surface (empty masks), or masks.source: propagate to carry the given masks to them "
+            "through the SfM cameras",
         )
     coverage, kinds = {}, {}
     for img in tqdm(images, desc="masks", unit="img", disable=not progress):
@@ -483,8 +484,10 @@ def segment_masks(images: list[Path], out: Path, cfg: MasksConfig, progress: boo
 
 
 def resolve_source(scene_dir: str | Path, cfg: MasksConfig, images: list[Path] | None = None) -> str:
-    """``masks.source`` with ``auto`` decided: ingest when every photo has a mask in ``<scene>/<masks.dir>``
-    (or ``masks.allow_missing``), propagate when only some have one, else onnx when a model is set, else none."""
+    """``masks.source`` with ``auto`` decided: propagate when fewer than half the photos have a mask in
+    ``<scene>/<masks.dir>`` (the marked views; not with ``masks.allow_missing``), ingest when more have one
+    (a missing mask is then an error, or an empty mask with ``masks.allow_missing``), else onnx when a model
+    is set, else none."""
     if cfg.source != "auto":
         return cfg.source
     mask_dir = Path(scene_dir) / cfg.dir
@@ -494,7 +497,7 @@ def resolve_source(scene_dir: str | Path, cfg: MasksConfig, images: list[Path] |
         return "ingest"
     images = images if images is not None else list_images(Path(scene_dir) / "images")
     found = match_masks(images, mask_dir)
-    return "ingest" if all(m is not None for m in found.values()) else "propagate"
+    return "propagate" if 2 * sum(m is not None for m in found.values()) < len(found) else "ingest"
 
 
 def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | None, out: Path, cfg: MasksConfig,
@@ -508,15 +511,17 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
     from rtsplat.io.images import read_raw_pixels
     from rtsplat.masks_propagate import propagate_masks
 
+    found = match_masks(images, mask_dir)
     if sfm_dir is None or not is_model_dir(Path(sfm_dir) / "sparse" / "0"):
+        given = sum(m is not None for m in found.values())
         raise PipelineError(
-            "propagating masks from the marked views needs the SfM cameras (sfm/sparse/0)",
+            f"{given} of {len(images)} photos have a mask in {mask_dir.name}/: propagating them to the others "
+            "needs the SfM cameras (sfm/sparse/0)",
             path=sfm_dir if sfm_dir is not None else "--sfm",
             fix="run 'rtsplat sfm' first and pass its folder as --sfm (the workflow does this for masks.source "
             "propagate; sfm.use_masks must then be false)",
         )
     model = load_model(Path(sfm_dir) / "sparse" / "0")
-    found = match_masks(images, mask_dir)
     by_name = {img.name: img for img in images}
     marked = {}
     for img, mpath in found.items():

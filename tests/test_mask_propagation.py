@@ -187,5 +187,5 @@ def test_stage_refuses_marked_masks_of_another_size(scene, tmp_path):
 def test_stage_without_the_sfm_result_says_what_to_pass(scene, tmp_path):
     model, rendered = scene
     scene_dir, _ = _write_scene(tmp_path, model, rendered, suggest_views(model, 3))
-    with pytest.raises(PipelineError, match="needs the SfM cameras"):
+    with pytest.raises(PipelineError, match="3 of 16 photos have a mask in transparent_masks/: propagating"):
         make_masks(scene_dir, tmp_path / "masks", MasksConfig(propagate=FAST), progress=False)
