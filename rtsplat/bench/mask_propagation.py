@@ -37,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--marked", default="3,5,8", help="numbers of marked views, comma-separated")
     parser.add_argument("--refine", default="auto,grabcut,none", help="refinements to compare, comma-separated")
     parser.add_argument("--grid", type=int, default=MaskPropagationConfig.grid)
+    parser.add_argument("--no-occlusion", action="store_true", help="SfM points do not hide the object")
     args = parser.parse_args(argv)
     model = load_model(args.model or dataset_model_dir(args.data))
     images = list_images(args.data / "images")
@@ -48,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     for refine in args.refine.split(","):
         for count in (int(c) for c in args.marked.split(",")):
             marked = suggest_views(model, count)
-            settings = MaskPropagationConfig(grid=args.grid, refine=refine)
+            settings = MaskPropagationConfig(grid=args.grid, refine=refine, occlusion=not args.no_occlusion)
             start = time.perf_counter()
             scores, refined = {}, 0
             for out in propagate_masks(model, {n: masks[n] for n in marked}, names,
