@@ -1,11 +1,14 @@
 """``rtsplat masks``: transparent-surface masks (white = see-through surface), one PNG per image.
 
-Two ways (function API :func:`make_masks`):
+Three ways (function API :func:`make_masks`; :func:`resolve_source` decides ``masks.source: auto``):
 
 * **ingest** ``<scene>/transparent_masks/``: one mask per photo, named like the photo (``IMG_0001.JPG``),
   after its stem with any image extension (``IMG_0001.png``) or COLMAP's way (``IMG_0001.JPG.png``)
   (:func:`match_masks`); names and sizes are validated against the images, masks are binarised (JPEG
   masks with a tolerance for compression noise, :func:`interpret_mask`), coverage is reported;
+* **propagate** the masks of a few marked photos (fewer than half the photos have one, at least 3) to every
+  photo through the SfM cameras of ``--sfm`` (:mod:`rtsplat.masks_propagate`); the summary records each
+  mask's source (``mask_sources``: given, propagated, empty, unregistered);
 * **segment** with a local ONNX model through onnxruntime (:class:`OnnxSegmenter`): the common SAM
   and SAM2 exports (an image encoder plus a prompted mask decoder; the kind is detected from the
   decoder's input names) prompted by the points/box of the config, or a plain "image in, mask
