@@ -13,15 +13,23 @@ PYTEST_ARGS ?=
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.rtsplat-installed
 
-.PHONY: demo targets raster-demo test test-fast lint bench clean-venv
+.PHONY: demo targets raster-demo test test-fast lint bench clean-venv chromium
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; run 'make PYTHON=python3' with Python >= 3.10"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet $(TORCH_SPEC) $(TORCH_INDEX)
-	$(BIN)/pip install --quiet -e ".[pipeline,dev]"
+	$(BIN)/pip install --quiet -e ".[pipeline,viewer,dev]"
 	@touch $@
+
+# The viewer's browser test (tests/test_viewer.py) drives a real Chromium: installed from the Debian
+# packages when missing (root needed), never downloaded by playwright.
+chromium:
+	@command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" != 0 ]; then echo "error: the viewer test needs Chromium; run 'sudo apt-get install -y chromium' (Debian/Ubuntu) or install Chromium another way"; exit 1; fi; \
+	  command -v apt-get >/dev/null 2>&1 || { echo "error: the viewer test needs Chromium and apt-get is not here; install Chromium with this system's package manager"; exit 1; }; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }
 
 # The main job: synthesize a glass dome (Mitsuba 3), then the whole Snakemake DAG (SfM from the
 # images, masks, prepare, train the methods of demo/config.yaml, render, metrics, report).
@@ -47,7 +55,7 @@ targets: $(STAMP)
 raster-demo: $(STAMP)
 	$(BIN)/python -m rtsplat.demo --out demo_out
 
-test: $(STAMP)
+test: $(STAMP) chromium
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 test-fast: $(STAMP)

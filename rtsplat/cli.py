@@ -48,6 +48,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("train", "rtsplat.train.cli", "train an RT-Splatting model on a prepared scene"),
     Stage("render", "rtsplat.render", "render test views, decomposed layers and measure FPS"),
     Stage("fps", "rtsplat.fps", "time the test views' renders in a job of their own (FPS)"),
+    Stage("view", "rtsplat.viewer", "look at a trained run in the browser: layers, scene edits, views"),
     Stage("metrics", "rtsplat.metrics", "PSNR/SSIM/LPIPS on the entire image and transparent region"),
     Stage("report", "rtsplat.report", "benchmark report (HTML + Markdown)"),
     Stage("synth", "rtsplat.synth.cli", "render a ground-truth benchmark scene with Mitsuba 3"),

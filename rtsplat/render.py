@@ -160,10 +160,12 @@ class LoadedRun:
         return self.model.render(camera, stage="full", raster_settings=self.checkpoint.raster, backend=self.backend)
 
 
-def load_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "test", edits: Edits | None = None,
+def load_run(run_dir: str | Path, data_dir: str | Path | None, *, split: str = "test", edits: Edits | None = None,
              backend: str = "auto", device: str = "auto") -> LoadedRun:
-    """The model of ``run_dir`` on ``device`` (:func:`rtsplat.devices.resolve_device`) with ``edits``
-    applied, and the ``split`` views of the prepared scene with the run's pose corrections."""
+    """The model of ``run_dir`` on ``device`` (:func:`rtsplat.devices.resolve_device`; a checkpoint saved
+    on another device is moved there) with ``edits`` applied, and the ``split`` views of the prepared scene
+    ``data_dir`` with the run's pose corrections. ``data_dir`` None: the prepared scene the run recorded
+    it was trained on."""
     from rtsplat.model.checkpoint import read_checkpoint
     from rtsplat.raster import check_backend_name
     from rtsplat.scene import PreparedScene
@@ -175,11 +177,20 @@ def load_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "test", 
     if not model_path.is_file():
         raise PipelineError("no trained model here", path=model_path,
                             fix="run `rtsplat train` to completion for this run directory first")
-    scene = PreparedScene.load(data_dir)
+    if data_dir is None:
+        checkpoint = read_checkpoint(model_path, device=device)
+        data_dir = (checkpoint.training.get("data") or {}).get("path")
+        if not data_dir or not Path(data_dir).is_dir():
+            raise PipelineError(f"the prepared scene this run was trained on is not at {data_dir!r}",
+                                path=model_path, fix="pass the prepared scene with --data")
+        scene = PreparedScene.load(data_dir)
+    else:
+        scene = PreparedScene.load(data_dir)
+        checkpoint = None
     records = scene.test_cameras if split == "test" else scene.train_cameras if split == "train" else scene.cameras
     if not records:
         raise PipelineError(f"the prepared scene has no {split!r} views", path=data_dir)
-    checkpoint = read_checkpoint(model_path, device=device)
+    checkpoint = checkpoint or read_checkpoint(model_path, device=device)
     scene.check_run_belongs(checkpoint.training.get("data"), run_dir)
     model = checkpoint.build_model(device)
     model.eval()
@@ -187,6 +198,19 @@ def load_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "test", 
     cameras = corrected_cameras(records, checkpoint.training.get("camera_corrections", {}), device)
     appearance = checkpoint.training.get("appearance_corrections", {})
     return LoadedRun(list(records), cameras, model, checkpoint, device, backend, appearance)
+
+
+def render_images(run: LoadedRun, camera, edits: Edits, appearance=None) -> dict[str, Tensor]:
+    """Every layer of :data:`LAYER_DIRS` ([H, W, 3], not clamped) of one render of ``camera``, after the
+    image-space ``edits`` (the parameter edits are already in ``run.model``); ``appearance`` (a view's [6]
+    correction, :mod:`rtsplat.model.appearance`) gives the final image that photo's exposure and white balance."""
+    result = run.render(camera)
+    images = decompose(result, edits)
+    if appearance is not None:
+        images["color"] = apply_appearance(images["color"], torch.as_tensor(appearance, device=run.device))
+    images["normal"] = _normal_image(result.layers["normal"])
+    images["depth"] = _depth_image(result.layers["depth"], result.layers["alpha"])
+    return images
 
 
 def time_renders(run: LoadedRun, *, warmup: int, rounds: int = 1, scheduled_alone: bool = False) -> dict:
@@ -231,13 +255,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
         with torch.inference_mode():
             for rec, camera in tqdm(list(zip(run.records, run.cameras, strict=True)), desc="render",
                                     disable=not progress):
-                result = run.render(camera)
-                images = decompose(result, edits)
-                if rec.name in run.appearance:  # the photo's exposure and white balance
-                    images["color"] = apply_appearance(images["color"], torch.as_tensor(run.appearance[rec.name],
-                                                                                        device=run.device))
-                images["normal"] = _normal_image(result.layers["normal"])
-                images["depth"] = _depth_image(result.layers["depth"], result.layers["alpha"])
+                images = render_images(run, camera, edits, appearance=run.appearance.get(rec.name))
                 for layer in LAYER_DIRS:
                     write_png(tmp / layer / f"{rec.name}.png", images[layer].clamp(0, 1).cpu().numpy())
         info = {

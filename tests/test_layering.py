@@ -15,7 +15,7 @@ STAGES = ("rtsplat.sfm", "rtsplat.masks", "rtsplat.prepare", "rtsplat.train", "r
 # (modules the rule applies to, modules they must not reach)
 RULES = [
     (("rtsplat.model",), STAGES + ("rtsplat.cli", "rtsplat.config", "rtsplat.synth", "rtsplat.bench", "rtsplat.demo")),
-    (("rtsplat.render", "rtsplat.fps", "rtsplat.metrics"), ("rtsplat.train",)),
+    (("rtsplat.render", "rtsplat.fps", "rtsplat.metrics", "rtsplat.viewer"), ("rtsplat.train",)),
     (("rtsplat.quality",), ("rtsplat.model", "rtsplat.raster", "rtsplat.train", "rtsplat.config", *STAGES)),
     (("rtsplat.schema", "rtsplat.errors", "rtsplat.io"), ("rtsplat.model", "rtsplat.train", "rtsplat.config", *STAGES)),
 ]
