@@ -40,13 +40,12 @@ from rtsplat.io.outputs import check_output_dir, check_output_file, output_dir
 from rtsplat.render import Edits, decompose, depth_image, device_name, inverse_depth, load_run, normal_image
 
 PANELS = ("color", "reflection", "transmission", "normal", "depth")
-COMMENT_PREFIX = "rtsplat video "
 
 
 def _is_own_video(path: Path) -> bool:
-    from rtsplat.io.video import mp4_comment
+    from rtsplat.io.video import RTSPLAT_COMMENT, mp4_comment
 
-    return (mp4_comment(path) or "").startswith(COMMENT_PREFIX)
+    return (mp4_comment(path) or "").startswith(RTSPLAT_COMMENT)
 
 
 def check_video_output(out: Path, inputs: list[Path]) -> None:
@@ -69,7 +68,7 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
     from rtsplat.camera import Camera
     from rtsplat.camera_path import PATHS, camera_path, path_intrinsics
     from rtsplat.io.images import write_png
-    from rtsplat.io.video import Mp4Writer
+    from rtsplat.io.video import RTSPLAT_COMMENT, Mp4Writer
     from rtsplat.scene import PreparedScene
 
     run_dir, data_dir, out = Path(run_dir), Path(data_dir), Path(out)
@@ -105,7 +104,7 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
     render_seconds = encode_seconds = 0.0
     K_device = K.to(device=run.device, dtype=torch.float32)
     with output_dir(keep_frames, "video", inputs=inputs) if keep_frames is not None else nullcontext() as frames_dir, \
-            Mp4Writer(out, frame_w * len(layers), frame_h, fps, comment=COMMENT_PREFIX + json.dumps(info)) as video, \
+            Mp4Writer(out, frame_w * len(layers), frame_h, fps, comment=RTSPLAT_COMMENT + json.dumps(info)) as video, \
             torch.inference_mode():
         for k, pose in enumerate(tqdm(poses, desc="video", disable=not progress)):
             start = time.perf_counter()

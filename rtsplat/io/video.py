@@ -20,6 +20,7 @@ from rtsplat.io.atomic import atomic_path
 from rtsplat.io.images import to_uint
 
 CODEC = "libx264"
+RTSPLAT_COMMENT = "rtsplat video "  # how the comment of an MP4 that rtsplat video wrote begins (then its settings)
 QUALITY_CRF = 18  # x264's constant rate factor: 18 is visually close to lossless
 
 
