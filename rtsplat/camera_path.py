@@ -237,9 +237,10 @@ def path_intrinsics(Ks, widths, heights, width: int | None = None) -> tuple[Tens
     """The training cameras' pinhole matrix for frames ``width`` pixels wide (None: the first camera's
     width) and the matching height, both rounded down to even numbers: the median over the cameras of
     fx, fy, cx, cy in units of their image size, scaled to the frame size. Returns (K [3, 3], W, H)."""
-    Ks = torch.as_tensor(Ks, dtype=torch.float64).reshape(-1, 3, 3)
+    Ks = torch.stack([torch.as_tensor(K, dtype=torch.float64).reshape(3, 3) for K in Ks]) if len(Ks) else \
+        torch.zeros(0, 3, 3, dtype=torch.float64)
     sizes = torch.as_tensor([[w, h] for w, h in zip(widths, heights, strict=True)], dtype=torch.float64)
-    if len(Ks) == 0:
+    if len(Ks) == 0 or len(Ks) != len(sizes):
         raise PipelineError("no training cameras to take the video's intrinsics from",
                             fix="use a prepared scene with training views")
     base_w, base_h = float(sizes[0, 0]), float(sizes[0, 1])

@@ -53,7 +53,7 @@ def check_video_output(out: Path, inputs: list[Path]) -> None:
     if out.suffix.lower() != ".mp4":
         raise PipelineError(f"the video is written as MP4, but --out ends in {out.suffix or 'no extension'!r}",
                             path=out, fix=f"pass a file name ending in .mp4, e.g. {out.with_suffix('.mp4')}")
-    check_output_file(out, "video", _is_own_video, inputs=inputs)
+    check_output_file(out, "video", _is_own_video, inputs=inputs, example="a new <name>.mp4")
 
 
 def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, path: str = "orbit",
@@ -82,7 +82,8 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
     check_video_output(out, inputs)
     if poster is not None:
         poster = Path(poster)
-        check_output_file(poster, "video", lambda p: p.suffix.lower() == ".png", inputs=inputs)
+        check_output_file(poster, "video", lambda p: p.suffix.lower() == ".png", inputs=inputs,
+                          example="a new <name>.png")
     if keep_frames is not None:
         check_output_dir(keep_frames, "video", inputs=inputs)
     edits = edits or Edits()
