@@ -38,6 +38,7 @@ from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
 from rtsplat.io.outputs import check_output_dir, check_output_file, output_dir
 from rtsplat.render import Edits, decompose, depth_image, device_name, inverse_depth, load_run, normal_image
+from rtsplat.usage import UsageClock
 
 PANELS = ("color", "reflection", "transmission", "normal", "depth")
 
@@ -62,7 +63,9 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
                  poster: str | Path | None = None, keep_frames: str | Path | None = None,
                  progress: bool = True) -> dict:
     """Render the run of ``run_dir`` along the camera path ``path`` into the MP4 ``out``; returns what the
-    MP4's metadata records (settings, size, device, seconds per frame of rendering and of encoding)."""
+    MP4's metadata records (settings, size, device) with the wall seconds per frame of rendering and of
+    encoding, and the CPU seconds per frame (all threads) with their :class:`rtsplat.usage.Usage`, which
+    depend less on what runs beside it."""
     from tqdm.auto import tqdm
 
     from rtsplat.camera import Camera
@@ -103,6 +106,7 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
     first = None
     depth_top = None
     render_seconds = encode_seconds = 0.0
+    clock = UsageClock()
     K_device = K.to(device=run.device, dtype=torch.float32)
     with output_dir(keep_frames, "video", inputs=inputs) if keep_frames is not None else nullcontext() as frames_dir, \
             Mp4Writer(out, frame_w * len(layers), frame_h, fps, comment=RTSPLAT_COMMENT + json.dumps(info)) as video, \
@@ -126,10 +130,12 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
                 first = frame
             if frames_dir is not None:
                 write_png(frames_dir / f"frame_{k:05d}.png", frame)
+    usage = clock.read()
     if poster is not None:
         write_png(poster, first)
     info.update({"render_seconds_per_frame": render_seconds / frames, "encode_seconds_per_frame":
-                 encode_seconds / frames, "seconds_per_frame": (render_seconds + encode_seconds) / frames})
+                 encode_seconds / frames, "seconds_per_frame": (render_seconds + encode_seconds) / frames,
+                 "cpu_seconds_per_frame": usage.cpu_seconds / frames, "timing": usage.to_dict()})
     return info
 
 

@@ -2,14 +2,17 @@
 
 Renders the run along the orbit path at each ``--widths`` (default 200 and 640 pixels; the height keeps
 the training cameras' aspect, 150 and 480 for 4:3 cameras) and prints, per size, the seconds per
-frame of the whole video (render + H.264 encoding), and of rendering and encoding alone, as
-:func:`rtsplat.video.render_video` measures them. ``--run``/``--data``: a trained run and its prepared
-scene, e.g. ``demo/results/dome/runs/rtsplat`` and ``demo/results/dome/prepared`` after ``make demo``.
+frame of the whole video (render + H.264 encoding), of rendering and encoding alone, and the CPU
+seconds per frame (all threads) with how many cores other processes kept busy meanwhile, as
+:func:`rtsplat.video.render_video` measures them (:mod:`rtsplat.usage`). ``--run``/``--data``: a trained
+run and its prepared scene, e.g. ``demo/results/dome/runs/rtsplat`` and ``demo/results/dome/prepared``
+after ``make demo``.
 Without them, a toy scene (:mod:`rtsplat.bench.toy_scene`, 12 views at 100x75) is trained for
 ``--iterations`` with the demo's model settings first: far fewer surfels than the demo's model, so its
 times are a lower bound. One untimed 2-frame video first (compilation, caches); the sizes are then
 timed in interleaved rounds and the median is printed. On a machine shared with other jobs the
-absolute times are noisy; the ratio between the sizes measured in one run is the steadier number.
+wall times are noisy; the CPU seconds, and the ratio between the sizes measured in one run, are the
+steadier numbers.
 """
 
 from __future__ import annotations
@@ -73,16 +76,20 @@ def main(argv: list[str] | None = None) -> int:
     first = results[args.widths[0]][0]
     print(f"{model}: {first['surfels']} surfels, {first['device']}, {args.frames} frames per video, "
           f"orbit path, {'five panels' if args.panels else 'image only'}, median of {args.rounds} round(s)")
-    print(f"{'size':>10} {'s/frame':>9} {'render s/frame':>15} {'encode s/frame':>15} {'frames/s':>9}")
+    print(f"{'size':>10} {'s/frame':>9} {'render s/frame':>15} {'encode s/frame':>15} {'CPU s/frame':>12} "
+          f"{'other cores busy':>17}")
     base = None
     for width in args.widths:
         runs = results[width]
         total = statistics.median(r["seconds_per_frame"] for r in runs)
         render = statistics.median(r["render_seconds_per_frame"] for r in runs)
         encode = statistics.median(r["encode_seconds_per_frame"] for r in runs)
+        cpu = statistics.median(r["cpu_seconds_per_frame"] for r in runs)
+        busy = [r["timing"].get("other_busy_cores") for r in runs]
+        busy_text = "/".join("?" if b is None else f"{b:.1f}" for b in busy)
         base = base or total
         print(f"{runs[0]['width']:>5}x{runs[0]['height']:<4} {total:>9.3f} {render:>15.3f} {encode:>15.4f} "
-              f"{1 / total:>9.1f}   ({total / base:.2f}x the first size)")
+              f"{cpu:>12.3f} {busy_text:>17}   (wall {total / base:.2f}x the first size)")
     return 0
 
 
