@@ -383,6 +383,7 @@ def test_train_and_render_jobs_get_the_configured_device_and_a_gpu_on_slurm(data
     cfg = yaml.safe_load(_config(dataset).read_text())
     cfg["defaults"]["train"]["device"] = "cuda"
     cfg["defaults"]["render"] = {"device": "cuda:0"}
+    cfg["defaults"]["video"] = {"device": "cuda:0"}
     cfg["overrides"]["plain"]["train"] = {"device": "cpu"}
     path = tmp_path / "device.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -401,4 +402,6 @@ def test_train_and_render_jobs_get_the_configured_device_and_a_gpu_on_slurm(data
     devices = sorted(config_json(b, "train")["device"] for b in train)
     assert devices == ["cpu", "cuda"]
     assert all(config_json(b, "render")["device"] == "cuda:0" for b in render)
-    assert all("gpu=1" in b for b in train + render)
+    video = [b for b in jobs if b.startswith("rule video:")]
+    assert len(video) == 2 and all(config_json(b, "video")["device"] == "cuda:0" for b in video)
+    assert all("gpu=1" in b for b in train + render + video)
