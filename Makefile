@@ -38,7 +38,7 @@ DEMO_VIEWS ?= 80
 # One thread per training and rendering job, two jobs at a time: on 2 cores the CPU kernels gain less
 # from a second thread than a second job does (README, "Two commands", has the times of both). The fps
 # jobs keep their threads (every core of the run), so nothing runs beside the FPS timing.
-JOB_THREADS ?= --set-threads train=1 render=1 render_edit=1
+JOB_THREADS ?= --set-threads train=1 render=1 render_edit=1 video=1
 demo: $(STAMP)
 	@test -f demo/data/dome/scene.json || $(BIN)/rtsplat synth --scene dome --out demo/data/dome --views $(DEMO_VIEWS) --layers-every 8
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/snakemake -s Snakefile -d demo --cores 2 $(JOB_THREADS)

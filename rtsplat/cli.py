@@ -47,6 +47,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("prepare", "rtsplat.prepare", "downsample, region of interest, train/test split"),
     Stage("train", "rtsplat.train.cli", "train an RT-Splatting model on a prepared scene"),
     Stage("render", "rtsplat.render", "render test views, decomposed layers and measure FPS"),
+    Stage("video", "rtsplat.video", "render a trained run along a camera path into an MP4 (H.264)"),
     Stage("fps", "rtsplat.fps", "time the test views' renders in a job of their own (FPS)"),
     Stage("view", "rtsplat.viewer", "look at a trained run in the browser: layers, scene edits, views"),
     Stage("metrics", "rtsplat.metrics", "PSNR/SSIM/LPIPS on the entire image and transparent region"),

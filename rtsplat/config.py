@@ -8,7 +8,7 @@
     methods:                   # name -> trainer config overrides; trained / rendered / evaluated per scene
       rtsplat: {role: main}    # role (main | baseline | ablation | repeat, see method_roles) is not a
       rtsplat_seed1: {role: repeat, of: rtsplat, seed: 1}   # trainer key; a repeat names what it reruns
-    defaults:                  # a SceneConfig: sfm, masks, prepare, train, render, metrics
+    defaults:                  # a SceneConfig: sfm, masks, prepare, train, render, video, metrics
       prepare: {downsample: 4}
     overrides:                 # per-scene SceneConfig fragments merged over the defaults
       sedan: {prepare: {downsample: 8}}
@@ -319,6 +319,28 @@ class RenderConfig:
 
 
 @dataclass
+class VideoConfig:
+    """Camera-path videos (``rtsplat video``)."""
+
+    enabled: bool = _f(True, help="the workflow renders a video of the main method (and of the baselines listed in "
+                       "baselines) for every scene, and the report shows it")
+    path: Literal["orbit", "spiral", "interpolate"] = _f(
+        "orbit", help="camera path from the training cameras: orbit (a circle around the region of interest at "
+        "their mean distance and elevation), spiral (around their mean position, for forward-facing captures), "
+        "interpolate (through their poses in capture order)")
+    frames: int = _f(60, help="frames of the video", minimum=2)
+    fps: float = _f(24.0, help="frames per second of the MP4", exclusiveMinimum=0.0)
+    width: int | None = _f(None, help="frame width in pixels (the height keeps the training cameras' aspect; both "
+                           "rounded down to even numbers for H.264); null: the training cameras' width", minimum=2)
+    panels: bool = _f(True, help="image | reflection | transmission | normal | depth side by side in each frame; "
+                      "false: the image alone")
+    baselines: list[str] = _f(help="methods besides the main one that get a video of the same path, where they are "
+                              "among the methods", factory=lambda: ["2dgs"])
+    device: str = _f("auto", help="torch device of rtsplat video: auto (the GPU when torch sees one, else the CPU) | "
+                     "cpu | cuda | cuda:N", pattern=DEVICE_PATTERN)
+
+
+@dataclass
 class MetricsConfig:
     """Evaluation (``rtsplat metrics``)."""
 
@@ -338,6 +360,7 @@ class SceneConfig:
     prepare: PrepareConfig = _f(help="prepared scene", factory=PrepareConfig)
     train: TrainConfig = _f(help="training", factory=TrainConfig)
     render: RenderConfig = _f(help="rendering", factory=RenderConfig)
+    video: VideoConfig = _f(help="camera-path videos", factory=VideoConfig)
     metrics: MetricsConfig = _f(help="metrics", factory=MetricsConfig)
 
 
@@ -572,6 +595,16 @@ def method_roles(cfg: PipelineConfig) -> dict[str, MethodRole]:
 def main_method(cfg: PipelineConfig) -> str:
     """The method with role main (:func:`method_roles`): the one the workflow renders the edits for."""
     return next(name for name, r in method_roles(cfg).items() if r.role == "main")
+
+
+def video_methods(cfg: PipelineConfig, scene: str) -> list[str]:
+    """The methods the workflow renders a camera-path video of on ``scene``: the main method, then the
+    scene's ``video.baselines`` that are among the methods; none when ``video.enabled`` is false."""
+    video = scene_config(cfg, scene).video
+    if not video.enabled:
+        return []
+    main = main_method(cfg)
+    return [main, *(m for m in dict.fromkeys(video.baselines) if m in cfg.methods and m != main)]
 
 
 def roles_json(cfg: PipelineConfig, quote: bool = True) -> str:

@@ -122,14 +122,21 @@ def decompose(result, edits: Edits) -> dict[str, Tensor]:
             "transmission": transmission, "scatter": scatter}
 
 
-def _normal_image(normal: Tensor) -> Tensor:
+def normal_image(normal: Tensor) -> Tensor:
+    """World normals [H, W, 3] mapped to [0, 1]."""
     return normal * 0.5 + 0.5
 
 
-def _depth_image(depth: Tensor, alpha: Tensor) -> Tensor:
-    inv = torch.where(alpha > 0.5, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
-    top = inv.max().clamp_min(1e-12)
-    return (inv / top).expand(*inv.shape[:2], 3)
+def inverse_depth(depth: Tensor, alpha: Tensor) -> Tensor:
+    """1 / depth where the surface is opaque (alpha > 0.5), 0 elsewhere."""
+    return torch.where(alpha > 0.5, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
+
+
+def depth_image(depth: Tensor, alpha: Tensor, top: Tensor | float | None = None) -> Tensor:
+    """Inverse depth divided by ``top`` (None: its largest value in this image), clipped to [0, 1], as RGB."""
+    inv = inverse_depth(depth, alpha)
+    top = inv.max() if top is None else torch.as_tensor(top, dtype=inv.dtype, device=inv.device)
+    return (inv / top.clamp_min(1e-12)).clamp(0, 1).expand(*inv.shape[:2], 3)
 
 
 def corrected_cameras(records, corrections: dict[str, list[float]], device) -> list:
@@ -208,8 +215,8 @@ def render_images(run: LoadedRun, camera, edits: Edits, appearance=None) -> dict
     images = decompose(result, edits)
     if appearance is not None:
         images["color"] = apply_appearance(images["color"], torch.as_tensor(appearance, device=run.device))
-    images["normal"] = _normal_image(result.layers["normal"])
-    images["depth"] = _depth_image(result.layers["depth"], result.layers["alpha"])
+    images["normal"] = normal_image(result.layers["normal"])
+    images["depth"] = depth_image(result.layers["depth"], result.layers["alpha"])
     return images
 
 

@@ -6,6 +6,7 @@ It reads what the other stages wrote under ``--results`` (the layout of ``docs/a
     <scene>/renders/<method>/{render.json, color/, reflection/, ...}       rtsplat render
     <scene>/renders/<method>@<edit>/                                       rtsplat render --edit ...
     <scene>/fps/<method>.json                                              rtsplat fps (timed alone)
+    <scene>/videos/<method>.{mp4,png}                                      rtsplat video (and its poster)
     <scene>/metrics/<method>.json                                          rtsplat metrics
     <scene>/sfm/summary.json                                               rtsplat sfm
 
@@ -27,7 +28,8 @@ beside a run, else their wall seconds), one test view (the first with ground-tru
 any): ground truth / main / the other methods except ablations, each method's per-pixel error map
 (|render - ground truth| averaged over channels, viridis from 0 to :data:`ERROR_MAP_MAX`), the main
 method's decomposition, its reflection and colour - reflection next to the ground-truth layers with
-their error maps when the prepared scene has them, and the editing images. Images are nearest-neighbour
+their error maps when the prepared scene has them, the editing images, and the camera-path videos
+(HTML5 ``<video>`` with the first frame as poster and a download link). Images are nearest-neighbour
 upscaled by an integer factor until their shorter side is at least :data:`REPORT_IMAGE_MIN_SIDE` px,
 so every pixel stays visible and unblended. After the scenes, the noise: for every repeat (the same
 config run again, with the same seed or another one, as its ``config.json`` says) the report prints
@@ -193,7 +195,7 @@ class Document:
         self.html = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
                      "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:"
                      "collapse}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
-                     "td:first-child{text-align:left}img{max-width:100%}.pareto{font-weight:bold}</style>"
+                     "td:first-child{text-align:left}img,video{max-width:100%}.pareto{font-weight:bold}</style>"
                      "</head><body>", f"<h1>{html.escape(title)}</h1>"]
         self.md = [f"# {title}", ""]
 
@@ -224,6 +226,16 @@ class Document:
                         f"<figcaption>{html.escape(c)}</figcaption></figure>" for p, c in items)
         self.html.append(f"<div>{cells}</div>")
         self.md += [" ".join(f"![{c}]({p})" for p, c in items), ""]
+
+    def video(self, video: str, poster: str | None, caption: str) -> None:
+        """An HTML5 video (relative path) with its poster frame, a caption and a download link; in Markdown the
+        poster linking to the video."""
+        poster_attr = f" poster='{html.escape(poster)}'" if poster else ""
+        self.html.append(f"<figure style='margin:4px'><video controls loop muted playsinline preload='metadata'"
+                         f"{poster_attr}><source src='{html.escape(video)}' type='video/mp4'></video>"
+                         f"<figcaption>{html.escape(caption)} (<a href='{html.escape(video)}' download>download "
+                         "MP4</a>)</figcaption></figure>")
+        self.md += [f"[![{caption}]({poster})]({video})" if poster else f"[{caption}]({video})", ""]
 
     def finish(self) -> tuple[str, str]:
         return "\n".join(self.html + ["</body></html>"]) + "\n", "\n".join(self.md) + "\n"
@@ -618,6 +630,50 @@ def _layer_comparison_section(doc: Document, scene_dir: Path, view: str, main: s
                      f"{main} {layer} {ERROR_CAPTION}")])
 
 
+VIDEO_PANEL_NAMES = {"color": "image", "reflection": "reflection", "transmission": "transmission",
+                     "normal": "normal", "depth": "depth"}
+
+
+def video_caption(method: str, comment: str | None) -> str:
+    """What a video shows, from the settings ``rtsplat video`` recorded in its metadata comment."""
+    from rtsplat.io.video import RTSPLAT_COMMENT
+
+    comment = comment or ""
+    try:
+        info = json.loads(comment[len(RTSPLAT_COMMENT):]) if comment.startswith(RTSPLAT_COMMENT) else {}
+    except ValueError:
+        info = {}
+    if not isinstance(info, dict) or not info:
+        return method
+    panels = " | ".join(VIDEO_PANEL_NAMES.get(p, str(p)) for p in info.get("panels", []))
+    size = f"{info.get('width', '?')}x{info.get('height', '?')}" + (f" per panel ({panels})" if "|" in panels else "")
+    fps = _fmt(info.get("fps"), 0)
+    return f"{method}: {info.get('path', '?')} path, {info.get('frames', '?')} frames at {fps} fps, {size}"
+
+
+def _video_section(doc: Document, scene_dir: Path, main: str | None, out: Path) -> None:
+    """The scene's camera-path videos (``<scene>/videos/<method>.mp4`` with its poster ``<method>.png``), the main
+    method first, copied into the report."""
+    import shutil
+
+    from rtsplat.io.video import mp4_comment
+
+    found = sorted(scene_dir.glob("videos/*.mp4"), key=lambda p: (p.stem != main, p.stem))
+    if not found:
+        return
+    doc.heading("Camera-path videos", 3)
+    doc.paragraph("Each method rendered along the same camera path from its training cameras (rtsplat video); the "
+                  "panels are the image and the layers of `rtsplat render`.")
+    for path in found:
+        name = f"{scene_dir.name}_video_{path.stem}"
+        shutil.copyfile(path, out / f"{name}.mp4")
+        poster = path.with_suffix(".png")
+        if poster.is_file():
+            shutil.copyfile(poster, out / f"{name}.png")
+        doc.video(f"{name}.mp4", f"{name}.png" if poster.is_file() else None,
+                  video_caption(path.stem, mp4_comment(path)))
+
+
 def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: Roles, config_file,
            commands) -> None:
     main = roles.main
@@ -743,6 +799,8 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             if edits:
                 doc.heading("Scene editing", 3)
                 doc.images(edits)
+
+        _video_section(doc, results / scene, main, out)
 
     doc.heading("Noise")
     noise = [row for scene, runs in scenes.items() for row in _noise_rows(scene, runs, roles, results)]

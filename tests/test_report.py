@@ -30,6 +30,7 @@ from rtsplat.report import (
 )
 from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
+from rtsplat.video import render_video
 
 METHODS = {
     "rtsplat": {},
@@ -90,6 +91,9 @@ def results(tmp_path_factory):
                           compute_metrics(root / "toy" / "renders" / method, scene.root, lpips_weights="/nonexistent"))
     render_run(root / "toy" / "runs" / "rtsplat", scene.root, root / "toy" / "renders" / "rtsplat@no-reflections",
                progress=False, edits=Edits(reflections=False))
+    videos = root / "toy" / "videos"
+    render_video(root / "toy" / "runs" / "rtsplat", scene.root, videos / "rtsplat.mp4", frames=4, panels=True,
+                 poster=videos / "rtsplat.png", progress=False)
     return root
 
 
@@ -110,6 +114,14 @@ def test_report_has_tables_plots_and_images(results, tmp_path):
         assert (tmp_path / "report" / ref).is_file(), ref
     assert "run-to-run noise was not measured" in md
     assert "n/a (weights not found)" in md
+    # the camera-path video: HTML5 video with its poster frame and a download link, copied into the report
+    assert "<video " in html and "poster='toy_video_rtsplat.png'" in html
+    assert "<a href='toy_video_rtsplat.mp4' download>" in html
+    assert (tmp_path / "report" / "toy_video_rtsplat.png").is_file()
+    assert (tmp_path / "report" / "toy_video_rtsplat.mp4").read_bytes() == \
+        (results / "toy" / "videos" / "rtsplat.mp4").read_bytes()
+    assert "rtsplat: orbit path, 4 frames at 24 fps, 40x30 per panel (image | reflection | transmission" in md
+    assert "[![rtsplat: orbit path" in md and "](toy_video_rtsplat.mp4)" in md
 
 
 def test_report_measures_noise_from_repeated_runs(results, tmp_path):

@@ -85,6 +85,7 @@ EXPECTED = {
     "render_edit": 8,
     "fps": 2,
     "metrics": 2,
+    "video": 2,
     "report": 1,
     "all": 1,
 }
@@ -118,6 +119,28 @@ def test_dry_run_builds_the_whole_dag(dataset):
     report = next(b for b in _jobs(out) if b.startswith("localrule report") or b.startswith("rule report"))
     assert report.count("config.yaml") == 2, report  # one --config for the report, one in the command
     assert re.search(r"--cores \d+'", report), report  # a number, not "all"
+
+
+def test_videos_are_rendered_for_the_main_method_and_the_listed_baselines_on_the_same_path(dataset):
+    methods = {"rtsplat": {"role": "main"}, "2dgs": {"role": "baseline", "effects": {"specular": "off"}},
+               "refgs": {"role": "baseline"}}
+    cfg = _config(dataset, scenes=["glass"], methods=methods,
+                  defaults={"prepare": {"downsample": 2}, "video": {"frames": 8, "path": "spiral"}})
+    r = snakemake(dataset, "-n", "-p", config=cfg)
+    assert r.returncode == 0, r.stderr + r.stdout
+    videos = [b for b in _jobs(r.stdout + r.stderr) if b.startswith("rule video:")]
+    assert sorted(re.search(r"method=(\w+)", b).group(1) for b in videos) == ["2dgs", "rtsplat"]
+    for block in videos:
+        command = shlex.split(next(line for line in block.splitlines() if " video --data" in line).strip())
+        method = re.search(r"method=(\w+)", block).group(1)
+        assert command[command.index("--out") + 1] == str(dataset / "results" / "glass" / "videos" / f"{method}.mp4")
+        assert json.loads(command[command.index("--config-json") + 1])["path"] == "spiral"
+    report = next(b for b in _jobs(r.stdout + r.stderr) if "rule report" in b)
+    assert "videos/rtsplat.mp4" in report and "videos/2dgs.png" in report and "videos/refgs" not in report
+    off = _config(dataset, scenes=["glass"], methods=methods, defaults={"video": {"enabled": False}})
+    r = snakemake(dataset, "-n", config=off)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert "video" not in _job_counts(r.stdout + r.stderr)
 
 
 def test_fps_jobs_hold_every_core_of_the_run_and_only_then_say_they_ran_alone(dataset):
@@ -341,9 +364,11 @@ def test_whole_dag_to_the_report(tmp_path):
         },
     }
     data["defaults"]["render"] = {"edits": {"no-reflections": ["reflections=off"]}}
+    data["defaults"]["video"] = {"frames": 6}
     cfg.write_text(yaml.safe_dump(data))
     # one thread per training and rendering job, as `make demo` runs them: two such jobs run at a time
-    r = snakemake(tmp_path, "--cores", "2", "--set-threads", "train=1", "render=1", "render_edit=1", config=cfg)
+    r = snakemake(tmp_path, "--cores", "2", "--set-threads", "train=1", "render=1", "render_edit=1", "video=1",
+                  config=cfg)
     assert r.returncode == 0, r.stderr[-4000:]
     results = tmp_path / "results"
     for method in ("rtsplat", "2dgs"):
@@ -364,13 +389,18 @@ def test_whole_dag_to_the_report(tmp_path):
     md = (results / "report" / "index.md").read_text()
     assert "| rtsplat |" in md and "| 2dgs |" in md and "no-reflections" in md
     assert "FPS alone" in md and "training CPU s" in md
-    assert (results / "report" / "index.html").is_file()
+    page = (results / "report" / "index.html").read_text()
+    for method in ("rtsplat", "2dgs"):  # the same path for both, embedded with a poster and a download link
+        assert (results / "glass" / "videos" / f"{method}.mp4").is_file()
+        assert f"glass_video_{method}.mp4" in page and f"poster='glass_video_{method}.png'" in page
+        assert (results / "report" / f"glass_video_{method}.mp4").is_file()
 
 
 def test_train_and_render_jobs_get_the_configured_device_and_a_gpu_on_slurm(dataset, tmp_path):
     cfg = yaml.safe_load(_config(dataset).read_text())
     cfg["defaults"]["train"]["device"] = "cuda"
     cfg["defaults"]["render"] = {"device": "cuda:0"}
+    cfg["defaults"]["video"] = {"device": "cuda:0"}
     cfg["overrides"]["plain"]["train"] = {"device": "cpu"}
     path = tmp_path / "device.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -389,4 +419,6 @@ def test_train_and_render_jobs_get_the_configured_device_and_a_gpu_on_slurm(data
     devices = sorted(config_json(b, "train")["device"] for b in train)
     assert devices == ["cpu", "cuda"]
     assert all(config_json(b, "render")["device"] == "cuda:0" for b in render)
-    assert all("gpu=1" in b for b in train + render)
+    video = [b for b in jobs if b.startswith("rule video:")]
+    assert len(video) == 2 and all(config_json(b, "video")["device"] == "cuda:0" for b in video)
+    assert all("gpu=1" in b for b in train + render + video)

@@ -250,6 +250,27 @@ def atomic_file(path: str | Path, mode: str = "w") -> Iterator[IO]:
             raise
 
 
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield the path of a new, empty temporary sibling of ``path`` for a library that writes a file by its
+    name (an encoder); it is renamed to ``path`` when the block exits without error, and removed on an
+    error, leaving an existing ``path`` as it was. A failure to write is a :class:`PipelineError` naming
+    ``path``."""
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:12]}{path.suffix}"
+    with write_errors(path, tmp, rename={tmp: path}, atomic=True):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
+        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        try:
+            yield tmp
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+
 def write_text_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file and a rename."""
     with atomic_file(path, "w") as fh:

@@ -121,12 +121,13 @@ def output_dir(out: str | Path, stage: str, inputs: Iterable[str | Path | None] 
 
 
 def check_output_file(out: str | Path, stage: str, is_own: Callable[[Path], bool],
-                      inputs: Iterable[str | Path | None] = ()) -> None:
+                      inputs: Iterable[str | Path | None] = (), example: str | None = None) -> None:
     """Raise :class:`PipelineError` unless ``stage`` may write (and replace) the file ``out``: it is no
     folder, none of ``inputs`` nor inside one of them, and a file already there is one ``stage`` wrote
-    (``is_own`` says so from its content), never another file of the user's or of a stage."""
+    (``is_own`` says so from its content), never another file of the user's or of a stage. ``example``: the
+    kind of path to suggest instead (default: a new JSON file)."""
     target = _resolved(out)
-    fix = f"pass an --out of its own, e.g. a new <name>.json beside the other {stage} files"
+    fix = f"pass an --out of its own, e.g. {example or f'a new <name>.json beside the other {stage} files'}"
     for given in inputs:
         if given is None:
             continue
@@ -135,7 +136,7 @@ def check_output_file(out: str | Path, stage: str, is_own: Callable[[Path], bool
             raise PipelineError(f"the output file is or lies inside the {stage} input {given}", path=out, fix=fix)
     if target.is_dir():
         raise PipelineError(f"the output is a folder; 'rtsplat {stage}' writes one file there", path=out,
-                            fix=f"pass the path of a file, e.g. {Path(out) / (stage + '.json')}")
+                            fix=f"pass the path of a file, e.g. {example or Path(out) / (stage + '.json')}")
     if target.exists() and not is_own(target):
         raise PipelineError(f"the output file exists and is not a result of 'rtsplat {stage}'; it is left as "
                             "it is", path=out, fix=fix + ", or delete that file yourself if you no longer need it")

@@ -4,7 +4,7 @@
 import shlex
 from pathlib import Path
 
-from rtsplat.config import main_method, render_edit_args, roles_json, scene_config, train_json
+from rtsplat.config import main_method, render_edit_args, roles_json, scene_config, train_json, video_methods
 
 MAIN_METHOD = main_method(CFG)  # the method with role main: the scene edits are rendered for it
 
@@ -82,6 +82,33 @@ rule render_edit:
     shell:
         "{RTSPLAT} render --data {input.prepared:q} --run {input.run:q} --out {output:q} {params.edits} "
         "--config-json {params.cfg} --warmup 0 --quiet > {log:q} 2>&1"
+
+
+# A camera-path video (rtsplat/video.py) of the main method and of the baselines in video.baselines, all on the
+# same path; the report embeds them with their first frame as the poster.
+rule video:
+    input:
+        prepared=f"{RESULTS}/{{scene}}/prepared",
+        run=f"{RESULTS}/{{scene}}/runs/{{method}}",
+    output:
+        video=f"{RESULTS}/{{scene}}/videos/{{method}}.mp4",
+        poster=f"{RESULTS}/{{scene}}/videos/{{method}}.png",
+    log:
+        f"{RESULTS}/{{scene}}/logs/video_{{method}}.log",
+    benchmark:
+        f"{RESULTS}/{{scene}}/benchmarks/video_{{method}}.tsv"
+    params:
+        cfg=stage_json("video"),
+    threads: 2
+    resources:
+        gpu=1,
+        runtime=60,
+        mem_mb=8000,
+    conda:
+        ENV
+    shell:
+        "{RTSPLAT} video --data {input.prepared:q} --run {input.run:q} --out {output.video:q} "
+        "--poster {output.poster:q} --config-json {params.cfg} --quiet > {log:q} 2>&1"
 
 
 def local_cores():
@@ -189,6 +216,8 @@ def report_inputs(wildcards):
     inputs += expand(f"{RESULTS}/{{scene}}/fps/{{method}}.json", scene=SCENES, method=METHODS)
     for scene in SCENES:
         inputs += [f"{RESULTS}/{scene}/renders/{MAIN_METHOD}@{edit}" for edit in edit_names(scene)]
+        inputs += [f"{RESULTS}/{scene}/videos/{method}.{ext}" for method in video_methods(CFG, scene)
+                   for ext in ("mp4", "png")]
     return inputs
 
 
