@@ -134,11 +134,13 @@ class RTModel(nn.Module):
     # -- rasterizer inputs -------------------------------------------------------------------
     def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None) -> Surfels:
         p = self.surfels
-        view = p.means - camera.center
-        colors = eval_sh(p.sh, F.normalize(view, dim=-1), p.sh_degree if sh_degree is None else sh_degree)
+        directions = F.normalize(p.means - camera.center, dim=-1)
+        colors = eval_sh(p.sh, directions, p.sh_degree if sh_degree is None else sh_degree)
         occupancy = p.occupancy
         opacity = p.opacity if self.uses_opacity else torch.ones_like(occupancy)
         inside = ((p.means - self.roi_center).norm(dim=-1) <= self.roi_radius).to(p.means.dtype)
+        if self.effects.specular and self.settings.view_independent_roi:
+            colors = torch.where(inside[:, None] > 0, eval_sh(p.sh, directions, 0), colors)
         features = torch.cat(
             [p.scatter, p.transmissivity[:, None], p.roughness[:, None], p.material, p.reflectance[:, None],
              inside[:, None], opacity[:, None]], 1,
