@@ -255,8 +255,11 @@ class RTModel(nn.Module):
             colors = eval_sh(p.sh[keep], F.normalize(means - center, dim=-1), 0)
             occupancy = p.occupancy[keep]
             opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)
-            mirrored = Surfels(mirror_points(means, n, c), mirror_quats(p.quats[keep], n), p.scales[keep],
-                               occupancy, opacity, means.new_zeros(keep.numel(), 0), colors)
+            parts = [mirror_points(means, n, c), mirror_quats(p.quats[keep], n), p.scales[keep], occupancy, opacity,
+                     means.new_zeros(keep.numel(), 0), colors]
+            if not self.settings.near_reflection_trains_surfels:  # the reflection reads the surfels only
+                parts = [t.detach() for t in parts]
+            mirrored = Surfels(*parts)
             out = rasterize(mirrored, camera, raster_settings, backend=backend)
             on_plane = (index == k)[..., None]
             color = torch.where(on_plane, out.color, color)

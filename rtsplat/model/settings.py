@@ -88,6 +88,12 @@ class ModelSettings:
         "whose rectangles the view's shaded pixels hit most): each costs one more rasterization of the scene",
         minimum=1,
     )
+    near_reflection_trains_surfels: bool = setting(
+        True, help="with near reflections, the mirrored render passes gradients to the surfels it reflects (their "
+        "position, shape, occupancy, opacity and colour); off: it reads them without training them, so they learn "
+        "from the views that see them directly only, and the reflection's errors (the plane, the reflectance) stay "
+        "out of them"
+    )
     near_reflection_weight: bool = setting(
         False, help="with near reflections, a sixth output w of the specular network weighs them per pixel: "
         "C_spec = reflectance (w C_near + (1 - w A_near) L) instead of w = 1"
