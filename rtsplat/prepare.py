@@ -57,6 +57,7 @@ from rtsplat.scene import (
     IMAGES_DIR,
     MASKS_DIR,
     POINTS_FILE,
+    REFLECTION_REACH_FILE,
     TRANSPARENT_SURFACE_FILE,
     CameraRecord,
     PreparedScene,
@@ -342,6 +343,17 @@ def _exposure(image: np.ndarray, observed: tuple[np.ndarray, np.ndarray] | None,
     return None if gain is None else [round(float(g), 5) for g in gain]
 
 
+def _dataset_reflection_reach(scene_dir: Path) -> dict | None:
+    """What a synthetic dataset's glass reflects (``reflection_reach`` of its ``scene.json``, written by
+    ``rtsplat synth``), or None for other datasets."""
+    description = scene_dir / "scene.json"
+    try:
+        reach = json.loads(description.read_text()).get("reflection_reach") if description.is_file() else None
+    except (OSError, ValueError, AttributeError):
+        return None  # not a synth description: nothing to carry
+    return reach if isinstance(reach, dict) else None
+
+
 def _test_split(names: list[str], test_every: int) -> dict[str, str]:
     return {n: ("test" if i % test_every == 0 else "train") for i, n in enumerate(sorted(names))}
 
@@ -506,6 +518,9 @@ def prepare_scene(
                     image=view.name,
                 )
             )
+        reach = _dataset_reflection_reach(scene_dir) if gt_layer_views else None
+        if reach is not None:
+            (tmp / GT_LAYERS_DIR / REFLECTION_REACH_FILE).write_text(json.dumps(reach, indent=1))
         if has_masks and not any(coverage):  # masks without a single transparent pixel
             import shutil
 

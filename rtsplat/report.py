@@ -52,7 +52,7 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.images import read_image, write_png
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.model.composite import transmission_with_scatter
-from rtsplat.scene import GT_LAYERS_DIR
+from rtsplat.scene import GT_LAYERS_DIR, REFLECTION_REACH_FILE
 
 ROLES = ("main", "baseline", "ablation", "repeat")
 PLAIN_2DGS = "2dgs"  # the plain-2DGS baseline the summary compares the main method with
@@ -504,6 +504,24 @@ def near_reflection_rows(runs: dict[str, Run]) -> list[list[str]]:
     return rows
 
 
+def scene_reflection_reach(prepared: Path) -> str:
+    """What share of the glass's true reflection is of something near the glass, in words, for a synthetic
+    scene (the ``reflection_reach`` that ``rtsplat prepare`` carries from the dataset); "" for other scenes."""
+    path = prepared / GT_LAYERS_DIR / REFLECTION_REACH_FILE
+    try:
+        reach = json.loads(path.read_text()) if path.is_file() else None
+    except (OSError, ValueError):
+        return ""
+    if not isinstance(reach, dict):
+        return ""
+    distance = reach.get("median_distance")
+    return (f"What the scene calls for (ground truth, `rtsplat.synth.reach`): of the glass pixels of the views with "
+            f"true layers, {_fmt(reach.get('near_share'))} reflect something at a finite distance, carrying "
+            f"{_fmt(reach.get('near_weight'))} of the true reflection's luminance"
+            + (f" (median distance {_fmt(distance)})" if isinstance(distance, (int, float)) else "")
+            + "; the rest reflects the environment at infinity, which the environment lookup alone can show.")
+
+
 def appearance_rows(runs: dict[str, Run]) -> list[list[str]]:
     """One row per run that measured its photos' exposure spread: on/off, spread, why, and the mean
     absolute log gain its training and test views' corrections took."""
@@ -738,14 +756,18 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             doc.table(["method", "reflection", "transmission"], layer_rows)
 
         near_rows = near_reflection_rows(runs)
-        if near_rows:
+        reach = scene_reflection_reach(results / scene / "prepared")
+        if near_rows or reach:
             doc.heading("Near reflections (mirror planes of the glass)", 3)
-            doc.paragraph("Whether each run reflected its own surfels in planes fitted to the see-through surface "
-                          "(effects.near_reflection; auto keeps them where planes explain enough of it), and the "
-                          "seconds per training iteration it paid (wall seconds, and CPU seconds, which depend "
-                          "less on what ran beside it).")
-            doc.table(["method", "near reflection", "planes", "planar share", "why", "wall s / iteration",
-                       "CPU s / iteration"], near_rows)
+            if reach:
+                doc.paragraph(reach)
+            if near_rows:
+                doc.paragraph("Whether each run reflected its own surfels in planes fitted to the see-through "
+                              "surface (effects.near_reflection; auto keeps them where planes explain enough of it), "
+                              "and the seconds per training iteration it paid (wall seconds, and CPU seconds, which "
+                              "depend less on what ran beside it).")
+                doc.table(["method", "near reflection", "planes", "planar share", "why", "wall s / iteration",
+                           "CPU s / iteration"], near_rows)
 
         exposure_rows = appearance_rows(runs)
         if any(row[1] == "on" for row in exposure_rows):

@@ -53,6 +53,8 @@ POINTS_FILE = "points.ply"
 # normals (npz: xyz [N,3], normal [N,3]); where the see-through surface is
 TRANSPARENT_SURFACE_FILE = "transparent_surface.npz"
 GT_LAYERS_DIR = "gt_layers"  # synthetic scenes only: <name>/<stem>.png for name in reflection, transmission
+# synthetic scenes only, in GT_LAYERS_DIR: what the true reflection of the glass shows (rtsplat.synth.reach)
+REFLECTION_REACH_FILE = "reflection_reach.json"
 
 
 @dataclass

@@ -715,3 +715,32 @@ def test_point_cloud_normals_equal_the_brute_force_ones(name):
     # normals at some of the points as queries: those of the whole cloud there
     some = point_cloud_normals(points, queries=points[::3])
     assert float((some * normals[::3]).sum(1).abs().min()) > 1 - 1e-9 or name in ("line", "all_coincident")
+
+
+@pytest.mark.parametrize("specular", [True, False])
+def test_view_independent_roi_gives_surfels_inside_the_region_their_degree_0_colour(specular):
+    """With the specular branch, a surfel inside the region of interest has the same volume colour from
+    every camera and its higher SH coefficients get no gradient; one outside keeps its view-dependent colour.
+    Without the specular branch (plain 2DGS) nothing changes."""
+    from rtsplat.camera import Camera
+
+    model = _model(effects=ActiveEffects(specular=specular))
+    model.settings = dataclasses.replace(model.settings, view_independent_roi=True)
+    model.roi_radius.fill_(0.5)
+    p = model.surfels
+    with torch.no_grad():
+        p.sh_rest.normal_(generator=torch.Generator().manual_seed(1))
+    inside = (p.means - model.roi_center).norm(dim=-1) <= 0.5
+    assert 0 < int(inside.sum()) < len(inside)
+    base = small_camera(24, 18, torch.float32)
+    turned = torch.eye(4)
+    turned[:3, :3] = torch.linalg.matrix_exp(torch.tensor([[0.0, -0.4, 0.0], [0.4, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+    other = Camera(K=base.K, world_to_camera=base.world_to_camera @ turned, width=base.width, height=base.height)
+    colours = [model.rasterizer_surfels(c).colors for c in (base, other)]
+    moved = (colours[0] - colours[1]).abs().amax(-1)
+    if specular:
+        assert moved[inside].max() == 0 and moved[~inside].max() > 0.05
+        colours[0][inside].sum().backward()
+        assert p.sh_rest.grad[inside].abs().max() == 0 and p.sh_dc.grad[inside].abs().max() > 0
+    else:
+        assert moved[inside].max() > 0.05

@@ -339,3 +339,20 @@ def test_appearance_rows_show_the_spread_and_the_corrections_size():
     rows = appearance_rows(runs)
     assert rows == [["2dgs", "off", "0.010", "auto", "-", "-"],
                     ["rtsplat", "on", "0.047", on["reason"], "0.052", "0.071"]]
+
+
+def test_the_near_reflection_section_says_what_share_of_the_true_reflection_is_near(tmp_path):
+    from rtsplat.report import scene_reflection_reach
+
+    prepared = tmp_path / "prepared"
+    assert scene_reflection_reach(prepared) == ""  # a real capture: no ground truth, nothing said
+    (prepared / "gt_layers").mkdir(parents=True)
+    (prepared / "gt_layers" / "reflection_reach.json").write_text(json.dumps(
+        {"glass_pixels": 100, "near_pixels": 59, "near_weight": 0.514, "median_distance": 3.32, "near_share": 0.59}))
+    text = scene_reflection_reach(prepared)
+    assert "0.59" in text and "0.51" in text and "3.32" in text
+    (prepared / "gt_layers" / "reflection_reach.json").write_text(json.dumps(
+        {"glass_pixels": 10, "near_pixels": 0, "near_weight": 0.0, "median_distance": None, "near_share": 0.0}))
+    assert "median distance" not in scene_reflection_reach(prepared)
+    (prepared / "gt_layers" / "reflection_reach.json").write_text("{not json")
+    assert scene_reflection_reach(prepared) == ""

@@ -111,6 +111,24 @@ def test_layers_every_renders_layers_for_every_kth_view_only(tmp_path):
     assert meta["layer_views"] == [s + ".png" for s in expected]
 
 
+def test_scene_json_records_what_the_glass_reflects_as_the_files_give_it(tiny):
+    """synth follows the reflection of every glass pixel of the views with layers while it renders them;
+    the bench recomputes it from the files written (masks, float16 layers): the same pixels, and the same
+    share of the reflection's luminance up to float16 rounding."""
+    from rtsplat.bench.reflection_reach import dataset_reach
+
+    for scene in ("dome", "cabin"):
+        recorded = json.loads((tiny[scene] / "scene.json").read_text())["reflection_reach"]
+        again = dataset_reach(tiny[scene])
+        assert recorded["glass_pixels"] == again.glass_pixels > 0
+        assert recorded["near_pixels"] == again.near_pixels
+        assert recorded["near_share"] == pytest.approx(again.near_share)
+        assert recorded["near_weight"] == pytest.approx(again.near_weight, abs=2e-3)
+    # the cabin's panes, seen from above, mirror the floor nearby; the dome's upper half mirrors the sky
+    cabin, dome = (json.loads((tiny[s] / "scene.json").read_text())["reflection_reach"] for s in ("cabin", "dome"))
+    assert cabin["near_share"] > dome["near_share"]
+
+
 def test_marker_projects_where_camera_says():
     """A small glowing glass bead at a known 3D point lands on Camera.project's pixel in the
     Mitsuba render, in the mask and in the layers (checks the sensor axis conversion)."""
@@ -261,6 +279,9 @@ def test_pipeline_reads_a_synth_dataset(tiny, tmp_path):
         assert gap.mean() < 0.01 and np.median(gap) < 1e-4
         assert np.abs(trans - image)[~mask].mean() < 0.01  # no reflection off the glass
         assert refl[mask].mean() > 0.01 and refl[~mask].mean() < 0.005  # the glass reflects
+    # what the glass reflects comes along too, for the report
+    carried = json.loads((tmp_path / "prepared" / "gt_layers" / "reflection_reach.json").read_text())
+    assert carried == json.loads((out / "scene.json").read_text())["reflection_reach"]
     truth = {c["name"]: c for c in json.loads((out / "cameras.json").read_text())["cameras"]}
     for cam in scene.cameras:
         gt = truth[cam.image]

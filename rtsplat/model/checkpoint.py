@@ -150,8 +150,9 @@ def _settings_of_older_models(settings: dict) -> dict:
     * a constant RGB background colour (before the background became a mode): black and white map to
       their modes (other colours are left for the schema to refuse);
     * no ``specular_view_angle`` / ``specular_background`` (before the specular network had these
-      inputs): off, which is the network shape such a model was trained with."""
-    for name in OPTIONAL_SPECULAR_INPUTS:
+      inputs): off, which is the network shape such a model was trained with;
+    * no ``view_independent_roi``: off, the colour such a model was trained with."""
+    for name in (*OPTIONAL_SPECULAR_INPUTS, "view_independent_roi"):
         settings.setdefault(name, False)
     colour = settings.get("background")
     if isinstance(colour, (list, tuple)) and len(colour) == 3 and len(set(map(float, colour))) == 1:

@@ -134,11 +134,13 @@ class RTModel(nn.Module):
     # -- rasterizer inputs -------------------------------------------------------------------
     def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None) -> Surfels:
         p = self.surfels
-        view = p.means - camera.center
-        colors = eval_sh(p.sh, F.normalize(view, dim=-1), p.sh_degree if sh_degree is None else sh_degree)
+        directions = F.normalize(p.means - camera.center, dim=-1)
+        colors = eval_sh(p.sh, directions, p.sh_degree if sh_degree is None else sh_degree)
         occupancy = p.occupancy
         opacity = p.opacity if self.uses_opacity else torch.ones_like(occupancy)
         inside = ((p.means - self.roi_center).norm(dim=-1) <= self.roi_radius).to(p.means.dtype)
+        if self.effects.specular and self.settings.view_independent_roi:
+            colors = torch.where(inside[:, None] > 0, eval_sh(p.sh, directions, 0), colors)
         features = torch.cat(
             [p.scatter, p.transmissivity[:, None], p.roughness[:, None], p.material, p.reflectance[:, None],
              inside[:, None], opacity[:, None]], 1,
@@ -253,8 +255,11 @@ class RTModel(nn.Module):
             colors = eval_sh(p.sh[keep], F.normalize(means - center, dim=-1), 0)
             occupancy = p.occupancy[keep]
             opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)
-            mirrored = Surfels(mirror_points(means, n, c), mirror_quats(p.quats[keep], n), p.scales[keep],
-                               occupancy, opacity, means.new_zeros(keep.numel(), 0), colors)
+            parts = [mirror_points(means, n, c), mirror_quats(p.quats[keep], n), p.scales[keep], occupancy, opacity,
+                     means.new_zeros(keep.numel(), 0), colors]
+            if not self.settings.near_reflection_trains_surfels:  # the reflection reads the surfels only
+                parts = [t.detach() for t in parts]
+            mirrored = Surfels(*parts)
             out = rasterize(mirrored, camera, raster_settings, backend=backend)
             on_plane = (index == k)[..., None]
             color = torch.where(on_plane, out.color, color)

@@ -46,6 +46,12 @@ class ModelSettings:
     """Sizes, initial values and shading constants of the model."""
 
     sh_degree: int = setting(3, help="highest spherical-harmonics degree of the volume colour", minimum=0, maximum=3)
+    view_independent_roi: bool = setting(
+        False, help="with the specular branch, surfels inside the region of interest have a view-independent volume "
+        "colour (SH degree 0): there the specular branch shades every surface, so the view-dependent light is its "
+        "to explain, and SH colour on or behind the glass cannot take a reflection over from it (docs/fidelity.md, "
+        "finding 24). Outside the region the volume colour keeps its SH degree"
+    )
     env_channels: int = setting(16, help="channels of the environment feature map", minimum=1)
     env_height: int = setting(512, help="environment map height (finest level)", minimum=2)
     env_width: int = setting(1024, help="environment map width (finest level)", minimum=2)
@@ -81,6 +87,12 @@ class ModelSettings:
         2, help="with near reflections (effects.near_reflection), the most mirror planes rendered per view (those "
         "whose rectangles the view's shaded pixels hit most): each costs one more rasterization of the scene",
         minimum=1,
+    )
+    near_reflection_trains_surfels: bool = setting(
+        True, help="with near reflections, the mirrored render passes gradients to the surfels it reflects (their "
+        "position, shape, occupancy, opacity and colour); off: it reads them without training them, so they learn "
+        "from the views that see them directly only, and the reflection's errors (the plane, the reflectance) stay "
+        "out of them"
     )
     near_reflection_weight: bool = setting(
         False, help="with near reflections, a sixth output w of the specular network weighs them per pixel: "

@@ -9,7 +9,9 @@ Output directory (``<stem>`` = ``0000`` ... for view 0 ...)::
     layers/reflection/<stem>.png        ground-truth reflection layer, sRGB 8-bit (display only)
     layers/transmission/<stem>.png      ground-truth transmission layer, sRGB 8-bit (display only)
     layers/linear/<stem>.npz            float16 linear RGB: full, reflection, transmission, scatter
-    scene.json                          generator, parameters, seed, Mitsuba version, file list
+    scene.json                          generator, parameters, seed, Mitsuba version, file list, and
+                                        with layers, what the glass of those views reflects
+                                        (``reflection_reach``, :mod:`rtsplat.synth.reach`)
 
 Everything is written into a hidden temporary directory beside ``out_dir`` that is renamed into
 place at the end (:func:`rtsplat.io.outputs.output_dir`), so a failure or ctrl-C never leaves a
@@ -32,6 +34,7 @@ from rtsplat.io.colmap import ColmapImage, ColmapPoints, write_sparse_model
 from rtsplat.io.images import linear_to_srgb, to_uint, write_png
 from rtsplat.io.outputs import output_dir
 from rtsplat.synth.cameras import SAMPLER, effective_spp
+from rtsplat.synth.reach import LUMINANCE, reach_record, reflection_reach
 from rtsplat.synth.render import VARIANT, ViewRender, load_scene, render_view, set_variant
 from rtsplat.synth.scenes import SCENES, SceneSpec, build_scene
 
@@ -281,6 +284,7 @@ def render_dataset(
         cams = spec.orbit.cameras(config.views, config.width, config.height)
         scene = load_scene(spec.elements, cams, config.spp, config.max_depth)
         check = _LayerCheck()
+        reach_views: tuple[list, list, list] = ([], [], [])  # cameras, masks, reflection luminance
         colmap_images: list[ColmapImage] = []
         xyz, rgb, tracks = [], [], []
         transparent_pixels = 0
@@ -294,6 +298,8 @@ def render_dataset(
             _write_png(tmp / "transparent_masks" / f"{stem}.png", view.mask.astype(np.uint8) * 255)
             if view.reflection is not None:
                 _write_layers(tmp, stem, view)
+                for kept, value in zip(reach_views, (cams[i], view.mask, view.reflection @ LUMINANCE), strict=True):
+                    kept.append(value)
             check.add(view)
             transparent_pixels += int(view.mask.sum())
             pts, uv, rc = _surface_points(scene, cams[i], config.point_stride)
@@ -329,6 +335,9 @@ def render_dataset(
             )
         )
         result = check.result()
-        (tmp / "scene.json").write_text(json.dumps(_scene_json(config, spec, cams, result), indent=1))
+        description = _scene_json(config, spec, cams, result)
+        if reach_views[0]:
+            description["reflection_reach"] = reach_record(reflection_reach(scene, *reach_views))
+        (tmp / "scene.json").write_text(json.dumps(description, indent=1))
         shutil.rmtree(work)
     return SynthSummary(out_dir, config.views, transparent_pixels, result)
