@@ -48,6 +48,9 @@ METHODS = {
     # near reflections forced on (their planes fitted at specular_from, inside the warm-up) and off
     "rtsplat_near": {"effects": {"near_reflection": "on"}},
     "rtsplat_no_near": {"effects": {"near_reflection": "off"}},
+    # near reflections that read the reflected surfels without training them (no backward of the mirrored pass)
+    "rtsplat_near_reads": {"effects": {"near_reflection": "on"},
+                           "model": {**DEMO_OPTIONS["model"], "near_reflection_trains_surfels": False}},
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
 }
 PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",
