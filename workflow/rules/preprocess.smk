@@ -45,6 +45,8 @@ rule masks:
     params:
         scene_dir=scene_dir,
         cfg=stage_json("masks"),
+    resources:
+        **slurm("masks"),
     conda:
         ENV
     shell:
@@ -65,6 +67,8 @@ rule sfm:
         cfg=stage_json("sfm"),
         masks=sfm_masks_arg,
     threads: 8
+    resources:
+        **slurm("sfm"),
     conda:
         ENV
     shell:
@@ -86,6 +90,8 @@ rule prepare:
     params:
         scene_dir=scene_dir,
         cfg=stage_json("prepare"),
+    resources:
+        **slurm("prepare"),
     conda:
         ENV
     shell:
