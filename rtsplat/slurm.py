@@ -45,5 +45,5 @@ def check_cluster_gpus(requested: int, sinfo: str = "sinfo") -> None:
         raise ConfigError(
             f"slurm.gpus is {requested}: the train, render and fps jobs ask for {requested} GPU(s), but this "
             f"cluster {found} (sinfo -o %G: {' '.join(sorted(set(result.stdout.split()))) or 'nothing'})",
-            fix="set slurm.gpus: 0 for a CPU-only cluster (e.g. --config 'slurm={gpus: 0}' or in the config file), "
-            "or run on a cluster with GPUs")
+            fix="set slurm.gpus: 0 in the config for a CPU-only cluster (config.yaml, or a file with "
+            "'slurm: {gpus: 0}' given with --configfile), or run on a cluster with GPUs")

@@ -665,7 +665,8 @@ def test_a_stop_signal_checkpoints_at_the_next_iteration_and_the_rerun_resumes_t
     cfg_file = tmp_path / "cfg.yaml"
     cfg_file.write_text(yaml.safe_dump({"train": cfg.to_dict() | {"raster": {}}}))
     run, kept = tmp_path / "runs" / "rtsplat", tmp_path / "checkpoints" / "rtsplat"
-    args = ("--data", str(glass_scene.root), "--out", str(run), "--config", str(cfg_file), "--checkpoint-dir", str(kept))
+    args = ("--data", str(glass_scene.root), "--out", str(run), "--config", str(cfg_file),
+            "--checkpoint-dir", str(kept))
     proc = _train_cli(*args)
     deadline = time.time() + 300
     while proc.poll() is None and time.time() < deadline:
