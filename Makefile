@@ -1,6 +1,7 @@
 # Two commands for a fresh clone (see README.md):
 #   make demo   - run the main job
 #   make test   - run the test suite
+#   make test-slurm - the whole DAG through the SLURM profile on a one-node cluster started here (root)
 # Both bootstrap a local virtual environment in .venv by themselves.
 PYTHON ?= python3.11
 VENV ?= .venv
@@ -13,7 +14,7 @@ PYTEST_ARGS ?=
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.rtsplat-installed
 
-.PHONY: demo targets raster-demo test test-fast lint bench clean-venv chromium
+.PHONY: demo targets raster-demo test test-fast test-slurm lint bench clean-venv chromium
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; run 'make PYTHON=python3' with Python >= 3.10"; exit 1; }
@@ -57,6 +58,16 @@ raster-demo: $(STAMP)
 
 test: $(STAMP) chromium
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# The whole DAG through `snakemake --profile profiles/slurm` on a one-node SLURM cluster on this machine
+# (scripts/slurm_cluster.sh: needs root, installs slurm-wlm and munge with apt when missing), compared with
+# a local run of the same DAG, one training job stopped by SLURM and resumed; the cluster is stopped at
+# the end whatever happens (tests/test_slurm.py says what is checked).
+SLURM_TEST_DIR ?= $${TMPDIR:-/tmp}/rtsplat-test-slurm
+test-slurm: $(STAMP)
+	trap 'scripts/slurm_cluster.sh down' EXIT; scripts/slurm_cluster.sh up && \
+	RTSPLAT_SLURM_REQUIRED=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -m slurm -s tests/test_slurm.py \
+		--basetemp=$(SLURM_TEST_DIR) $(PYTEST_ARGS)
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -m "not slow" $(PYTEST_ARGS)

@@ -25,6 +25,7 @@ import argparse
 import copy
 import dataclasses
 import json
+import math
 import shlex
 import sys
 import typing
@@ -364,6 +365,41 @@ class SceneConfig:
     metrics: MetricsConfig = _f(help="metrics", factory=MetricsConfig)
 
 
+SLURM_RULES = ("masks", "sfm", "prepare", "train", "render", "render_edit", "fps", "video", "metrics", "report")
+SLURM_GPU_RULES = ("train", "render", "fps", "video")  # the jobs whose torch device is the GPU when they have one
+SLURM_MINUTES = {"masks": 30, "sfm": 240, "prepare": 60, "render": 120, "render_edit": 60, "fps": 30, "video": 60,
+                 "metrics": 30, "report": 15}
+
+
+@dataclass
+class SlurmRuleConfig:
+    """One rule's SLURM job settings; each unset key comes from the ``slurm`` section."""
+
+    partition: str | None = _f(None, help="partition of this rule's jobs; null: the slurm section's")
+    account: str | None = _f(None, help="account of this rule's jobs; null: the slurm section's")
+    minutes: int | None = _f(None, help="time limit of this rule's jobs in minutes; null: the default "
+                             "(train: scaled with its iterations)", minimum=1)
+
+
+@dataclass
+class SlurmConfig:
+    """What each job asks SLURM for when the workflow runs with the SLURM executor (profiles/slurm);
+    nothing of it changes a local run."""
+
+    gpus: int = _f(1, help="GPUs each train, render and fps job asks for (the executor's gpu resource); 0 on a "
+                   "cluster without GPUs: every job runs on CPU partitions", minimum=0)
+    partition: str | None = _f(None, help="partition of every job; null: the cluster's default partition")
+    gpu_partition: str | None = _f(None, help="partition of the jobs that ask for a GPU; null: partition")
+    account: str | None = _f(None, help="account charged for every job; null: the executor's guess, or none")
+    train_minutes: int = _f(15, help="time limit of a training job: this many minutes plus "
+                            "train_minutes_per_1000_iterations for each 1000 of its iterations", minimum=1)
+    train_minutes_per_1000_iterations: float = _f(
+        60.0, help="see train_minutes; about one CPU's pace on a real capture, a GPU needs far less", minimum=0.0)
+    rules: dict[str, SlurmRuleConfig] = _f(
+        help=f"per rule ({', '.join(SLURM_RULES)}): partition, account and minutes over the ones above; "
+        f"default minutes: {SLURM_MINUTES}", factory=dict, propertyNames={"enum": list(SLURM_RULES)})
+
+
 MethodRoleName = Literal["main", "baseline", "ablation", "repeat"]
 ROLE_KEYS = ("role", "of")  # keys of a method that describe its role, not the trainer
 
@@ -403,6 +439,7 @@ class PipelineConfig:
     )
     defaults: SceneConfig = _f(help="settings for every scene", factory=SceneConfig)
     overrides: dict[str, SceneConfig] = _f(help="per-scene settings merged over the defaults", factory=dict)
+    slurm: SlurmConfig = _f(help="SLURM job resources (snakemake --profile profiles/slurm)", factory=SlurmConfig)
 
 
 STAGE_SECTIONS: dict[str, type] = typing.get_type_hints(SceneConfig)
@@ -556,6 +593,27 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
         raise ConfigError(f"{where}: {exc}", fix="use the trainer's keys (rtsplat/train_config.py) and a budget > 0") \
             from exc
     return tree
+
+
+def slurm_resources(cfg: PipelineConfig, rule: str, scene: str | None = None, method: str | None = None) -> dict:
+    """The SLURM resources of a job of ``rule`` (the executor plugin's names): ``runtime`` in minutes (a
+    training job's from its method's iterations on ``scene``), ``slurm_partition`` and ``slurm_account``
+    ("" leaves the choice to the cluster) and ``gpu`` (0 for the rules that do not use one)."""
+    from rtsplat.train_config import TrainConfig as TrainerConfig
+
+    slurm = cfg.slurm
+    own = build(SlurmRuleConfig, dict(slurm.rules.get(rule) or {}))  # the tree keeps the rules' entries as dicts
+    gpus = slurm.gpus if rule in SLURM_GPU_RULES else 0
+    if own.minutes is not None:
+        minutes = own.minutes
+    elif rule == "train":
+        iterations = TrainerConfig.from_dict(trainer_options(cfg, scene, method)).schedule.iterations
+        minutes = slurm.train_minutes + math.ceil(slurm.train_minutes_per_1000_iterations * iterations / 1000)
+    else:
+        minutes = SLURM_MINUTES[rule]
+    partition = own.partition or (gpus and slurm.gpu_partition) or slurm.partition or ""
+    return {"runtime": int(minutes), "slurm_partition": partition, "slurm_account": own.account or slurm.account or "",
+            "gpu": int(gpus)}
 
 
 def train_json(cfg: PipelineConfig, scene: str, method: str, quote: bool = True) -> str:

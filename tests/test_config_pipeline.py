@@ -323,3 +323,27 @@ def test_stage_flags_are_validated_overrides_of_the_config_section():
         stage_config_from_args(args, "prepare", {"downsample": 0})
     masks = stage_config_from_args(parser.parse_args([]), "masks", {"source": "none", "onnx.model": "m.onnx"})
     assert masks.source == "none" and masks.onnx.model == "m.onnx" and masks.onnx.kind == "auto"
+
+
+def test_gpus_of_a_slurm_cluster_are_read_from_its_gres_lists():
+    from rtsplat.slurm import gpus_in_gres
+
+    assert gpus_in_gres("(null)\n(null)\n") == 0
+    assert gpus_in_gres("gpu:a100:4(S:0-1)\n(null)\n") == 4
+    assert gpus_in_gres("gpu:2,shard:8\ngpu:v100:1\n") == 2
+    assert gpus_in_gres("gpu\n") == 1
+    assert gpus_in_gres("shard:8\nmps:100\n") == 0
+
+
+def test_slurm_pre_flight_names_the_setting_when_the_cluster_has_no_gpu(tmp_path):
+    from rtsplat.errors import ConfigError
+    from rtsplat.slurm import check_cluster_gpus
+
+    sinfo = tmp_path / "sinfo"
+    sinfo.write_text("#!/bin/sh\necho '(null)'\n")
+    sinfo.chmod(0o755)
+    check_cluster_gpus(0, sinfo=str(sinfo))  # a CPU-only run asks nothing of it
+    with pytest.raises(ConfigError, match=r"(?s)this cluster has no GPUs.*slurm.gpus: 0"):
+        check_cluster_gpus(1, sinfo=str(sinfo))
+    sinfo.write_text("#!/bin/sh\necho 'gpu:h100:4'\n")
+    check_cluster_gpus(2, sinfo=str(sinfo))

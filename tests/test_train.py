@@ -655,3 +655,43 @@ def test_a_capped_start_uses_a_seeded_subset_of_the_points_with_the_whole_clouds
     summary = trainer.train()
     assert summary["starting_surfels"]["surfels"] == cap and "random" in summary["starting_surfels"]["reason"]
     assert json.loads((tmp_path / "subset" / "summary.json").read_text())["starting_surfels"]["cap"] == cap
+
+
+def test_a_stop_signal_checkpoints_at_the_next_iteration_and_the_rerun_resumes_there(glass_scene, tmp_path):
+    """SIGUSR1 (what a batch system sends before a time limit) stops `rtsplat train` cleanly: the checkpoint
+    of the iteration it stopped at is written, the exit code says it was stopped (a failure to a workflow
+    manager), and the same command resumes from that iteration to the model an uninterrupted run ends with."""
+    cfg = config(120, schedule={"densify_from": 12, "densify_every": 8, "eval_every": 0, "log_every": 1})
+    cfg_file = tmp_path / "cfg.yaml"
+    cfg_file.write_text(yaml.safe_dump({"train": cfg.to_dict() | {"raster": {}}}))
+    run, kept = tmp_path / "runs" / "rtsplat", tmp_path / "checkpoints" / "rtsplat"
+    args = ("--data", str(glass_scene.root), "--out", str(run), "--config", str(cfg_file),
+            "--checkpoint-dir", str(kept))
+    proc = _train_cli(*args)
+    deadline = time.time() + 300
+    while proc.poll() is None and time.time() < deadline:
+        if (run / "train_log.jsonl").exists() and len(read_log(run)) >= 15:
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, f"training ended before the signal: {proc.stderr.read()}"
+    os.kill(proc.pid, signal.SIGUSR1)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGUSR1, err
+    stopped_at = read_checkpoint(kept / "last.pt").training["iteration"]
+    assert 15 <= stopped_at < 120 and f"stopped by SIGUSR1 at iteration {stopped_at} of 120" in err
+    assert read_log(run)[-1]["iteration"] == stopped_at  # the checkpoint is of the last iteration logged
+    assert not (run / "summary.json").exists()
+    shutil.rmtree(run)  # what Snakemake does with the output folder of a failed job
+
+    proc = _train_cli(*args)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    assert f"resumed from {kept / 'last.pt'} at iteration {stopped_at}" in err
+    assert [r["iteration"] for r in read_log(run)] == list(range(1, 121))
+
+    straight = Trainer(glass_scene, cfg, tmp_path / "straight", progress=False, log=lambda m: None)
+    straight.train()
+    a, b = straight.model.surfels.tensors(), read_checkpoint(run / "model.pt").surfels
+    assert a.keys() == b.keys() and len(b["means"]) == len(a["means"])
+    for name in a:
+        torch.testing.assert_close(b[name], a[name], rtol=1e-4, atol=1e-5, msg=name)

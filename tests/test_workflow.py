@@ -200,8 +200,35 @@ def test_slurm_profile_dry_run_gives_gpu_to_training(dataset):
     train = [b for b in _jobs(out) if b.startswith("rule train")]
     assert len(train) == 2 and all("gpu=1" in b for b in train)
     masks = [b for b in _jobs(out) if b.startswith("rule masks")]
-    assert masks and not any("gpu=" in b for b in masks)
-    assert "cpus_per_task=8" in train[0] and "runtime=720" in train[0]
+    assert masks and all("gpu=0" in b for b in masks)
+    # the profile sizes the training jobs; their time limit is the config's, 15 + 60 minutes per 1000
+    # iterations by default (10 iterations here)
+    assert "cpus_per_task=8" in train[0] and "runtime=16," in train[0] and "runtime=240," in _jobs_of(out, "sfm")[0]
+
+
+def _jobs_of(output: str, rule: str) -> list[str]:
+    return [b for b in _jobs(output) if b.startswith(f"rule {rule}:")]
+
+
+def test_slurm_settings_of_the_config_reach_the_jobs(dataset, tmp_path):
+    """slurm.gpus 0 (a CPU-only cluster) takes the GPU from every job; partitions, account and time limits
+    come from the slurm section, per rule where given; the training time limit follows its iterations."""
+    cfg = yaml.safe_load(_config(dataset).read_text())
+    cfg["defaults"]["train"]["iterations"] = 3000
+    cfg["slurm"] = {"gpus": 0, "partition": "cpu", "account": "lab", "train_minutes": 10,
+                    "train_minutes_per_1000_iterations": 20, "rules": {"sfm": {"partition": "big", "minutes": 99}}}
+    path = tmp_path / "cpu.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    r = snakemake(dataset, "-n", "--profile", str(ROOT / "profiles" / "slurm"), config=path)
+    assert r.returncode == 0, r.stderr + r.stdout
+    out = r.stdout + r.stderr
+    blocks = [b for b in _jobs(out) if re.match(r"rule (masks|sfm|prepare|train|render|render_edit|fps|metrics|"
+                                                r"report):", b)]
+    assert len(blocks) == sum(EXPECTED.values()) - EXPECTED["all"]
+    assert all("gpu=0" in b and "slurm_account=lab" in b for b in blocks)
+    assert all("runtime=70," in b for b in _jobs_of(out, "train"))  # 10 + 20 x 3
+    assert all("slurm_partition=big" in b and "runtime=99," in b for b in _jobs_of(out, "sfm"))
+    assert all("slurm_partition=cpu," in b for b in _jobs_of(out, "render") + _jobs_of(out, "masks"))
 
 
 def test_unknown_config_key_is_a_clear_error(dataset, tmp_path):

@@ -12,16 +12,22 @@ resumes from it. The folder records what it was written for (the ``--data`` file
 modification times, the trainer config); a checkpoint written for anything else is discarded, with a
 message, and training starts at iteration 0. A finished run removes the folder (``--out`` has the
 final ``model.pt``).
+
+SIGTERM or SIGUSR1 (a batch system's time limit or preemption warning) stops training at the end of the
+current iteration: the checkpoint is written, the process exits with 128 + the signal number (a failure
+for a workflow manager, which keeps the checkpoint folder), and the same command resumes from it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import shutil
+import signal
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from rtsplat.config import PipelineConfig, add_config_arguments, load_config, trainer_options
@@ -33,6 +39,26 @@ from rtsplat.io.outputs import check_output_dir, mark_output
 from rtsplat.train_config import TrainConfig
 
 PIPELINE_KEYS = frozenset(f.name for f in dataclasses.fields(PipelineConfig))
+# SIGTERM (a time limit, scancel, Snakemake's own shutdown) and SIGUSR1 (a batch system's warning before
+# a time limit, e.g. sbatch --signal=USR1@120) stop training at the next iteration boundary with a checkpoint
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1)
+STOPPED_EXIT_BASE = 128  # a stopped run exits with 128 + the signal number, as if the signal had ended it
+
+
+@contextlib.contextmanager
+def stop_on_signals(trainer) -> Iterator[None]:
+    """While in the block, :data:`STOP_SIGNALS` set ``trainer.stop_signal`` instead of ending the process
+    (the trainer then checkpoints and raises TrainingStopped); the previous handlers come back after it."""
+
+    def request_stop(signal_number: int, frame) -> None:
+        trainer.stop_signal = signal_number
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -94,7 +120,7 @@ def trainer_config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def run(args: argparse.Namespace) -> int:
     from rtsplat.scene import PreparedScene
-    from rtsplat.train.trainer import Trainer
+    from rtsplat.train.trainer import Trainer, TrainingStopped
 
     cfg = trainer_config_from_args(args)
     if args.iterations is not None:
@@ -121,7 +147,13 @@ def run(args: argparse.Namespace) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         mark_output(args.out, "train")
         trainer = Trainer(scene, cfg, args.out, progress=not args.quiet, log=log, checkpoint_dir=args.checkpoint_dir)
-        trainer.train(resume=not args.no_resume, new_config=args.resume_with_new_config)
+        try:
+            with stop_on_signals(trainer):
+                trainer.train(resume=not args.no_resume, new_config=args.resume_with_new_config)
+        except TrainingStopped as stopped:
+            log(f"stopped by {signal.Signals(stopped.signal_number).name} at iteration {stopped.iteration} of "
+                f"{cfg.schedule.iterations}; checkpoint {stopped.checkpoint}: the same command resumes from it")
+            return STOPPED_EXIT_BASE + stopped.signal_number
         if args.checkpoint_dir is not None:
             shutil.rmtree(args.checkpoint_dir)
     return 0

@@ -109,6 +109,17 @@ def _write_json(path: Path, data) -> None:
     write_text_atomic(path, json.dumps(data, indent=1, default=str) + "\n")
 
 
+class TrainingStopped(Exception):
+    """:meth:`Trainer.train` stopped on request (:attr:`Trainer.stop_signal`) at an iteration boundary,
+    after writing the checkpoint the next run resumes from."""
+
+    def __init__(self, signal_number: int, iteration: int, checkpoint: Path):
+        super().__init__(f"stopped by signal {signal_number} at iteration {iteration}; checkpoint {checkpoint}")
+        self.signal_number = signal_number
+        self.iteration = iteration
+        self.checkpoint = checkpoint
+
+
 class Trainer:
     def __init__(
         self, scene: PreparedScene, cfg: TrainConfig, out_dir: str | Path, *, log: Callable[[str], None] = print,
@@ -122,6 +133,9 @@ class Trainer:
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else self.out / "checkpoints"
         self.log = log
         self.progress = progress
+        # set (to a signal number) from outside, e.g. a signal handler: the loop writes the checkpoint at the
+        # end of the current iteration and raises TrainingStopped (rtsplat train: SIGTERM, SIGUSR1)
+        self.stop_signal: int | None = None
         self.device = resolve_device(cfg.device, key="train.device")
         torch.manual_seed(cfg.seed)
         self.rng = torch.Generator().manual_seed(cfg.seed)
@@ -663,10 +677,16 @@ class Trainer:
                         record.update(self.evaluate())
                     log_file.write(json.dumps(record) + "\n")
                     log_file.flush()
-                if cfg.schedule.checkpoint_every > 0 and step.iteration % cfg.schedule.checkpoint_every == 0:
+                stop = self.stop_signal
+                if stop is not None or (cfg.schedule.checkpoint_every > 0
+                                        and step.iteration % cfg.schedule.checkpoint_every == 0):
+                    log_file.flush()
                     if self.kept_log_path is not None:  # before the checkpoint: never older than it
                         write_text_atomic(self.kept_log_path, log_path.read_text())
                     self.save_checkpoint()
+                if stop is not None and self.iteration < total:
+                    bar.close()
+                    raise TrainingStopped(stop, self.iteration, self.checkpoint_path)
         bar.close()
         return self.finish()
 

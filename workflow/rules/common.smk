@@ -4,8 +4,9 @@ import shlex
 import sys
 from pathlib import Path
 
-from rtsplat.config import ConfigError, discover_scenes, load_config_dict, section_json
+from rtsplat.config import ConfigError, discover_scenes, load_config_dict, section_json, slurm_resources
 from rtsplat.io.manifest import refresh_manifest
+from rtsplat.slurm import check_cluster_gpus
 
 # Readable messages first (unknown keys, wrong types, with the fix), then Snakemake's own
 # validation against the same schema (defaults come from the dataclasses).
@@ -36,6 +37,17 @@ def _rtsplat_command():
 RTSPLAT = _rtsplat_command()
 
 
+# Before the first job is submitted to SLURM (onstart runs once the executor is chosen, not in dry runs): the
+# GPUs the jobs ask for must exist on the cluster, else the run stops here instead of leaving jobs that
+# cannot start.
+onstart:
+    if getattr(workflow.executor_plugin, "name", None) == "slurm" and not workflow.remote_exec:
+        try:
+            check_cluster_gpus(CFG.slurm.gpus)
+        except ConfigError as _exc:
+            sys.exit(f"rtsplat workflow: SLURM pre-flight:\n{_exc}")
+
+
 wildcard_constraints:
     scene="|".join(map(re.escape, SCENES)) if SCENES else "a^",
     method="|".join(map(re.escape, METHODS)),
@@ -60,3 +72,15 @@ def stage_json(section):
 
 def out(scene, *parts):
     return "/".join([RESULTS, scene, *parts])
+
+
+def slurm(rule):
+    """The resources of ``rule``'s SLURM jobs as resource functions (runtime, slurm_partition, slurm_account,
+    gpu; rtsplat.config.slurm_resources, from the config's slurm section). A local run ignores them."""
+
+    def resource(key):
+        return lambda wildcards: slurm_resources(
+            CFG, rule, getattr(wildcards, "scene", None), getattr(wildcards, "method", None)
+        )[key]
+
+    return {key: resource(key) for key in ("runtime", "slurm_partition", "slurm_account", "gpu")}

@@ -29,13 +29,14 @@ rule train:
         checkpoints=f"{RESULTS}/{{scene}}/checkpoints/{{method}}",
     threads: 2
     resources:
-        gpu=1,
-        runtime=720,
+        **slurm("train"),
         mem_mb=16000,
     conda:
         ENV
+    # exec: the trainer is the job's process, so the SIGTERM of a time limit or scancel reaches it directly; it
+    # checkpoints at the next iteration and exits non-zero, and the rerun resumes from the checkpoint
     shell:
-        "{RTSPLAT} train --data {input.prepared:q} --out {output:q} --checkpoint-dir {params.checkpoints:q} "
+        "exec {RTSPLAT} train --data {input.prepared:q} --out {output:q} --checkpoint-dir {params.checkpoints:q} "
         "--config-json {params.cfg} --quiet > {log:q} 2>&1"
 
 
@@ -53,8 +54,7 @@ rule render:
         cfg=stage_json("render"),
     threads: 2
     resources:
-        gpu=1,
-        runtime=120,
+        **slurm("render"),
         mem_mb=8000,
     conda:
         ENV
@@ -77,6 +77,8 @@ rule render_edit:
         cfg=stage_json("render"),
         edits=lambda wildcards: render_edit_args(CFG, wildcards.scene, wildcards.edit),
     threads: 2
+    resources:
+        **slurm("render_edit"),
     conda:
         ENV
     shell:
@@ -101,9 +103,7 @@ rule video:
         cfg=stage_json("video"),
     threads: 2
     resources:
-        gpu=1,
-        runtime=60,
-        mem_mb=8000,
+        **slurm("video"),
     conda:
         ENV
     shell:
@@ -151,8 +151,7 @@ rule fps:
         alone=scheduled_alone_flag,
     threads: local_cores() or 1
     resources:
-        gpu=1,
-        runtime=30,
+        **slurm("fps"),
         mem_mb=8000,
     conda:
         ENV
@@ -174,6 +173,8 @@ rule metrics:
         f"{RESULTS}/{{scene}}/benchmarks/metrics_{{method}}.tsv"
     params:
         cfg=stage_json("metrics"),
+    resources:
+        **slurm("metrics"),
     conda:
         ENV
     shell:
@@ -236,6 +237,8 @@ rule report:
         config_files=" ".join(f"--config {shlex.quote(f)}" for f in config_files_in_order()),
         command=shlex.quote(reproduce_command()),
         roles=roles_json(CFG),
+    resources:
+        **slurm("report"),
     conda:
         ENV
     shell:

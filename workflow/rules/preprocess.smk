@@ -67,6 +67,8 @@ rule masks:
         scene_dir=scene_dir,
         cfg=stage_json("masks"),
         sfm=masks_sfm_arg,
+    resources:
+        **slurm("masks"),
     conda:
         ENV
     shell:
@@ -88,6 +90,8 @@ rule sfm:
         cfg=stage_json("sfm"),
         masks=sfm_masks_arg,
     threads: 8
+    resources:
+        **slurm("sfm"),
     conda:
         ENV
     shell:
@@ -109,6 +113,8 @@ rule prepare:
     params:
         scene_dir=scene_dir,
         cfg=stage_json("prepare"),
+    resources:
+        **slurm("prepare"),
     conda:
         ENV
     shell:
