@@ -74,8 +74,8 @@ def _config(root: Path, results: str) -> Path:
         "results": str(root / results),
         "methods": {"rtsplat": {"role": "main"}},
         "defaults": {"prepare": {"downsample": 2}, "train": train,
-                     "render": {"warmup": 0, "edits": {"no-reflections": ["reflections=off"]}}},
-        "video": {"frames": 6},
+                     "render": {"warmup": 0, "edits": {"no-reflections": ["reflections=off"]}},
+                     "video": {"frames": 6}},
         "slurm": {"gpus": 0},
     }
     path = root / f"{results}.yaml"
