@@ -321,3 +321,24 @@ def test_a_plane_is_glass_only_if_what_its_rays_show_lies_behind_it():
     ])
     assert see_through_planes(planes, rays).tolist() == [True, False]
     assert see_through_planes(planes[:0], rays).shape == (0,)
+
+
+def test_near_reflection_on_surface_keeps_the_pixels_whose_surface_is_the_pane():
+    """A surfel standing in front of the pane hides it: with ``near_reflection_on_surface`` its pixels get no
+    reflection, the pane's own pixels keep theirs, and the image does not change where the surface is the pane."""
+    from rtsplat.model.rtmodel import on_plane_surface
+
+    camera = _camera()
+    model = _model()
+    everywhere = model.render(camera, stage="full", backend="reference")
+    model.settings = dataclasses.replace(model.settings, near_reflection_on_surface=True)
+    on_surface = model.render(camera, stage="full", backend="reference")
+    directions = image_ray_directions(camera)
+    index, distance = plane_assignment(camera, model.mirror_planes.double(), directions)
+    on = on_plane_surface(index, distance, directions, camera, everywhere.layers["depth"][..., 0], model.mirror_planes)
+    hit = index >= 0
+    assert on.any() and (hit & ~on).any()  # pane pixels, and pixels whose ray meets the pane behind a surfel
+    assert (on_surface.layers["near_alpha"][..., 0][~on] == 0).all()
+    assert on_surface.layers["near_alpha"][..., 0][on].max() > 0.3
+    torch.testing.assert_close(on_surface.color[on], everywhere.color[on])
+    assert not on[~hit].any()

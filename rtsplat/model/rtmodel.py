@@ -180,7 +180,8 @@ class RTModel(nn.Module):
             wanted = shade & (roi > 0)
             near = None
             if self.uses_near_reflection:
-                near_color, near_alpha = self._near_reflection(camera, wanted[..., 0], raster_settings, backend)
+                near_color, near_alpha = self._near_reflection(camera, wanted[..., 0], raster_settings, backend,
+                                                               surface_depth=out.depth[..., 0].detach())
                 if self.uses_opacity:  # a mirror of the glass: weighed by how see-through the surface is
                     clear = (1.0 - g["opacity"] / alpha_safe).clamp(0, 1)
                     near_color, near_alpha = clear * near_color, clear * near_alpha
@@ -221,7 +222,7 @@ class RTModel(nn.Module):
         return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
     def _near_reflection(self, camera: Camera, wanted: Tensor, raster_settings: RasterSettings | None,
-                         backend: str) -> tuple[Tensor, Tensor]:
+                         backend: str, surface_depth: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """C_near [H,W,3] (premultiplied) and its coverage A_near [H,W,1]: for the ``wanted`` pixels [H,W]
         whose ray hits a mirror plane, the volume colour of the surfels on the camera's side of the
         first plane hit, reflected in it (:mod:`rtsplat.model.mirror`); zero elsewhere. At most
@@ -229,7 +230,10 @@ class RTModel(nn.Module):
         reflected surfels show their view-independent colour (SH degree 0)."""
         H, W = wanted.shape
         p = self.surfels
-        index, _ = plane_assignment(camera, self.mirror_planes, image_ray_directions(camera))
+        directions = image_ray_directions(camera)
+        index, distance = plane_assignment(camera, self.mirror_planes, directions)
+        if self.settings.near_reflection_on_surface and surface_depth is not None:
+            wanted = wanted & on_plane_surface(index, distance, directions, camera, surface_depth, self.mirror_planes)
         index = torch.where(wanted, index, torch.full_like(index, -1))
         K = self.mirror_planes.shape[0]
         counts = torch.bincount((index + 1).flatten(), minlength=K + 1)[1:].tolist()
@@ -313,6 +317,22 @@ class RTModel(nn.Module):
             spec = spec.index_copy(0, idx, s)
             beta = beta.index_copy(0, idx, b)
         return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
+
+
+ON_PLANE_TOLERANCE = 0.05  # relative to the distance: how far a pixel's surface may lie from the pane it is on
+
+
+def on_plane_surface(index: Tensor, distance: Tensor, directions: Tensor, camera: Camera, surface_depth: Tensor,
+                     planes: Tensor) -> Tensor:
+    """[H,W] bool: the pixels whose surface depth (z, [H,W]) lies on the plane their ray meets first (``index``,
+    ``distance`` along the ray from :func:`rtsplat.model.mirror.plane_assignment`), within the plane's thickness
+    plus :data:`ON_PLANE_TOLERANCE` of its depth; False where the ray meets no plane."""
+    hit = index >= 0
+    forward = camera.world_to_camera[2, :3].to(directions.dtype)
+    plane_depth = torch.where(hit, distance, torch.zeros_like(distance)) * (directions * forward).sum(-1)
+    thickness = plane_parts(planes.to(directions.dtype))[5]
+    tolerance = thickness[index.clamp_min(0)] + ON_PLANE_TOLERANCE * plane_depth.abs()
+    return hit & ((surface_depth.to(directions.dtype) - plane_depth).abs() <= tolerance)
 
 
 def schlick_fresnel(normal_reflectance: Tensor, cos_incidence: Tensor) -> Tensor:

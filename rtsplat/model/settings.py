@@ -88,6 +88,12 @@ class ModelSettings:
         "whose rectangles the view's shaded pixels hit most): each costs one more rasterization of the scene",
         minimum=1,
     )
+    near_reflection_on_surface: bool = setting(
+        False, help="with near reflections, a pixel reflects in the pane its ray meets first only where its surface "
+        "lies on that pane (surface depth within the pane's thickness plus 5% of the distance): not where the ray "
+        "passes a pane's rectangle beside the glass and meets something behind it, nor where an object stands in "
+        "front of the pane"
+    )
     near_reflection_trains_surfels: bool = setting(
         True, help="with near reflections, the mirrored render passes gradients to the surfels it reflects (their "
         "position, shape, occupancy, opacity and colour); off: it reads them without training them, so they learn "
