@@ -156,8 +156,10 @@ def _model(dtype=torch.float64, near=True, seed=0) -> RTModel:
                          torch.tensor([[0.0, 0.0, 1.0]]).expand(60, 3)])
     surfels = init_from_points(xyz, torch.rand(90, 3, generator=g), sh_degree=1, occupancy=0.9, opacity=0.6,
                                generator=g, normals=normals)
+    # the mirrored pass trains the reflected surfels here, so that its gradients can be checked
     settings = ModelSettings(env_height=8, env_width=16, env_levels=3, mlp_width=16, sh_degree=1,
-                             background_height=8, background_width=16, background_levels=2)
+                             background_height=8, background_width=16, background_levels=2,
+                             near_reflection_trains_surfels=True)
     model = RTModel(surfels, effects=ActiveEffects(near_reflection=near), settings=settings,
                     roi_center=(0.0, 0.0, 0.0), roi_radius=3.0).to(dtype)
     model.set_mirror_planes(plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(1.0, 1.0), thickness=0.02))
@@ -330,6 +332,7 @@ def test_near_reflection_on_surface_keeps_the_pixels_whose_surface_is_the_pane()
 
     camera = _camera()
     model = _model()
+    model.settings = dataclasses.replace(model.settings, near_reflection_on_surface=False)
     everywhere = model.render(camera, stage="full", backend="reference")
     model.settings = dataclasses.replace(model.settings, near_reflection_on_surface=True)
     on_surface = model.render(camera, stage="full", backend="reference")

@@ -89,16 +89,16 @@ class ModelSettings:
         minimum=1,
     )
     near_reflection_on_surface: bool = setting(
-        False, help="with near reflections, a pixel reflects in the pane its ray meets first only where its surface "
+        True, help="with near reflections, a pixel reflects in the pane its ray meets first only where its surface "
         "lies on that pane (surface depth within the pane's thickness plus 5% of the distance): not where the ray "
         "passes a pane's rectangle beside the glass and meets something behind it, nor where an object stands in "
-        "front of the pane"
+        "front of the pane (docs/fidelity.md, finding 24)"
     )
     near_reflection_trains_surfels: bool = setting(
-        True, help="with near reflections, the mirrored render passes gradients to the surfels it reflects (their "
+        False, help="with near reflections, the mirrored render passes gradients to the surfels it reflects (their "
         "position, shape, occupancy, opacity and colour); off: it reads them without training them, so they learn "
         "from the views that see them directly only, and the reflection's errors (the plane, the reflectance) stay "
-        "out of them"
+        "out of them, and the mirrored pass needs no backward (docs/fidelity.md, finding 24)"
     )
     near_reflection_weight: bool = setting(
         False, help="with near reflections, a sixth output w of the specular network weighs them per pixel: "
