@@ -49,8 +49,8 @@ class ModelSettings:
     view_independent_roi: bool = setting(
         False, help="with the specular branch, surfels inside the region of interest have a view-independent volume "
         "colour (SH degree 0): there the specular branch shades every surface, so the view-dependent light is its "
-        "to explain, and SH colour on or behind the glass cannot take a reflection over from it. Outside the region the "
-        "volume colour keeps its SH degree. Off: it measured no gain on the dome (docs/fidelity.md, finding 24)"
+        "to explain, and SH colour on or behind the glass cannot take a reflection over from it. Outside the region "
+        "the volume colour keeps its SH degree. Off: it measured no gain on the dome (docs/fidelity.md, finding 24)"
     )
     env_channels: int = setting(16, help="channels of the environment feature map", minimum=1)
     env_height: int = setting(512, help="environment map height (finest level)", minimum=2)
