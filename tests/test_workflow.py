@@ -222,8 +222,8 @@ def test_slurm_settings_of_the_config_reach_the_jobs(dataset, tmp_path):
     r = snakemake(dataset, "-n", "--profile", str(ROOT / "profiles" / "slurm"), config=path)
     assert r.returncode == 0, r.stderr + r.stdout
     out = r.stdout + r.stderr
-    blocks = [b for b in _jobs(out) if re.match(r"rule (masks|sfm|prepare|train|render|render_edit|fps|metrics|"
-                                                r"report):", b)]
+    blocks = [b for b in _jobs(out) if re.match(r"rule (masks|sfm|prepare|train|render|render_edit|fps|video|"
+                                                r"metrics|report):", b)]
     assert len(blocks) == sum(EXPECTED.values()) - EXPECTED["all"]
     assert all("gpu=0" in b and "slurm_account=lab" in b for b in blocks)
     assert all("runtime=70," in b for b in _jobs_of(out, "train"))  # 10 + 20 x 3
