@@ -22,7 +22,7 @@ from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.devices import resolve_device
 from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.outputs import check_output_file, json_with_keys
-from rtsplat.render import device_name, load_run, time_renders
+from rtsplat.render import add_run_arguments, device_name, load_run, time_renders
 
 
 def measure_fps(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, rounds: int = 3, warmup: int = 2,
@@ -38,11 +38,7 @@ def measure_fps(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, r
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.description = __doc__
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--run", type=Path, required=True, help="run directory of `rtsplat train` (has model.pt)")
-    parser.add_argument("--data", type=Path, required=True, help="the prepared scene the run was trained on")
-    parser.add_argument("--out", type=Path, required=True, help="the FPS JSON file (written atomically)")
+    add_run_arguments(parser, __doc__, "the FPS JSON file (written atomically)")
     parser.add_argument("--rounds", type=int, help="override render.fps_rounds (renders of every test view)")
     parser.add_argument("--warmup", type=int, help="override render.warmup (untimed renders first)")
     parser.add_argument("--backend", default="auto",

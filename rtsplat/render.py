@@ -288,12 +288,18 @@ def device_name(device: torch.device) -> str:
     return f"CPU {cpu_model()}, {torch.get_num_threads()} torch threads"
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.description = __doc__
+def add_run_arguments(parser: argparse.ArgumentParser, description: str, out_help: str) -> None:
+    """The stage's ``--help`` text and the arguments of every stage that renders a trained run: ``--run``,
+    ``--data`` and ``--out`` (``out_help`` says what is written there)."""
+    parser.description = description
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--run", type=Path, required=True, help="run directory of `rtsplat train` (has model.pt)")
     parser.add_argument("--data", type=Path, required=True, help="the prepared scene the run was trained on")
-    parser.add_argument("--out", type=Path, required=True, help="output directory (replaced atomically)")
+    parser.add_argument("--out", type=Path, required=True, help=out_help)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_run_arguments(parser, __doc__, "output directory (replaced atomically)")
     parser.add_argument("--split", choices=("test", "train", "all"), default="test")
     parser.add_argument("--edit", action="append", default=[], metavar="KEY=VALUE",
                         help="scene edit, repeatable: roughness=S, transparency=S, reflections=off, tint=R,G,B")

@@ -37,7 +37,16 @@ from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
 from rtsplat.io.outputs import check_output_dir, check_output_file, output_dir
-from rtsplat.render import Edits, decompose, depth_image, device_name, inverse_depth, load_run, normal_image
+from rtsplat.render import (
+    Edits,
+    add_run_arguments,
+    decompose,
+    depth_image,
+    device_name,
+    inverse_depth,
+    load_run,
+    normal_image,
+)
 from rtsplat.usage import UsageClock
 
 PANELS = ("color", "reflection", "transmission", "normal", "depth")
@@ -140,11 +149,7 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.description = __doc__
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("--run", type=Path, required=True, help="run directory of `rtsplat train` (has model.pt)")
-    parser.add_argument("--data", type=Path, required=True, help="the prepared scene the run was trained on")
-    parser.add_argument("--out", type=Path, required=True, help="the MP4 file to write (replaced atomically)")
+    add_run_arguments(parser, __doc__, "the MP4 file to write (replaced atomically)")
     parser.add_argument("--path", choices=("orbit", "spiral", "interpolate"),
                         help="override video.path: the camera path (default orbit)")
     parser.add_argument("--frames", type=int, help="override video.frames: frames of the video (default 60)")

@@ -18,6 +18,7 @@ from rtsplat.model.mirror import (
     mirror_points,
     mirror_quats,
     plane_assignment,
+    plane_parts,
 )
 from rtsplat.model.rtmodel import ActiveEffects, RTModel, image_ray_directions
 from rtsplat.model.settings import ModelSettings
@@ -338,7 +339,8 @@ def test_near_reflection_on_surface_keeps_the_pixels_whose_surface_is_the_pane()
     on_surface = model.render(camera, stage="full", backend="reference")
     directions = image_ray_directions(camera)
     index, distance = plane_assignment(camera, model.mirror_planes.double(), directions)
-    on = on_plane_surface(index, distance, directions, camera, everywhere.layers["depth"][..., 0], model.mirror_planes)
+    thickness = plane_parts(model.mirror_planes)[5]
+    on = on_plane_surface(index, distance, directions, camera, everywhere.layers["depth"][..., 0], thickness)
     hit = index >= 0
     assert on.any() and (hit & ~on).any()  # pane pixels, and pixels whose ray meets the pane behind a surfel
     assert (on_surface.layers["near_alpha"][..., 0][~on] == 0).all()

@@ -11,14 +11,12 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from rtsplat.bench.toy_scene import write_scene
+from rtsplat.bench.toy_scene import train_quietly, write_scene
 from rtsplat.io.images import read_image
 from rtsplat.metrics import NOT_AVAILABLE, image_metrics
 from rtsplat.model.checkpoint import read_checkpoint
 from rtsplat.quality import ssim_map
 from rtsplat.render import Edits, apply_parameter_edits, render_run
-from rtsplat.train.trainer import Trainer
-from rtsplat.train_config import TrainConfig
 
 QUANT = 1.5 / 255  # 8-bit PNGs: each layer is rounded separately
 
@@ -27,13 +25,10 @@ QUANT = 1.5 / 255  # 8-bit PNGs: each layer is rounded separately
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("render")
     scene = write_scene(root / "scene", views=8, width=48, height=36)
-    cfg = TrainConfig.from_dict({
-        "schedule": {"iterations": 30, "volume_until": 5, "specular_from": 10, "densify_from": 1000,
-                     "reset_every": 0, "checkpoint_every": 0, "log_every": 10},
-        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
-    })
-    trainer = Trainer(scene, cfg, root / "run", progress=False, log=lambda m: None)
-    summary = trainer.train()
+    summary = train_quietly(scene, root / "run",
+                            {"iterations": 30, "volume_until": 5, "specular_from": 10, "densify_from": 1000,
+                             "reset_every": 0, "checkpoint_every": 0, "log_every": 10},
+                            {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32})
     return root, scene, summary
 
 

@@ -396,15 +396,22 @@ def _train_cli(*args: str) -> subprocess.Popen:
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
-def test_checkpoint_dir_outlives_a_deleted_run_folder_and_training_resumes_from_it(glass_scene, tmp_path):
-    """What a training job killed under Snakemake goes through: the run folder is deleted, the checkpoint
-    folder beside it is not, and the next job resumes at the checkpoint's iteration with the log kept."""
-    cfg = config(40, schedule={"checkpoint_every": 10, "densify_from": 1000, "eval_every": 0})
+def _cli_with_checkpoint_dir(glass_scene, tmp_path, cfg):
+    """`rtsplat train` arguments for ``cfg`` (written as a config file) with the run in runs/rtsplat and its
+    checkpoint folder beside it in checkpoints/rtsplat, as the workflow lays them out: (args, run, kept)."""
     cfg_file = tmp_path / "cfg.yaml"
     cfg_file.write_text(yaml.safe_dump({"train": cfg.to_dict() | {"raster": {}}}))
     run, kept = tmp_path / "runs" / "rtsplat", tmp_path / "checkpoints" / "rtsplat"
     args = ("--data", str(glass_scene.root), "--out", str(run), "--config", str(cfg_file),
             "--checkpoint-dir", str(kept))
+    return args, run, kept
+
+
+def test_checkpoint_dir_outlives_a_deleted_run_folder_and_training_resumes_from_it(glass_scene, tmp_path):
+    """What a training job killed under Snakemake goes through: the run folder is deleted, the checkpoint
+    folder beside it is not, and the next job resumes at the checkpoint's iteration with the log kept."""
+    cfg = config(40, schedule={"checkpoint_every": 10, "densify_from": 1000, "eval_every": 0})
+    args, run, kept = _cli_with_checkpoint_dir(glass_scene, tmp_path, cfg)
     proc = _train_cli(*args)
     deadline = time.time() + 300
     while not (kept / "last.pt").exists() and proc.poll() is None and time.time() < deadline:
@@ -662,11 +669,7 @@ def test_a_stop_signal_checkpoints_at_the_next_iteration_and_the_rerun_resumes_t
     of the iteration it stopped at is written, the exit code says it was stopped (a failure to a workflow
     manager), and the same command resumes from that iteration to the model an uninterrupted run ends with."""
     cfg = config(120, schedule={"densify_from": 12, "densify_every": 8, "eval_every": 0, "log_every": 1})
-    cfg_file = tmp_path / "cfg.yaml"
-    cfg_file.write_text(yaml.safe_dump({"train": cfg.to_dict() | {"raster": {}}}))
-    run, kept = tmp_path / "runs" / "rtsplat", tmp_path / "checkpoints" / "rtsplat"
-    args = ("--data", str(glass_scene.root), "--out", str(run), "--config", str(cfg_file),
-            "--checkpoint-dir", str(kept))
+    args, run, kept = _cli_with_checkpoint_dir(glass_scene, tmp_path, cfg)
     proc = _train_cli(*args)
     deadline = time.time() + 300
     while proc.poll() is None and time.time() < deadline:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from rtsplat.bench.toy_scene import write_scene
+from rtsplat.bench.toy_scene import train_quietly, write_scene
 from rtsplat.camera import Camera, camera_from_fov
 from rtsplat.camera_path import (
     camera_centers,
@@ -28,8 +28,6 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.images import read_image
 from rtsplat.io.video import mp4_comment, read_mp4
 from rtsplat.render import Edits, LoadedRun, decompose, load_run
-from rtsplat.train.trainer import Trainer
-from rtsplat.train_config import TrainConfig
 from rtsplat.video import render_video
 
 CODEC_TOLERANCE = 4 / 255  # mean |decoded - rendered| that H.264 at crf 18 in yuv420p stays under on these frames
@@ -133,12 +131,10 @@ def test_intrinsics_are_the_training_cameras_scaled_to_an_even_frame_size():
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("video")
     scene = write_scene(root / "scene", views=8, width=40, height=30)
-    cfg = TrainConfig.from_dict({
-        "schedule": {"iterations": 12, "volume_until": 3, "specular_from": 6, "densify_from": 1000,
-                     "reset_every": 0, "checkpoint_every": 0, "log_every": 6, "eval_every": 0},
-        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
-    })
-    Trainer(scene, cfg, root / "run", progress=False, log=lambda m: None).train()
+    train_quietly(scene, root / "run",
+                  {"iterations": 12, "volume_until": 3, "specular_from": 6, "densify_from": 1000,
+                   "reset_every": 0, "checkpoint_every": 0, "log_every": 6, "eval_every": 0},
+                  {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32})
     return root
 
 

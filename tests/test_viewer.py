@@ -12,12 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from rtsplat.bench.toy_scene import write_scene
+from rtsplat.bench.toy_scene import train_quietly, write_scene
 from rtsplat.camera import look_at
 from rtsplat.io.images import read_image
 from rtsplat.render import Edits, load_run, render_images, render_run
-from rtsplat.train.trainer import Trainer
-from rtsplat.train_config import TrainConfig
 from rtsplat.viewer import (
     LAYER_LABELS,
     ViewerPose,
@@ -39,12 +37,10 @@ INSTALL_CHROMIUM = "apt-get install -y chromium (as root; `make test` does it on
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("viewer")
     scene = write_scene(root / "scene", views=8, width=48, height=36)
-    cfg = TrainConfig.from_dict({
-        "schedule": {"iterations": 30, "volume_until": 5, "specular_from": 10, "densify_from": 1000,
-                     "reset_every": 0, "checkpoint_every": 0, "log_every": 10},
-        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
-    })
-    Trainer(scene, cfg, root / "run", progress=False, log=lambda m: None).train()
+    train_quietly(scene, root / "run",
+                  {"iterations": 30, "volume_until": 5, "specular_from": 10, "densify_from": 1000,
+                   "reset_every": 0, "checkpoint_every": 0, "log_every": 10},
+                  {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32})
     return root, scene
 
 

@@ -103,3 +103,13 @@ def write_scene(root: Path, *, views: int = 12, width: int = 64, height: int = 4
                           exposure={record.name: gains[i] for i, record in enumerate(records)})
     scene.save(root)
     return PreparedScene.load(root)
+
+
+def train_quietly(scene: PreparedScene, out: Path, schedule: dict, model: dict) -> dict:
+    """Train ``scene`` into the run folder ``out`` with these ``schedule`` and ``model`` sections of the
+    trainer's config (the rest: defaults), without a progress bar or log lines; returns the run's summary."""
+    from rtsplat.train.trainer import Trainer
+    from rtsplat.train_config import TrainConfig
+
+    cfg = TrainConfig.from_dict({"schedule": schedule, "model": model})
+    return Trainer(scene, cfg, Path(out), progress=False, log=lambda m: None).train()

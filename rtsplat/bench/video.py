@@ -29,16 +29,13 @@ DEMO_MODEL = {"env_height": 128, "env_width": 256, "env_levels": 7}
 
 def train_toy(root: Path, iterations: int) -> tuple[Path, Path]:
     """A toy scene trained with the demo's model settings: (run folder, prepared scene folder)."""
-    from rtsplat.bench.toy_scene import write_scene
-    from rtsplat.train.trainer import Trainer
-    from rtsplat.train_config import TrainConfig
+    from rtsplat.bench.toy_scene import train_quietly, write_scene
 
     scene = write_scene(root / "scene", views=12, width=100, height=75)
     schedule = {"iterations": iterations, "volume_until": iterations // 6, "specular_from": iterations // 3,
                 "densify_from": iterations // 4, "densify_every": max(iterations // 12, 1), "reset_every": 0,
                 "eval_every": 0, "checkpoint_every": 0, "log_every": 10**9}
-    cfg = TrainConfig.from_dict({"schedule": schedule, "model": DEMO_MODEL})
-    Trainer(scene, cfg, root / "run", progress=False, log=lambda m: None).train()
+    train_quietly(scene, root / "run", schedule, DEMO_MODEL)
     return root / "run", root / "scene"
 
 

@@ -28,18 +28,14 @@ import torch
 
 
 def _demo_like_run(root: Path, *, views: int, surfels: int, iterations: int) -> tuple[Path, Path]:
-    from rtsplat.bench.toy_scene import write_scene
-    from rtsplat.train.trainer import Trainer
-    from rtsplat.train_config import TrainConfig
+    from rtsplat.bench.toy_scene import train_quietly, write_scene
 
     n_side = max(4, round(math.sqrt(surfels / 3)))  # three starting surfels per point of the wall
     scene = write_scene(root / "scene", views=views, width=200, height=150, n_side=n_side)
-    cfg = TrainConfig.from_dict({
-        "schedule": {"iterations": iterations, "volume_until": 1, "specular_from": 2, "densify_from": 10_000,
-                     "reset_every": 0, "checkpoint_every": 0, "log_every": 10_000, "eval_every": 0},
-        "model": {"env_height": 128, "env_width": 256, "env_levels": 7},
-    })
-    Trainer(scene, cfg, root / "run", progress=False, log=lambda m: None).train()
+    train_quietly(scene, root / "run",
+                  {"iterations": iterations, "volume_until": 1, "specular_from": 2, "densify_from": 10_000,
+                   "reset_every": 0, "checkpoint_every": 0, "log_every": 10_000, "eval_every": 0},
+                  {"env_height": 128, "env_width": 256, "env_levels": 7})
     return root / "run", scene.root
 
 

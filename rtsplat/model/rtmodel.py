@@ -232,15 +232,15 @@ class RTModel(nn.Module):
         p = self.surfels
         directions = image_ray_directions(camera)
         index, distance = plane_assignment(camera, self.mirror_planes, directions)
+        normals, centres, _, _, _, thickness = plane_parts(self.mirror_planes.to(p.means.dtype))
         if self.settings.near_reflection_on_surface and surface_depth is not None:
-            wanted = wanted & on_plane_surface(index, distance, directions, camera, surface_depth, self.mirror_planes)
+            wanted = wanted & on_plane_surface(index, distance, directions, camera, surface_depth, thickness)
         index = torch.where(wanted, index, torch.full_like(index, -1))
         K = self.mirror_planes.shape[0]
         counts = torch.bincount((index + 1).flatten(), minlength=K + 1)[1:].tolist()
         order = sorted(range(K), key=lambda k: -counts[k])[: self.settings.near_reflection_planes]
         color = torch.zeros(H, W, 3, dtype=p.means.dtype, device=p.means.device)
         alpha = torch.zeros(H, W, 1, dtype=p.means.dtype, device=p.means.device)
-        normals, centres, _, _, _, thickness = plane_parts(self.mirror_planes.to(p.means.dtype))
         center = camera.center.to(p.means.dtype)
         for k in order:
             if counts[k] == 0:
@@ -323,15 +323,14 @@ ON_PLANE_TOLERANCE = 0.05  # relative to the distance: how far a pixel's surface
 
 
 def on_plane_surface(index: Tensor, distance: Tensor, directions: Tensor, camera: Camera, surface_depth: Tensor,
-                     planes: Tensor) -> Tensor:
+                     thickness: Tensor) -> Tensor:
     """[H,W] bool: the pixels whose surface depth (z, [H,W]) lies on the plane their ray meets first (``index``,
-    ``distance`` along the ray from :func:`rtsplat.model.mirror.plane_assignment`), within the plane's thickness
-    plus :data:`ON_PLANE_TOLERANCE` of its depth; False where the ray meets no plane."""
+    ``distance`` along the ray from :func:`rtsplat.model.mirror.plane_assignment`), within that plane's
+    ``thickness`` ([K]) plus :data:`ON_PLANE_TOLERANCE` of its depth; False where the ray meets no plane."""
     hit = index >= 0
     forward = camera.world_to_camera[2, :3].to(directions.dtype)
     plane_depth = torch.where(hit, distance, torch.zeros_like(distance)) * (directions * forward).sum(-1)
-    thickness = plane_parts(planes.to(directions.dtype))[5]
-    tolerance = thickness[index.clamp_min(0)] + ON_PLANE_TOLERANCE * plane_depth.abs()
+    tolerance = thickness.to(directions.dtype)[index.clamp_min(0)] + ON_PLANE_TOLERANCE * plane_depth.abs()
     return hit & ((surface_depth.to(directions.dtype) - plane_depth).abs() <= tolerance)
 
 
