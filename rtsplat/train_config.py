@@ -158,6 +158,12 @@ class Losses:
         0.0, help="L1 of the reflection layer (roi C_spec, mean over the image): among decompositions that give "
         "the same image, prefer the one that leaves view-independent light to C_trans and C_scatter", minimum=0.0
     )
+    shading_smoothness_weight: float = setting(
+        0.0, help="mean absolute difference of the shading parameters (reflectance, roughness, material feature) "
+        "between neighbouring pixels of the transparent mask: a pane is one material, so its reflection varies "
+        "with the light it mirrors, not with a texture painted on the glass that the transmission would have to "
+        "take back", minimum=0.0
+    )
     distortion_weight: float = setting(0.0, help="2DGS depth distortion", minimum=0.0)
     transmissivity_bce_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)
     occupancy_decay_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)

@@ -58,3 +58,20 @@ def transparent_mask_loss(blended_opacity: Tensor, mask: Tensor, surface_alpha: 
     p = blended_opacity.clamp(1e-6, 1 - 1e-6)
     opaque = torch.ones_like(p) if surface_alpha is None else surface_alpha.detach().to(p.dtype).clamp(0, 1)
     return F.binary_cross_entropy(p, (1.0 - mask.to(p.dtype)) * opaque)
+
+
+def shading_smoothness(shading: Tensor, alpha: Tensor, mask: Tensor) -> Tensor:
+    """Mean absolute difference of the surface's shading parameters between horizontally and vertically
+    neighbouring pixels that both lie in the transparent ``mask`` [H,W,1]. ``shading`` [H,W,C] is the
+    alpha-weighted G-buffer (the surface pass's ``sum p f``), divided by ``alpha`` [H,W,1] here. Each pair
+    weighs the smaller alpha of its two pixels (no gradient through the weight): a pixel with almost no
+    surface has no shading to hold, and the gradient through the division stays bounded by 1 per pair.
+    0 where no pair of neighbours is in the mask."""
+    values = shading / alpha.clamp_min(1e-6)
+    weight = mask.to(values.dtype) * alpha.detach().to(values.dtype).clamp(0, 1)
+    pairs_x = torch.minimum(weight[:, 1:], weight[:, :-1])
+    pairs_y = torch.minimum(weight[1:], weight[:-1])
+    diff_x = (values[:, 1:] - values[:, :-1]).abs() * pairs_x
+    diff_y = (values[1:] - values[:-1]).abs() * pairs_y
+    total = (pairs_x.sum() + pairs_y.sum()) * values.shape[-1]
+    return (diff_x.sum() + diff_y.sum()) / total.clamp_min(1e-6)

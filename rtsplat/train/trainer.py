@@ -42,7 +42,7 @@ from rtsplat.model.appearance import apply_appearance, fit_appearance, remove_ap
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
 from rtsplat.model.mirror import empty_planes, fit_planes
-from rtsplat.model.rtmodel import RTModel, image_ray_directions
+from rtsplat.model.rtmodel import GBUFFER, RTModel, image_ray_directions
 from rtsplat.model.surfels import (
     PARAMETERS,
     SurfelParameters,
@@ -331,6 +331,12 @@ class Trainer:
             surface_alpha = result.layers["alpha"] if L.mask_opaque_target == "surface" else None
             terms["mask"] = L.mask_weight * losses.transparent_mask_loss(
                 result.layers["blended_opacity"], mask, surface_alpha)
+        if L.shading_smoothness_weight > 0 and mask is not None and "spec" in result.layers:
+            g = result.raster.features
+            shading = torch.cat([g[..., GBUFFER["reflectance"]], g[..., GBUFFER["roughness"]],
+                                 g[..., GBUFFER["material"]]], -1)
+            terms["shading_smoothness"] = L.shading_smoothness_weight * losses.shading_smoothness(
+                shading, result.raster.alpha, mask)
         if L.distortion_weight > 0:
             terms["distortion"] = L.distortion_weight * result.raster.distortion.mean()
         if self.perceptual is not None and L.perceptual_weight > 0 and it >= L.perceptual_from:
