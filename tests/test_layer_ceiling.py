@@ -1,0 +1,62 @@
+"""The reflection-layer references of rtsplat.bench.layer_ceiling on a small prepared folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rtsplat.bench import layer_ceiling
+from rtsplat.errors import PipelineError
+from rtsplat.io.images import write_mask, write_png
+
+
+def write_prepared(root: Path, views: int = 3, seed: int = 0) -> list[np.ndarray]:
+    """A prepared-like folder: a smooth reflection with fine stripes on it, its transmission, the image as
+    their sum, a mask over the middle; returns the reflections written."""
+    rng = np.random.default_rng(seed)
+    H, W = 40, 60
+    yy, xx = np.mgrid[0:H, 0:W]
+    reflections = []
+    for k in range(views):
+        smooth = 0.2 + 0.1 * np.sin(xx / 9.0 + k)[..., None] * np.ones(3)
+        stripes = 0.08 * ((xx // 2) % 2)[..., None] * np.ones(3)
+        reflection = np.clip(smooth + stripes, 0, 1)
+        transmission = np.clip(rng.uniform(0.1, 0.6, (H, W, 3)), 0, 1)
+        mask = (xx > 10) & (xx < 50) & (yy > 5) & (yy < 35)
+        name = f"{k:04d}.png"
+        write_png(root / "gt_layers" / "reflection" / name, reflection)
+        write_png(root / "gt_layers" / "transmission" / name, transmission)
+        write_png(root / "images" / name, np.clip(reflection + transmission, 0, 1))
+        write_mask(root / "masks" / name, mask)
+        reflections.append(reflection)
+    return reflections
+
+
+def test_references_order_as_detail_is_kept(tmp_path):
+    write_prepared(tmp_path)
+    result = layer_ceiling.ceilings(layer_ceiling.read_views(tmp_path))
+    blurred = [result[f"truth blurred {s:g} px"] for s in layer_ceiling.BLUR_SIGMAS]
+    assert result["zero"] < result["truth's mean"] < blurred[-1]
+    assert blurred == sorted(blurred, reverse=True)  # less blur, more of the truth kept
+    assert result["layers' sum against the image"] > 40  # written as their sum (8-bit rounding only)
+
+
+def test_a_run_equal_to_the_truth_scores_above_every_reference(tmp_path):
+    reflections = write_prepared(tmp_path / "data")
+    for k, reflection in enumerate(reflections):
+        write_png(tmp_path / "renders" / "reflection" / f"{k:04d}.png", reflection)
+    views = layer_ceiling.read_views(tmp_path / "data")
+    ours = layer_ceiling.run_reflection(views, tmp_path / "renders")
+    assert ours["psnr"] > max(layer_ceiling.ceilings(views).values())
+    assert ours["correlation"] > 0.99
+    assert abs(ours["mean"] - ours["truth mean"]) < 1e-6
+    (tmp_path / "renders" / "reflection" / "0001.png").unlink()
+    with pytest.raises(PipelineError, match="0001"):
+        layer_ceiling.run_reflection(views, tmp_path / "renders")
+
+
+def test_a_scene_without_layers_is_refused(tmp_path):
+    with pytest.raises(PipelineError, match="ground-truth layers"):
+        layer_ceiling.read_views(tmp_path)
