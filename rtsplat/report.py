@@ -51,6 +51,7 @@ import torch
 from rtsplat.errors import PipelineError
 from rtsplat.io.images import read_image, write_png
 from rtsplat.io.outputs import check_output_dir, output_dir
+from rtsplat.layer_references import LAYERS_SUM, ceilings, read_views
 from rtsplat.model.composite import transmission_with_scatter
 from rtsplat.scene import GT_LAYERS_DIR, REFLECTION_REACH_FILE
 
@@ -504,6 +505,24 @@ def near_reflection_rows(runs: dict[str, Run]) -> list[list[str]]:
     return rows
 
 
+def layer_reference_rows(prepared: Path, names: set[str] | None) -> tuple[list[list[str]], str]:
+    """Rows of the references made from the ground truth itself (:mod:`rtsplat.layer_references`) on the
+    test views ``names``, for the decomposition table, and a sentence on what they mean; none without layers."""
+    try:
+        views = read_views(prepared, names)
+    except PipelineError:
+        return [], ""
+    ref = ceilings(views, sigmas=(2.0,))
+    rows = [["(reference) the true reflection's mean colour, flat", _fmt(ref["truth's mean"]), "-"],
+            ["(reference) the true reflection blurred 2 px", _fmt(ref["truth blurred 2 px"]), "-"]]
+    text = ("The reference rows are made from the ground truth itself: its reflection painted flat in its mean "
+            "colour (what a reflection without any structure scores) and blurred by 2 pixels (what one right "
+            "down to that scale scores). The ground truth's reflection plus transmission scores "
+            f"{_fmt(ref[LAYERS_SUM])} dB against the image inside the mask: no layer score can be trusted "
+            "beyond about that.")
+    return rows, text
+
+
 def scene_reflection_reach(prepared: Path) -> str:
     """What share of the glass's true reflection is of something near the glass, in words, for a synthetic
     scene (the ``reflection_reach`` that ``rtsplat prepare`` carries from the dataset); "" for other scenes."""
@@ -753,7 +772,11 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                       for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]
         if layer_rows:
             doc.heading("Decomposition against the ground-truth layers (PSNR in the transparent region, test views)", 3)
-            doc.table(["method", "reflection", "transmission"], layer_rows)
+            test_views = next((set(r.metrics["views"]) for r in runs.values() if r.metrics.get("views")), None)
+            references, text = layer_reference_rows(results / scene / "prepared", test_views)
+            if text:
+                doc.paragraph(text)
+            doc.table(["method", "reflection", "transmission"], layer_rows + references)
 
         near_rows = near_reflection_rows(runs)
         reach = scene_reflection_reach(results / scene / "prepared")

@@ -1,4 +1,4 @@
-"""The reflection-layer references of rtsplat.bench.layer_ceiling on a small prepared folder."""
+"""The reflection-layer references of rtsplat.layer_references on a small prepared folder."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rtsplat.bench import layer_ceiling
+from rtsplat import layer_references as layer_ceiling
+from rtsplat.bench.layer_ceiling import main as bench_main
 from rtsplat.errors import PipelineError
 from rtsplat.io.images import write_mask, write_png
 
@@ -57,6 +58,32 @@ def test_a_run_equal_to_the_truth_scores_above_every_reference(tmp_path):
         layer_ceiling.run_reflection(views, tmp_path / "renders")
 
 
+def test_the_bench_prints_every_reference_and_the_run(tmp_path, capsys):
+    reflections = write_prepared(tmp_path / "data")
+    for k, reflection in enumerate(reflections):
+        write_png(tmp_path / "renders" / "reflection" / f"{k:04d}.png", reflection)
+    assert bench_main(["--data", str(tmp_path / "data"), "--renders", str(tmp_path / "renders")]) == 0
+    printed = capsys.readouterr().out
+    for reference in ("zero", "truth's mean", "truth blurred 1 px", "layers' sum", "luminance correlation +1.00"):
+        assert reference in printed
+
+
+def test_only_the_named_views_are_read(tmp_path):
+    write_prepared(tmp_path, views=3)
+    assert [v.name for v in layer_ceiling.read_views(tmp_path, names={"0000", "0002"})] == ["0000", "0002"]
+
+
 def test_a_scene_without_layers_is_refused(tmp_path):
     with pytest.raises(PipelineError, match="ground-truth layers"):
         layer_ceiling.read_views(tmp_path)
+
+
+def test_the_report_adds_the_references_of_its_test_views(tmp_path):
+    from rtsplat.report import layer_reference_rows
+
+    write_prepared(tmp_path, views=3)
+    rows, text = layer_reference_rows(tmp_path, {"0001", "0002"})
+    expected = layer_ceiling.ceilings(layer_ceiling.read_views(tmp_path, names={"0001", "0002"}), sigmas=(2.0,))
+    assert [row[1] for row in rows] == [f"{expected[k]:.2f}" for k in ("truth's mean", "truth blurred 2 px")]
+    assert f"{expected[layer_ceiling.LAYERS_SUM]:.2f} dB against the image" in text
+    assert layer_reference_rows(tmp_path / "nothing", None) == ([], "")

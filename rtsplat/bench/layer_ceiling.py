@@ -1,16 +1,9 @@
 """What a reflection-layer PSNR means on a synthetic scene: ``python -m rtsplat.bench.layer_ceiling``.
 
 ``rtsplat metrics`` scores the reflection and transmission layers against Mitsuba's inside the
-transparent mask. This prints, per prepared scene, the scores of references computed from the ground
-truth itself, in the metric's way (PSNR per test view inside the mask, then the mean over the views):
-
-* ``zero``: no reflection at all;
-* ``truth's mean``: the true reflection's mean colour (over every view's mask) painted on the whole mask:
-  the best a reflection without any structure can score;
-* ``truth blurred s px``: the true reflection blurred by a Gaussian of ``s`` pixels inside the mask: what a
-  reflection with every detail right down to that scale scores;
-* ``layers' sum``: the true reflection plus transmission against the scene's image: how well Mitsuba's two
-  layers (their own samples) agree with the photo they split; the ceiling of any layer metric.
+transparent mask. This prints, per prepared scene and over all its views with layers, the scores of the
+references of :mod:`rtsplat.layer_references`, computed from the ground truth itself
+(no reflection, the truth's mean colour painted flat, the truth blurred, the layers' sum against the image).
 
 With ``--renders`` (a folder written by ``rtsplat render``), the run's reflection layer is scored beside
 them, with its mean and the correlation of its luminance with the truth's (per view, then the mean).
@@ -21,112 +14,9 @@ them, with its mean and the correlation of its luminance with the truth's (per v
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-import torch
-
-from rtsplat.errors import PipelineError
-from rtsplat.scene import GT_LAYERS_DIR
-
-BLUR_SIGMAS = (1.0, 2.0, 4.0)
-
-
-@dataclass
-class View:
-    name: str
-    mask: np.ndarray  # [H,W] bool
-    reflection: np.ndarray  # [H,W,3] the true reflection
-    transmission: np.ndarray  # [H,W,3] the true transmission
-    image: np.ndarray  # [H,W,3] the scene's image
-
-
-def read_views(data: Path) -> list[View]:
-    """The views of a prepared scene that have ground-truth layers and a non-empty transparent mask."""
-    from rtsplat.io.images import read_image, read_mask
-
-    folder = data / GT_LAYERS_DIR / "reflection"
-    if not folder.is_dir():
-        raise PipelineError("no ground-truth layers", path=folder,
-                            fix="pass a scene prepared from a `rtsplat synth` dataset rendered with layers")
-    views = []
-    for path in sorted(folder.glob("*.png")):
-        mask_path = data / "masks" / path.name
-        if not mask_path.is_file():
-            continue
-        mask = read_mask(mask_path)
-        if not mask.any():
-            continue
-        views.append(View(path.stem, mask, read_image(path)[..., :3],
-                          read_image(data / GT_LAYERS_DIR / "transmission" / path.name)[..., :3],
-                          read_image(data / "images" / path.name)[..., :3]))
-    if not views:
-        raise PipelineError("no view has both a ground-truth reflection and a transparent mask", path=folder,
-                            fix="prepare the scene with its masks (rtsplat masks, then rtsplat prepare)")
-    return views
-
-
-def masked_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
-    """The metric's PSNR inside ``mask`` (:func:`rtsplat.quality.psnr`)."""
-    from rtsplat.quality import psnr
-
-    weight = torch.from_numpy(mask.astype(np.float32))[..., None]
-    return float(psnr(torch.from_numpy(np.ascontiguousarray(a, np.float32)),
-                      torch.from_numpy(np.ascontiguousarray(b, np.float32)), weight))
-
-
-def blur_inside(image: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian blur of ``image`` [H,W,3] that averages only pixels inside ``mask`` (normalised convolution)."""
-    import cv2
-
-    weight = mask.astype(np.float32)
-    numerator = cv2.GaussianBlur(image.astype(np.float32) * weight[..., None], (0, 0), sigma)
-    denominator = cv2.GaussianBlur(weight, (0, 0), sigma)[..., None]
-    return numerator / np.maximum(denominator, 1e-6)
-
-
-def luminance_correlation(a: np.ndarray, b: np.ndarray) -> float:
-    x, y = a.mean(-1), b.mean(-1)
-    if x.std() == 0 or y.std() == 0:
-        return 0.0
-    return float(np.corrcoef(x, y)[0, 1])
-
-
-def ceilings(views: list[View], sigmas=BLUR_SIGMAS) -> dict[str, float]:
-    """Mean over the views of each reference's reflection-layer PSNR (and the layers' sum's)."""
-    mean_colour = np.mean(np.concatenate([v.reflection[v.mask] for v in views]), axis=0)
-    rows: dict[str, list[float]] = {"zero": [], "truth's mean": []}
-    rows.update({f"truth blurred {s:g} px": [] for s in sigmas})
-    rows["layers' sum against the image"] = []
-    for v in views:
-        rows["zero"].append(masked_psnr(np.zeros_like(v.reflection), v.reflection, v.mask))
-        flat = np.broadcast_to(mean_colour, v.reflection.shape)
-        rows["truth's mean"].append(masked_psnr(flat, v.reflection, v.mask))
-        for s in sigmas:
-            rows[f"truth blurred {s:g} px"].append(masked_psnr(blur_inside(v.reflection, v.mask, s), v.reflection,
-                                                               v.mask))
-        rows["layers' sum against the image"].append(masked_psnr(v.reflection + v.transmission, v.image, v.mask))
-    return {k: float(np.mean(x)) for k, x in rows.items()}
-
-
-def run_reflection(views: list[View], renders: Path) -> dict[str, float]:
-    """A run's reflection layer against the truth: PSNR, mean, luminance correlation (means over the views)."""
-    from rtsplat.io.images import read_image
-
-    psnrs, means, truth_means, correlations = [], [], [], []
-    for v in views:
-        path = renders / "reflection" / f"{v.name}.png"
-        if not path.is_file():
-            raise PipelineError(f"the run has no reflection layer for view {v.name}", path=path,
-                                fix="pass the folder `rtsplat render` wrote for this prepared scene")
-        ours = read_image(path)[..., :3]
-        psnrs.append(masked_psnr(ours, v.reflection, v.mask))
-        means.append(float(ours[v.mask].mean()))
-        truth_means.append(float(v.reflection[v.mask].mean()))
-        correlations.append(luminance_correlation(ours[v.mask], v.reflection[v.mask]))
-    return {"psnr": float(np.mean(psnrs)), "mean": float(np.mean(means)), "truth mean": float(np.mean(truth_means)),
-            "correlation": float(np.mean(correlations))}
+from rtsplat.layer_references import ceilings, read_views, run_reflection
 
 
 def main(argv: list[str] | None = None) -> int:

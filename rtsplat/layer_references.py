@@ -1,0 +1,127 @@
+"""References for the layer metrics of a synthetic scene, made from its ground truth itself: what a
+reflection-layer PSNR inside the transparent mask means. Per view, in the metric's way (PSNR inside the
+mask, then the mean over the views):
+
+* ``zero``: no reflection at all;
+* ``truth's mean``: the true reflection's mean colour (over every view's mask) painted on the whole mask:
+  the best a reflection without any structure scores;
+* ``truth blurred s px``: the true reflection blurred by a Gaussian of ``s`` pixels inside the mask: what a
+  reflection with every detail right down to that scale scores;
+* ``layers' sum``: the true reflection plus transmission against the scene's image: how well the renderer's
+  two layers (their own samples) agree with the image they split, a ceiling of any layer metric.
+
+Used by ``rtsplat report`` beside the runs' layer scores and by ``python -m rtsplat.bench.layer_ceiling``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rtsplat.errors import PipelineError
+from rtsplat.scene import GT_LAYERS_DIR
+
+BLUR_SIGMAS = (1.0, 2.0, 4.0)
+LAYERS_SUM = "layers' sum against the image"
+
+
+@dataclass
+class View:
+    name: str
+    mask: np.ndarray  # [H,W] bool
+    reflection: np.ndarray  # [H,W,3] the true reflection
+    transmission: np.ndarray  # [H,W,3] the true transmission
+    image: np.ndarray  # [H,W,3] the scene's image
+
+
+def read_views(data: Path, names=None) -> list[View]:
+    """The views of a prepared scene (those in ``names`` when given) that have ground-truth layers and a
+    non-empty transparent mask."""
+    from rtsplat.io.images import read_image, read_mask
+
+    folder = data / GT_LAYERS_DIR / "reflection"
+    if not folder.is_dir():
+        raise PipelineError("no ground-truth layers", path=folder,
+                            fix="pass a scene prepared from a `rtsplat synth` dataset rendered with layers")
+    views = []
+    for path in sorted(folder.glob("*.png")):
+        if names is not None and path.stem not in names:
+            continue
+        mask_path = data / "masks" / path.name
+        if not mask_path.is_file():
+            continue
+        mask = read_mask(mask_path)
+        if not mask.any():
+            continue
+        views.append(View(path.stem, mask, read_image(path)[..., :3],
+                          read_image(data / GT_LAYERS_DIR / "transmission" / path.name)[..., :3],
+                          read_image(data / "images" / path.name)[..., :3]))
+    if not views:
+        raise PipelineError("no view has both a ground-truth reflection and a transparent mask", path=folder,
+                            fix="prepare the scene with its masks (rtsplat masks, then rtsplat prepare)")
+    return views
+
+
+def masked_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """The metric's PSNR inside ``mask`` (:func:`rtsplat.quality.psnr`)."""
+    from rtsplat.quality import psnr
+
+    weight = torch.from_numpy(mask.astype(np.float32))[..., None]
+    return float(psnr(torch.from_numpy(np.ascontiguousarray(a, np.float32)),
+                      torch.from_numpy(np.ascontiguousarray(b, np.float32)), weight))
+
+
+def blur_inside(image: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur of ``image`` [H,W,3] that averages only pixels inside ``mask`` (normalised convolution)."""
+    import cv2
+
+    weight = mask.astype(np.float32)
+    numerator = cv2.GaussianBlur(image.astype(np.float32) * weight[..., None], (0, 0), sigma)
+    denominator = cv2.GaussianBlur(weight, (0, 0), sigma)[..., None]
+    return numerator / np.maximum(denominator, 1e-6)
+
+
+def luminance_correlation(a: np.ndarray, b: np.ndarray) -> float:
+    x, y = a.mean(-1), b.mean(-1)
+    if x.std() == 0 or y.std() == 0:
+        return 0.0
+    return float(np.corrcoef(x, y)[0, 1])
+
+
+def ceilings(views: list[View], sigmas=BLUR_SIGMAS) -> dict[str, float]:
+    """Mean over the views of each reference's reflection-layer PSNR (and the layers' sum's)."""
+    mean_colour = np.mean(np.concatenate([v.reflection[v.mask] for v in views]), axis=0)
+    rows: dict[str, list[float]] = {"zero": [], "truth's mean": []}
+    rows.update({f"truth blurred {s:g} px": [] for s in sigmas})
+    rows[LAYERS_SUM] = []
+    for v in views:
+        rows["zero"].append(masked_psnr(np.zeros_like(v.reflection), v.reflection, v.mask))
+        flat = np.broadcast_to(mean_colour, v.reflection.shape)
+        rows["truth's mean"].append(masked_psnr(flat, v.reflection, v.mask))
+        for s in sigmas:
+            rows[f"truth blurred {s:g} px"].append(masked_psnr(blur_inside(v.reflection, v.mask, s), v.reflection,
+                                                               v.mask))
+        rows[LAYERS_SUM].append(masked_psnr(v.reflection + v.transmission, v.image, v.mask))
+    return {k: float(np.mean(x)) for k, x in rows.items()}
+
+
+def run_reflection(views: list[View], renders: Path) -> dict[str, float]:
+    """A run's reflection layer against the truth: PSNR, mean, luminance correlation (means over the views)."""
+    from rtsplat.io.images import read_image
+
+    psnrs, means, truth_means, correlations = [], [], [], []
+    for v in views:
+        path = renders / "reflection" / f"{v.name}.png"
+        if not path.is_file():
+            raise PipelineError(f"the run has no reflection layer for view {v.name}", path=path,
+                                fix="pass the folder `rtsplat render` wrote for this prepared scene")
+        ours = read_image(path)[..., :3]
+        psnrs.append(masked_psnr(ours, v.reflection, v.mask))
+        means.append(float(ours[v.mask].mean()))
+        truth_means.append(float(v.reflection[v.mask].mean()))
+        correlations.append(luminance_correlation(ours[v.mask], v.reflection[v.mask]))
+    return {"psnr": float(np.mean(psnrs)), "mean": float(np.mean(means)), "truth mean": float(np.mean(truth_means)),
+            "correlation": float(np.mean(correlations))}
