@@ -34,6 +34,7 @@ from rtsplat.io.colmap import ColmapModel, ColmapView
 
 MIN_MARKED = 3  # fewer marked views do not bound the object in depth
 COARSE_GRID = 48  # voxels along the longest side of the first pass
+MIN_BOX_KEPT = 0.2  # a box mark's GrabCut cut keeping less of the box is taken for a failure (the box is kept)
 
 
 @dataclass
@@ -319,6 +320,50 @@ def refine_with_grabcut(image: np.ndarray, silhouette: np.ndarray,
     if cut.sum() < settings.min_kept * area:
         return None
     return cut
+
+
+def polygon_mask(points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The inside of a polygon (corners [N, 2] in pixels with the image's corner at (0, 0), x to the right, y down)
+    as a bool [height, width] mask; pixels its outline touches count as inside."""
+    import cv2
+
+    canvas = np.zeros((height, width), np.uint8)
+    shift = 4  # sub-pixel corners: 1/16 pixel; OpenCV puts pixel centres on integer coordinates
+    corners = np.round((np.asarray(points, np.float64) - 0.5) * (1 << shift)).astype(np.int32)
+    cv2.fillPoly(canvas, [corners.reshape(-1, 1, 2)], 1, lineType=cv2.LINE_8, shift=shift)
+    return canvas > 0
+
+
+def box_mask(image: np.ndarray, box: tuple[float, float, float, float],
+             settings: MaskPropagationConfig) -> tuple[np.ndarray, bool]:
+    """The object inside a loose ``box`` (x0, y0, x1, y1 in pixels) of ``image`` (float RGB [H, W, 3]): OpenCV's
+    GrabCut started from the rectangle (``GC_INIT_WITH_RECT``: outside is background, inside is unknown), at
+    ``work_size`` pixels on the longest side. Returns (mask at the image's size, whether GrabCut's cut was kept):
+    the filled box when GrabCut fails or keeps less than :data:`MIN_BOX_KEPT` of the box."""
+    import cv2
+
+    h, w = image.shape[:2]
+    x0, y0, x1, y1 = box
+    filled = polygon_mask(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), w, h)
+    scale = min(1.0, settings.work_size / max(w, h))
+    sw, sh = max(1, int(round(w * scale))), max(1, int(round(h * scale)))
+    small = cv2.resize(image, (sw, sh), interpolation=cv2.INTER_AREA) if scale < 1.0 else image
+    left, top = int(np.floor(x0 * scale)), int(np.floor(y0 * scale))
+    right, bottom = min(sw, int(np.ceil(x1 * scale))), min(sh, int(np.ceil(y1 * scale)))
+    rect = (left, top, right - left, bottom - top)
+    if rect[2] < 3 or rect[3] < 3 or (rect[2] >= sw and rect[3] >= sh):  # too small, or no background left
+        return filled, False
+    pixels = np.ascontiguousarray((np.clip(small[..., :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    labels = np.zeros((sh, sw), np.uint8)
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(pixels, labels, rect, bgd, fgd, settings.grabcut_iterations, cv2.GC_INIT_WITH_RECT)
+    except cv2.error:
+        return filled, False
+    cut = _resize_mask((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD), w, h) & filled
+    if cut.sum() < MIN_BOX_KEPT * filled.sum():
+        return filled, False
+    return cut, True
 
 
 def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
