@@ -171,9 +171,11 @@ class MaskPropagationConfig:
     """Masks carried from a few marked views to the others through the SfM cameras (masks.source: propagate)."""
 
     grid: int = _f(128, help="voxels along the longest side of the marked object's box (visual hull)", minimum=16)
-    refine: Literal["auto", "grabcut", "none"] = _f(
-        "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; none: kept as "
-        "projected; auto: whichever matches the marked masks better when each marked view is left out in turn"
+    refine: Literal["auto", "grabcut", "onnx", "none"] = _f(
+        "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; onnx: segmented with "
+        "the masks.onnx model, prompted by the projected hull's box; none: kept as projected; auto: onnx when "
+        "masks.onnx.model is set, else whichever of grabcut and none matches the marked masks better when each "
+        "marked view is left out in turn"
     )
     grabcut_iterations: int = _f(4, help="GrabCut iterations", minimum=1)
     ring: float = _f(

@@ -79,7 +79,8 @@ class MasksSummary:
     # (GrabCut's cut inside it) | filled box (GrabCut found no object inside it: the box as drawn)
     mask_sources: dict[str, str] = field(default_factory=dict)  # propagate: per photo given | propagated | empty
     # | unregistered (rtsplat.masks_propagate.PropagatedMask.source)
-    refined: list[str] = field(default_factory=list)  # propagate: photos whose propagated mask GrabCut refined
+    refined: list[str] = field(default_factory=list)  # propagate: photos whose propagated mask was refined
+    refinement: str = ""  # propagate: what refined them, grabcut | onnx (<model kind>)
     scene_dir: str = ""  # the dataset scene they were made for (for messages)
     images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
     photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
@@ -119,7 +120,7 @@ class OnnxSegmenter:
     predicted IoU.
     """
 
-    def __init__(self, cfg: OnnxSegmenterConfig) -> None:
+    def __init__(self, cfg: OnnxSegmenterConfig, boxes_per_image: bool = False) -> None:
         import onnxruntime as ort
 
         self.cfg = cfg
@@ -141,7 +142,7 @@ class OnnxSegmenter:
                     fix="set masks.onnx.encoder to the encoder .onnx of the same export",
                 )
             self.encoder = self._session(ort, cfg.encoder, "masks.onnx.encoder")
-            if not cfg.points and cfg.box is None:
+            if not cfg.points and cfg.box is None and not boxes_per_image:
                 raise PipelineError(
                     f"a {self.kind.upper()} model needs a prompt",
                     path="config: masks.onnx.points",
@@ -244,15 +245,18 @@ class OnnxSegmenter:
             feats = {embed_name: outs[0]}
         return feats, scale, (nh, nw)
 
-    def _prompt(self, h: int, w: int, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _prompt(self, h: int, w: int, scale: np.ndarray,
+                box: tuple[float, float, float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.cfg
         coords, labels = [], []
         for i, (x, y) in enumerate(cfg.points):
             coords.append([x * w, y * h])
             labels.append(cfg.point_labels[i] if cfg.point_labels else 1)
-        if cfg.box is not None:
-            x0, y0, x1, y1 = cfg.box
-            coords += [[x0 * w, y0 * h], [x1 * w, y1 * h]]
+        if box is None and cfg.box is not None:
+            box = (cfg.box[0] * w, cfg.box[1] * h, cfg.box[2] * w, cfg.box[3] * h)
+        if box is not None:
+            x0, y0, x1, y1 = box
+            coords += [[x0, y0], [x1, y1]]
             labels += [2, 3]
         elif self.kind == "sam":
             coords.append([0.0, 0.0])  # SAM's padding point when there is no box
@@ -260,12 +264,12 @@ class OnnxSegmenter:
         pts = np.asarray(coords, dtype=np.float32) * scale[None]
         return pts[None], np.asarray(labels, dtype=np.float32)[None]
 
-    def _sam(self, image: np.ndarray) -> np.ndarray:
+    def _sam(self, image: np.ndarray, box: tuple[float, float, float, float] | None = None) -> np.ndarray:
         import cv2
 
         h, w = image.shape[:2]
         feats, scale, (nh, nw) = self._encode(image)
-        coords, labels = self._prompt(h, w, scale)
+        coords, labels = self._prompt(h, w, scale, box)
         feeds = dict(feats)
         feeds.update(
             point_coords=coords,
@@ -299,8 +303,18 @@ class OnnxSegmenter:
         full = cv2.resize(logits, (sw, sh), interpolation=cv2.INTER_LINEAR)
         return cv2.resize(full[:nh, :nw], (w, h), interpolation=cv2.INTER_LINEAR)
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
-        return self._plain(image) if self.kind == "plain" else self._sam(image)
+    def __call__(self, image: np.ndarray, box: tuple[float, float, float, float] | None = None) -> np.ndarray:
+        """Mask logits of ``image``; ``box`` (x0, y0, x1, y1 in pixels) is the box prompt instead of the config's
+        (SAM/SAM2; a plain model's logits outside it are set to -inf)."""
+        if self.kind != "plain":
+            return self._sam(image, box)
+        logits = self._plain(image)
+        if box is not None:
+            inside = np.zeros(logits.shape, bool)
+            x0, y0, x1, y1 = (int(round(c)) for c in box)
+            inside[max(0, y0):max(0, y1), max(0, x0):max(0, x1)] = True
+            logits = np.where(inside, logits, -np.inf)
+        return logits
 
 
 # ----------------------------------------------------------------------------------------------
@@ -483,11 +497,16 @@ def decide_polarity(coverage: dict[str, float], cfg: MasksConfig) -> tuple[str, 
     return "white", f"white covers {100 * mean:.1f}% of the images on average: white = see-through"
 
 
+def _logit(threshold: float) -> float:
+    """The mask-logit cut of a probability threshold (0 at the ends, where it has none)."""
+    return float(np.log(threshold / (1 - threshold))) if 0 < threshold < 1 else 0.0
+
+
 def segment_masks(images: list[Path], out: Path, cfg: MasksConfig, progress: bool) -> tuple[dict, str]:
     from tqdm import tqdm
 
     seg = OnnxSegmenter(cfg.onnx)
-    thr = float(np.log(cfg.threshold / (1 - cfg.threshold))) if 0 < cfg.threshold < 1 else 0.0
+    thr = _logit(cfg.threshold)
     coverage = {}
     for img in tqdm(images, desc=f"segment ({seg.kind})", unit="img", disable=not progress):
         mask = seg(read_image(img)) > thr
@@ -598,12 +617,14 @@ def marks_to_masks(marks: dict[str, MaskMark], images: list[Path],
 @dataclass
 class Propagation:
     """What :func:`propagate_from_marked` wrote: per-image coverage, each photo's mask source, each marked
-    photo's mark source, the photos whose propagated mask was refined, and the polarity of the mask files."""
+    photo's mark source, the photos whose propagated mask was refined and by what, and the polarity of the
+    mask files."""
 
     coverage: dict[str, float]
     sources: dict[str, str]
     mark_sources: dict[str, str]
     refined: list[str]
+    refinement: str  # what refined them: grabcut | onnx (<model kind>); empty when none was
     polarity: str
     polarity_reason: str
 
@@ -668,9 +689,18 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
         header = read_header(by_name[name])
         return header.width, header.height
 
+    segment, refinement = None, "grabcut"
+    if cfg.propagate.refine == "onnx" or (cfg.propagate.refine == "auto" and cfg.onnx.model):
+        segmenter = OnnxSegmenter(cfg.onnx, boxes_per_image=True)
+        threshold = _logit(cfg.threshold)
+
+        def segment(image: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
+            return segmenter(image, box) > threshold
+
+        refinement = f"onnx ({segmenter.kind})"
     coverage, sources, refined = {}, {}, []
     results = propagate_masks(model, marked, sorted(by_name), lambda n: read_image(by_name[n]), cfg.propagate,
-                              size_of, str(mask_dir) + (" or config: masks.marks" if marks else ""))
+                              size_of, str(mask_dir) + (" or config: masks.marks" if marks else ""), segment)
     for result in tqdm(results, total=len(by_name), desc="propagate", unit="img", disable=not progress):
         stem = by_name[result.name].stem
         write_mask(out / f"{stem}.png", result.mask)
@@ -678,7 +708,8 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
         sources[result.name] = result.source
         if result.refined:
             refined.append(result.name)
-    return Propagation(coverage, sources, dict(sorted(mark_sources.items())), refined, polarity, reason)
+    return Propagation(coverage, sources, dict(sorted(mark_sources.items())), refined, refinement if refined else "",
+                       polarity, reason)
 
 
 def make_masks(
@@ -710,6 +741,7 @@ def make_masks(
     photos = photo_fingerprints(scene_dir / "images")
     with output_dir(out_dir, "masks", inputs=[scene_dir, sfm_dir]) as tmp:
         kind, polarity, reason, kinds, missing, sources, refined, mark_sources = "", "white", "", {}, [], {}, [], {}
+        refinement = ""
         if source == "ingest":
             coverage, kinds, missing = ingest_masks(images, mask_dir, tmp, cfg, progress)
             without = {Path(name).stem for name in missing}
@@ -722,6 +754,7 @@ def make_masks(
             propagation = propagate_from_marked(
                 images, mask_dir, None if sfm_dir is None else Path(sfm_dir), tmp, cfg, progress)
             coverage, sources, refined = propagation.coverage, propagation.sources, propagation.refined
+            refinement = propagation.refinement
             polarity, reason, mark_sources = propagation.polarity, propagation.polarity_reason, propagation.mark_sources
         elif source == "onnx":
             coverage, kind = segment_masks(images, tmp, cfg, progress)
@@ -742,6 +775,7 @@ def make_masks(
             mark_sources=mark_sources,
             mask_sources=sources,
             refined=refined,
+            refinement=refinement,
             scene_dir=str(scene_dir.resolve()),
             images_fingerprint=photos_fingerprint(photos),
             photos=photos,
@@ -776,8 +810,9 @@ def run(args: argparse.Namespace) -> int:
         if s.source == "propagate":
             counts = {src: sum(v == src for v in s.mask_sources.values()) for src in set(s.mask_sources.values())}
             marked = ", ".join(f"{n} ({s.mark_sources.get(n, 'file')})" for n in s.marked)
+            refined = f"{len(s.refined)} refined" + (f" with {s.refinement}" if s.refined else "")
             print(f"masks {args.scene_dir}: marked {marked}; " + ", ".join(
-                f"{n} {src}" for src, n in sorted(counts.items())) + f"; {len(s.refined)} refined with GrabCut")
+                f"{n} {src}" for src, n in sorted(counts.items())) + f"; {refined}")
             for src, why in (("empty", "the marked region does not project into them"),
                              ("unregistered", "SfM gave them no pose")):
                 names = [n for n, v in s.mask_sources.items() if v == src]
