@@ -563,7 +563,7 @@ def check_marks(marks: dict[str, MaskMark | dict], images: list[Path]) -> dict[s
         header = read_header(by_name[name])
         w, h = header.width, header.height
         if mark.box is not None:
-            x0, y0, x1, y1 = mark.box
+            x0, y0, x1, y1 = (list(mark.box) + [0.0] * 4)[:4]
             if len(mark.box) != 4 or not (x1 > x0 and y1 > y0):
                 raise PipelineError(
                     f"box {list(mark.box)} is not [x0, y0, x1, y1] with x1 > x0 and y1 > y0", path=f"{key}.box",
