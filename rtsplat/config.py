@@ -171,9 +171,11 @@ class MaskPropagationConfig:
     """Masks carried from a few marked views to the others through the SfM cameras (masks.source: propagate)."""
 
     grid: int = _f(128, help="voxels along the longest side of the marked object's box (visual hull)", minimum=16)
-    refine: Literal["auto", "grabcut", "none"] = _f(
-        "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; none: kept as "
-        "projected; auto: whichever matches the marked masks better when each marked view is left out in turn"
+    refine: Literal["auto", "grabcut", "onnx", "none"] = _f(
+        "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; onnx: segmented with "
+        "the masks.onnx model, prompted by the projected hull's box; none: kept as projected; auto: onnx when "
+        "masks.onnx.model is set, else whichever of grabcut and none matches the marked masks better when each "
+        "marked view is left out in turn"
     )
     grabcut_iterations: int = _f(4, help="GrabCut iterations", minimum=1)
     ring: float = _f(
@@ -195,13 +197,28 @@ class MaskPropagationConfig:
 
 
 @dataclass
+class MaskMark:
+    """A marked view's see-through surface drawn in the config: a box or a polygon (not both)."""
+
+    box: list[float] | None = _f(
+        None, help="[x0, y0, x1, y1] in pixels of the photo as it is in images/ (x to the right, y down; x1 > x0, "
+        "y1 > y0); loose is fine: GrabCut finds the object inside it", minItems=4, maxItems=4
+    )
+    polygon: list[list[float]] | None = _f(
+        None, help="[[x, y], ...] in pixels of the photo, at least 3 corners, the outline of the see-through "
+        "surface (taken as drawn)", minItems=3, items={"type": "array", "items": {"type": "number"},
+                                                        "minItems": 2, "maxItems": 2}
+    )
+
+
+@dataclass
 class MasksConfig:
     """Transparent-surface masks (white = see-through surface)."""
 
     source: Literal["auto", "ingest", "propagate", "onnx", "none"] = _f(
-        "auto", help="auto: when <scene>/<dir> has masks, propagate them if fewer than half the photos have one "
-        "(the marked views; not with allow_missing), else ingest them; without masks segment when onnx.model is "
-        "set, else none"
+        "auto", help="auto: with marks, propagate; when <scene>/<dir> has masks, propagate them if fewer than half "
+        "the photos have one (the marked views; not with allow_missing), else ingest them; without masks segment "
+        "when onnx.model is set, else none"
     )
     dir: str = _f(
         "transparent_masks",
@@ -221,6 +238,11 @@ class MasksConfig:
     )
     max_coverage: float = _f(0.5, help="ingest with polarity auto: a larger mean coverage means inverted masks",
                              exclusiveMinimum=0.0, maximum=1.0)
+    marks: dict[str, MaskMark] = _f(
+        help="marked views drawn in the config, by photo name (e.g. IMG_0001.jpg: {box: [x0, y0, x1, y1]} or "
+        "{polygon: [[x, y], ...]}): marked views like the mask files of <dir>, carried to the other photos "
+        "(source propagate; auto chooses it when marks are given)", factory=dict
+    )
     onnx: OnnxSegmenterConfig = _f(help="the ONNX segmenter", factory=OnnxSegmenterConfig)
     propagate: MaskPropagationConfig = _f(
         help="masks of the marked views carried to the others (source propagate)", factory=MaskPropagationConfig

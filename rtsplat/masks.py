@@ -6,9 +6,11 @@ Three ways (function API :func:`make_masks`; :func:`resolve_source` decides ``ma
   after its stem with any image extension (``IMG_0001.png``) or COLMAP's way (``IMG_0001.JPG.png``)
   (:func:`match_masks`); names and sizes are validated against the images, masks are binarised (JPEG
   masks with a tolerance for compression noise, :func:`interpret_mask`), coverage is reported;
-* **propagate** the masks of a few marked photos (fewer than half the photos have one, at least 3) to every
+* **propagate** the masks of a few marked photos (at least 3: mask files that fewer than half the photos
+  have, and boxes or polygons drawn in ``masks.marks``, :func:`check_marks`, :func:`marks_to_masks`) to every
   photo through the SfM cameras of ``--sfm`` (:mod:`rtsplat.masks_propagate`); the summary records each
-  mask's source (``mask_sources``: given, propagated, empty, unregistered);
+  mark's source (``mark_sources``: file, polygon, box, filled box) and each mask's source (``mask_sources``:
+  given, propagated, empty, unregistered);
 * **segment** with a local ONNX model through onnxruntime (:class:`OnnxSegmenter`): the common SAM
   and SAM2 exports (an image encoder plus a prompted mask decoder; the kind is detected from the
   decoder's input names) prompted by the points/box of the config, or a plain "image in, mask
@@ -30,7 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-from rtsplat.config import MasksConfig, OnnxSegmenterConfig, add_config_arguments, stage_config_from_args
+from rtsplat.config import (
+    MaskMark,
+    MasksConfig,
+    OnnxSegmenterConfig,
+    add_config_arguments,
+    stage_config_from_args,
+)
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.images import (
@@ -67,9 +75,12 @@ class MasksSummary:
     mask_kinds: dict[str, int] = field(default_factory=dict)  # ingest: how many masks of each kind
     without_mask: list[str] = field(default_factory=list)  # ingest with allow_missing: photos given empty masks
     marked: list[str] = field(default_factory=list)  # propagate: the photos whose masks were given
+    mark_sources: dict[str, str] = field(default_factory=dict)  # propagate: per marked photo file | polygon | box
+    # (GrabCut's cut inside it) | filled box (GrabCut found no object inside it: the box as drawn)
     mask_sources: dict[str, str] = field(default_factory=dict)  # propagate: per photo given | propagated | empty
     # | unregistered (rtsplat.masks_propagate.PropagatedMask.source)
-    refined: list[str] = field(default_factory=list)  # propagate: photos whose propagated mask GrabCut refined
+    refined: list[str] = field(default_factory=list)  # propagate: photos whose propagated mask was refined
+    refinement: str = ""  # propagate: what refined them, grabcut | onnx (<model kind>)
     scene_dir: str = ""  # the dataset scene they were made for (for messages)
     images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
     photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
@@ -109,7 +120,7 @@ class OnnxSegmenter:
     predicted IoU.
     """
 
-    def __init__(self, cfg: OnnxSegmenterConfig) -> None:
+    def __init__(self, cfg: OnnxSegmenterConfig, boxes_per_image: bool = False) -> None:
         import onnxruntime as ort
 
         self.cfg = cfg
@@ -131,7 +142,7 @@ class OnnxSegmenter:
                     fix="set masks.onnx.encoder to the encoder .onnx of the same export",
                 )
             self.encoder = self._session(ort, cfg.encoder, "masks.onnx.encoder")
-            if not cfg.points and cfg.box is None:
+            if not cfg.points and cfg.box is None and not boxes_per_image:
                 raise PipelineError(
                     f"a {self.kind.upper()} model needs a prompt",
                     path="config: masks.onnx.points",
@@ -234,15 +245,18 @@ class OnnxSegmenter:
             feats = {embed_name: outs[0]}
         return feats, scale, (nh, nw)
 
-    def _prompt(self, h: int, w: int, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _prompt(self, h: int, w: int, scale: np.ndarray,
+                box: tuple[float, float, float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.cfg
         coords, labels = [], []
         for i, (x, y) in enumerate(cfg.points):
             coords.append([x * w, y * h])
             labels.append(cfg.point_labels[i] if cfg.point_labels else 1)
-        if cfg.box is not None:
-            x0, y0, x1, y1 = cfg.box
-            coords += [[x0 * w, y0 * h], [x1 * w, y1 * h]]
+        if box is None and cfg.box is not None:
+            box = (cfg.box[0] * w, cfg.box[1] * h, cfg.box[2] * w, cfg.box[3] * h)
+        if box is not None:
+            x0, y0, x1, y1 = box
+            coords += [[x0, y0], [x1, y1]]
             labels += [2, 3]
         elif self.kind == "sam":
             coords.append([0.0, 0.0])  # SAM's padding point when there is no box
@@ -250,12 +264,12 @@ class OnnxSegmenter:
         pts = np.asarray(coords, dtype=np.float32) * scale[None]
         return pts[None], np.asarray(labels, dtype=np.float32)[None]
 
-    def _sam(self, image: np.ndarray) -> np.ndarray:
+    def _sam(self, image: np.ndarray, box: tuple[float, float, float, float] | None = None) -> np.ndarray:
         import cv2
 
         h, w = image.shape[:2]
         feats, scale, (nh, nw) = self._encode(image)
-        coords, labels = self._prompt(h, w, scale)
+        coords, labels = self._prompt(h, w, scale, box)
         feeds = dict(feats)
         feeds.update(
             point_coords=coords,
@@ -289,8 +303,18 @@ class OnnxSegmenter:
         full = cv2.resize(logits, (sw, sh), interpolation=cv2.INTER_LINEAR)
         return cv2.resize(full[:nh, :nw], (w, h), interpolation=cv2.INTER_LINEAR)
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
-        return self._plain(image) if self.kind == "plain" else self._sam(image)
+    def __call__(self, image: np.ndarray, box: tuple[float, float, float, float] | None = None) -> np.ndarray:
+        """Mask logits of ``image``; ``box`` (x0, y0, x1, y1 in pixels) is the box prompt instead of the config's
+        (SAM/SAM2; a plain model's logits outside it are set to -inf)."""
+        if self.kind != "plain":
+            return self._sam(image, box)
+        logits = self._plain(image)
+        if box is not None:
+            inside = np.zeros(logits.shape, bool)
+            x0, y0, x1, y1 = (int(round(c)) for c in box)
+            inside[max(0, y0):max(0, y1), max(0, x0):max(0, x1)] = True
+            logits = np.where(inside, logits, -np.inf)
+        return logits
 
 
 # ----------------------------------------------------------------------------------------------
@@ -473,11 +497,16 @@ def decide_polarity(coverage: dict[str, float], cfg: MasksConfig) -> tuple[str, 
     return "white", f"white covers {100 * mean:.1f}% of the images on average: white = see-through"
 
 
+def _logit(threshold: float) -> float:
+    """The mask-logit cut of a probability threshold (0 at the ends, where it has none)."""
+    return float(np.log(threshold / (1 - threshold))) if 0 < threshold < 1 else 0.0
+
+
 def segment_masks(images: list[Path], out: Path, cfg: MasksConfig, progress: bool) -> tuple[dict, str]:
     from tqdm import tqdm
 
     seg = OnnxSegmenter(cfg.onnx)
-    thr = float(np.log(cfg.threshold / (1 - cfg.threshold))) if 0 < cfg.threshold < 1 else 0.0
+    thr = _logit(cfg.threshold)
     coverage = {}
     for img in tqdm(images, desc=f"segment ({seg.kind})", unit="img", disable=not progress):
         mask = seg(read_image(img)) > thr
@@ -487,12 +516,15 @@ def segment_masks(images: list[Path], out: Path, cfg: MasksConfig, progress: boo
 
 
 def resolve_source(scene_dir: str | Path, cfg: MasksConfig, images: list[Path] | None = None) -> str:
-    """``masks.source`` with ``auto`` decided: propagate when fewer than half the photos have a mask in
+    """``masks.source`` with ``auto`` decided: propagate when ``masks.marks`` marks views, or when fewer than
+    half the photos have a mask in
     ``<scene>/<masks.dir>`` (the marked views; not with ``masks.allow_missing``), ingest when more have one
     (a missing mask is then an error, or an empty mask with ``masks.allow_missing``), else onnx when a model
     is set, else none."""
     if cfg.source != "auto":
         return cfg.source
+    if cfg.marks:
+        return "propagate"
     mask_dir = Path(scene_dir) / cfg.dir
     if not list_images(mask_dir):
         return "onnx" if cfg.onnx.model else "none"
@@ -503,22 +535,126 @@ def resolve_source(scene_dir: str | Path, cfg: MasksConfig, images: list[Path] |
     return "propagate" if 2 * sum(m is not None for m in found.values()) < len(found) else "ingest"
 
 
+def check_marks(marks: dict[str, MaskMark | dict], images: list[Path]) -> dict[str, MaskMark]:
+    """``masks.marks`` as :class:`MaskMark` by photo name, checked against the photos: a name that is no photo
+    (the closest names suggested), not exactly one of box and polygon, a polygon of fewer than 3 corners or no
+    area, a box with x1 <= x0 or y1 <= y0, coordinates outside the photo."""
+    import difflib
+
+    from rtsplat.schema import from_dict, plain
+
+    by_name = {img.name: img for img in images}
+    checked = {}
+    for name, mark in marks.items():
+        key = f"config: masks.marks.{name}"
+        if name not in by_name:
+            close = difflib.get_close_matches(name, list(by_name), n=3, cutoff=0.5)
+            raise PipelineError(
+                f"marked view {name!r} is not a photo of the scene ({len(by_name)} photos"
+                + (f"; closest names: {', '.join(close)})" if close else f", e.g. {', '.join(sorted(by_name)[:3])})"),
+                path=key, fix="use the photo's file name as it is in images/ (with its extension)",
+            )
+        mark = mark if isinstance(mark, MaskMark) else from_dict(MaskMark, plain(mark), root=f"masks.marks.{name}")
+        if (mark.box is None) == (mark.polygon is None):
+            raise PipelineError(
+                "a mark is either a box or a polygon" + (", not both" if mark.box is not None else ""),
+                path=key, fix="give box: [x0, y0, x1, y1] or polygon: [[x, y], ...] (pixels of the photo)",
+            )
+        header = read_header(by_name[name])
+        w, h = header.width, header.height
+        if mark.box is not None:
+            x0, y0, x1, y1 = (list(mark.box) + [0.0] * 4)[:4]
+            if len(mark.box) != 4 or not (x1 > x0 and y1 > y0):
+                raise PipelineError(
+                    f"box {list(mark.box)} is not [x0, y0, x1, y1] with x1 > x0 and y1 > y0", path=f"{key}.box",
+                    fix="give the left, top, right and bottom edges in pixels (x to the right, y down)",
+                )
+            corners = np.array([[x0, y0], [x1, y1]], np.float64)
+        else:
+            corners = np.asarray(mark.polygon, np.float64)
+            if corners.ndim != 2 or corners.shape[1] != 2 or len(corners) < 3:
+                raise PipelineError(
+                    f"polygon of {len(mark.polygon)} point(s): a polygon needs at least 3 corners [x, y]",
+                    path=f"{key}.polygon", fix="give the outline's corners [[x, y], ...] in pixels of the photo",
+                )
+            x, y = corners[:, 0], corners[:, 1]
+            if abs(float(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))) < 1.0:
+                raise PipelineError(
+                    "the polygon has no area (its corners lie on a line)", path=f"{key}.polygon",
+                    fix="give the outline's corners in order around the see-through surface",
+                )
+        outside = (corners[:, 0] < 0) | (corners[:, 0] > w) | (corners[:, 1] < 0) | (corners[:, 1] > h)
+        if outside.any():
+            what = "box" if mark.box is not None else "polygon"
+            raise PipelineError(
+                f"{what} corner {corners[outside][0].tolist()} lies outside the photo ({w}x{h} pixels: x in 0..{w}, "
+                f"y in 0..{h})", path=f"{key}.{what}",
+                fix=f"give coordinates in pixels of {name} as it is in images/ (not of a downsampled copy)",
+            )
+        checked[name] = mark
+    return checked
+
+
+def marks_to_masks(marks: dict[str, MaskMark], images: list[Path],
+                   cfg: MasksConfig) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The masks of the config's marks (checked by :func:`check_marks`) at their photos' sizes and each mark's
+    source: ``polygon`` (filled), ``box`` (GrabCut's cut inside it, :func:`rtsplat.masks_propagate.box_mask`) or
+    ``filled box`` (GrabCut found no object inside it)."""
+    from rtsplat.masks_propagate import box_mask, polygon_mask
+
+    by_name = {img.name: img for img in images}
+    masks, sources = {}, {}
+    for name, mark in marks.items():
+        if mark.polygon is not None:
+            header = read_header(by_name[name])
+            masks[name], sources[name] = polygon_mask(np.asarray(mark.polygon), header.width, header.height), "polygon"
+        else:
+            masks[name], cut = box_mask(read_image(by_name[name]), tuple(mark.box), cfg.propagate)
+            sources[name] = "box" if cut else "filled box"
+    return masks, sources
+
+
+@dataclass
+class Propagation:
+    """What :func:`propagate_from_marked` wrote: per-image coverage, each photo's mask source, each marked
+    photo's mark source, the photos whose propagated mask was refined and by what, and the polarity of the
+    mask files."""
+
+    coverage: dict[str, float]
+    sources: dict[str, str]
+    mark_sources: dict[str, str]
+    refined: list[str]
+    refinement: str  # what refined them: grabcut | onnx (<model kind>); empty when none was
+    polarity: str
+    polarity_reason: str
+
+
 def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | None, out: Path, cfg: MasksConfig,
-                          progress: bool) -> tuple[dict[str, float], dict[str, str], list[str], str, str]:
-    """Masks of the photos that have one in ``mask_dir`` (the marked views) carried to every photo through the
-    cameras of ``<sfm_dir>/sparse/0`` (:func:`rtsplat.masks_propagate.propagate_masks`), written to ``out``.
-    Returns the per-image coverage, each photo's mask source, the photos GrabCut refined, the polarity and why."""
+                          progress: bool) -> Propagation:
+    """The marked views (photos with a mask in ``mask_dir``, and the boxes and polygons of ``masks.marks``,
+    :func:`check_marks`, :func:`marks_to_masks`) carried to every photo through the cameras of
+    ``<sfm_dir>/sparse/0`` (:func:`rtsplat.masks_propagate.propagate_masks`), written to ``out``."""
     from tqdm import tqdm
 
     from rtsplat.io.colmap import is_model_dir, load_model
     from rtsplat.io.images import read_raw_pixels
     from rtsplat.masks_propagate import propagate_masks
 
-    found = match_masks(images, mask_dir)
-    if sfm_dir is None or not is_model_dir(Path(sfm_dir) / "sparse" / "0"):
-        given = sum(m is not None for m in found.values())
+    marks = check_marks(cfg.marks, images)
+    found = match_masks(images, mask_dir) if mask_dir.is_dir() else {img: None for img in images}
+    both = {img.name: m for img, m in found.items() if m is not None and img.name in marks}
+    if both:
+        name = sorted(both)[0]
         raise PipelineError(
-            f"{given} of {len(images)} photos have a mask in {mask_dir.name}/: propagating them to the others "
+            f"{name} has a mask file ({both[name].name}) and a mark in the config ({len(both)} photo(s) have "
+            f"both: {', '.join(sorted(both)[:5])})", path=f"config: masks.marks.{name}",
+            fix=f"keep one of them: remove the mark from masks.marks or the mask file from {mask_dir.name}/",
+        )
+    where = f"{mask_dir.name}/" + (" or masks.marks" if marks else "")
+    if sfm_dir is None or not is_model_dir(Path(sfm_dir) / "sparse" / "0"):
+        given = sum(m is not None for m in found.values()) + len(marks)
+        raise PipelineError(
+            f"{given} of {len(images)} photos have a mask in {where}: propagating them to the others "
             "needs the SfM cameras (sfm/sparse/0)",
             path=sfm_dir if sfm_dir is not None else "--sfm",
             fix="run 'rtsplat sfm' first and pass its folder as --sfm (the workflow does this for masks.source "
@@ -539,17 +675,32 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
                 fix="export the mask at the image's resolution (masks of images_N folders do not fit images/)",
             )
         marked[img.name] = mask
-    polarity, reason = decide_polarity({n: float(m.mean()) for n, m in marked.items()}, cfg)
+    polarity, reason = "white", "masks.marks: drawn marks are the see-through surface"
+    if marked:
+        polarity, reason = decide_polarity({n: float(m.mean()) for n, m in marked.items()}, cfg)
     if polarity == "black":
         marked = {n: ~m for n, m in marked.items()}
+    mark_sources = dict.fromkeys(marked, "file")
+    drawn, drawn_sources = marks_to_masks(marks, images, cfg)
+    marked.update(drawn)
+    mark_sources.update(drawn_sources)
 
     def size_of(name: str) -> tuple[int, int]:
         header = read_header(by_name[name])
         return header.width, header.height
 
+    segment, refinement = None, "grabcut"
+    if cfg.propagate.refine == "onnx" or (cfg.propagate.refine == "auto" and cfg.onnx.model):
+        segmenter = OnnxSegmenter(cfg.onnx, boxes_per_image=True)
+        threshold = _logit(cfg.threshold)
+
+        def segment(image: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
+            return segmenter(image, box) > threshold
+
+        refinement = f"onnx ({segmenter.kind})"
     coverage, sources, refined = {}, {}, []
     results = propagate_masks(model, marked, sorted(by_name), lambda n: read_image(by_name[n]), cfg.propagate,
-                              size_of, str(mask_dir))
+                              size_of, str(mask_dir) + (" or config: masks.marks" if marks else ""), segment)
     for result in tqdm(results, total=len(by_name), desc="propagate", unit="img", disable=not progress):
         stem = by_name[result.name].stem
         write_mask(out / f"{stem}.png", result.mask)
@@ -557,7 +708,8 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
         sources[result.name] = result.source
         if result.refined:
             refined.append(result.name)
-    return coverage, sources, refined, polarity, reason
+    return Propagation(coverage, sources, dict(sorted(mark_sources.items())), refined, refinement if refined else "",
+                       polarity, reason)
 
 
 def make_masks(
@@ -572,7 +724,13 @@ def make_masks(
     images = [h.path for h in validate_image_set(scene_dir / "images", decode=False, log=_log)]
     mask_dir = scene_dir / cfg.dir
     source = resolve_source(scene_dir, cfg, images)
-    if source in ("ingest", "propagate") and not mask_dir.is_dir():
+    if cfg.marks and source != "propagate":
+        raise PipelineError(
+            f"masks.marks marks {len(cfg.marks)} view(s) but masks.source is {source}: marks are carried to the "
+            "other photos by source propagate", path="config: masks.marks",
+            fix="set masks.source: propagate (or auto), or remove masks.marks",
+        )
+    if (source == "ingest" or (source == "propagate" and not cfg.marks)) and not mask_dir.is_dir():
         raise PipelineError(
             "mask folder not found",
             path=mask_dir,
@@ -582,7 +740,8 @@ def make_masks(
         check_unique_stems(images)
     photos = photo_fingerprints(scene_dir / "images")
     with output_dir(out_dir, "masks", inputs=[scene_dir, sfm_dir]) as tmp:
-        kind, polarity, reason, kinds, missing, sources, refined = "", "white", "", {}, [], {}, []
+        kind, polarity, reason, kinds, missing, sources, refined, mark_sources = "", "white", "", {}, [], {}, [], {}
+        refinement = ""
         if source == "ingest":
             coverage, kinds, missing = ingest_masks(images, mask_dir, tmp, cfg, progress)
             without = {Path(name).stem for name in missing}
@@ -592,8 +751,11 @@ def make_masks(
                     write_mask(tmp / f"{stem}.png", ~read_mask(tmp / f"{stem}.png"))
                     coverage[stem] = 1.0 - coverage[stem]
         elif source == "propagate":
-            coverage, sources, refined, polarity, reason = propagate_from_marked(
+            propagation = propagate_from_marked(
                 images, mask_dir, None if sfm_dir is None else Path(sfm_dir), tmp, cfg, progress)
+            coverage, sources, refined = propagation.coverage, propagation.sources, propagation.refined
+            refinement = propagation.refinement
+            polarity, reason, mark_sources = propagation.polarity, propagation.polarity_reason, propagation.mark_sources
         elif source == "onnx":
             coverage, kind = segment_masks(images, tmp, cfg, progress)
         else:
@@ -610,8 +772,10 @@ def make_masks(
             mask_kinds=kinds,
             without_mask=missing,
             marked=sorted(n for n, s in sources.items() if s == "given"),
+            mark_sources=mark_sources,
             mask_sources=sources,
             refined=refined,
+            refinement=refinement,
             scene_dir=str(scene_dir.resolve()),
             images_fingerprint=photos_fingerprint(photos),
             photos=photos,
@@ -645,8 +809,10 @@ def run(args: argparse.Namespace) -> int:
                       f"see-through surface (masks.allow_missing), e.g. {s.without_mask[0]}")
         if s.source == "propagate":
             counts = {src: sum(v == src for v in s.mask_sources.values()) for src in set(s.mask_sources.values())}
-            print(f"masks {args.scene_dir}: marked {', '.join(s.marked)}; " + ", ".join(
-                f"{n} {src}" for src, n in sorted(counts.items())) + f"; {len(s.refined)} refined with GrabCut")
+            marked = ", ".join(f"{n} ({s.mark_sources.get(n, 'file')})" for n in s.marked)
+            refined = f"{len(s.refined)} refined" + (f" with {s.refinement}" if s.refined else "")
+            print(f"masks {args.scene_dir}: marked {marked}; " + ", ".join(
+                f"{n} {src}" for src, n in sorted(counts.items())) + f"; {refined}")
             for src, why in (("empty", "the marked region does not project into them"),
                              ("unregistered", "SfM gave them no pose")):
                 names = [n for n, v in s.mask_sources.items() if v == src]

@@ -15,7 +15,12 @@ seeded with the silhouette as probable foreground, a ring around it as probable 
 as background, can cut that excess where the image shows an edge (:func:`refine_with_grabcut`); when it
 keeps less than ``min_kept`` of the silhouette the silhouette is kept. Whether GrabCut helps depends on
 how much the glass differs from what it shows: ``refine: auto`` decides per scene by leaving each marked
-view out in turn and comparing both with its given mask (:func:`choose_refinement`).
+view out in turn and comparing both with its given mask (:func:`choose_refinement`). A prompted segmenter
+(the ONNX SAM/SAM2 model of ``masks.onnx``) can take GrabCut's place: it gets the silhouette's bounding box
+as its box prompt (:func:`prompted_mask`).
+
+A marked view is a mask, or a box or polygon drawn on the photo: a polygon is filled
+(:func:`polygon_mask`), a box is cut out with GrabCut started from the rectangle (:func:`box_mask`).
 
 Each mask's source is recorded: ``given`` (a marked view), ``propagated``, ``empty`` (the hull does not
 project into the view) or ``unregistered`` (SfM has no pose for the photo: empty mask). Large images are
@@ -34,6 +39,7 @@ from rtsplat.io.colmap import ColmapModel, ColmapView
 
 MIN_MARKED = 3  # fewer marked views do not bound the object in depth
 COARSE_GRID = 48  # voxels along the longest side of the first pass
+MIN_BOX_KEPT = 0.2  # a box mark's GrabCut cut keeping less of the box is taken for a failure (the box is kept)
 
 
 @dataclass
@@ -321,6 +327,50 @@ def refine_with_grabcut(image: np.ndarray, silhouette: np.ndarray,
     return cut
 
 
+def polygon_mask(points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The inside of a polygon (corners [N, 2] in pixels with the image's corner at (0, 0), x to the right, y down)
+    as a bool [height, width] mask; pixels its outline touches count as inside."""
+    import cv2
+
+    canvas = np.zeros((height, width), np.uint8)
+    shift = 4  # sub-pixel corners: 1/16 pixel; OpenCV puts pixel centres on integer coordinates
+    corners = np.round((np.asarray(points, np.float64) - 0.5) * (1 << shift)).astype(np.int32)
+    cv2.fillPoly(canvas, [corners.reshape(-1, 1, 2)], 1, lineType=cv2.LINE_8, shift=shift)
+    return canvas > 0
+
+
+def box_mask(image: np.ndarray, box: tuple[float, float, float, float],
+             settings: MaskPropagationConfig) -> tuple[np.ndarray, bool]:
+    """The object inside a loose ``box`` (x0, y0, x1, y1 in pixels) of ``image`` (float RGB [H, W, 3]): OpenCV's
+    GrabCut started from the rectangle (``GC_INIT_WITH_RECT``: outside is background, inside is unknown), at
+    ``work_size`` pixels on the longest side. Returns (mask at the image's size, whether GrabCut's cut was kept):
+    the filled box when GrabCut fails or keeps less than :data:`MIN_BOX_KEPT` of the box."""
+    import cv2
+
+    h, w = image.shape[:2]
+    x0, y0, x1, y1 = box
+    filled = polygon_mask(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), w, h)
+    scale = min(1.0, settings.work_size / max(w, h))
+    sw, sh = max(1, int(round(w * scale))), max(1, int(round(h * scale)))
+    small = cv2.resize(image, (sw, sh), interpolation=cv2.INTER_AREA) if scale < 1.0 else image
+    left, top = int(np.floor(x0 * scale)), int(np.floor(y0 * scale))
+    right, bottom = min(sw, int(np.ceil(x1 * scale))), min(sh, int(np.ceil(y1 * scale)))
+    rect = (left, top, right - left, bottom - top)
+    if rect[2] < 3 or rect[3] < 3 or (rect[2] >= sw and rect[3] >= sh):  # too small, or no background left
+        return filled, False
+    pixels = np.ascontiguousarray((np.clip(small[..., :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    labels = np.zeros((sh, sw), np.uint8)
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(pixels, labels, rect, bgd, fgd, settings.grabcut_iterations, cv2.GC_INIT_WITH_RECT)
+    except cv2.error:
+        return filled, False
+    cut = _resize_mask((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD), w, h) & filled
+    if cut.sum() < MIN_BOX_KEPT * filled.sum():
+        return filled, False
+    return cut, True
+
+
 def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
     import cv2
 
@@ -337,19 +387,26 @@ def propagate_masks(
     settings: MaskPropagationConfig | None = None,
     size_of: Callable[[str], tuple[int, int]] | None = None,
     source: str = "",
+    segment: Callable[[np.ndarray, tuple[float, float, float, float]], np.ndarray] | None = None,
 ) -> Iterator[PropagatedMask]:
     """One mask per photo in ``names`` (in that order) from the masks of the ``marked`` photos (bool [H, W]
     at the photo's size), with the registered views of ``model``. ``read_image(name)`` gives a photo as float
     RGB; ``size_of(name)`` (width, height) is asked for photos SfM did not register (empty masks). Raises
     :class:`PipelineError` for too few marked views, marked views without a pose, masks of another size than
-    the camera, and marks without a common 3D region; ``source`` names the mask folder in those messages."""
+    the camera, and marks without a common 3D region; ``source`` names the mask folder in those messages.
+    ``segment(image, box)`` (a prompted segmenter: float RGB image, box x0, y0, x1, y1 in its pixels -> bool mask)
+    replaces the refinement: each view's mask is its answer to the projected hull's bounding box, or the
+    projection where it finds nothing."""
     settings = settings or MaskPropagationConfig()
     views = {v.name: v for v in model.views}
     check_marked(model, marked, source)
     marked_views = [(views[n], marked[n]) for n in sorted(marked)]
     hull = visual_hull(model, marked_views, settings, source)
     occluders = model.xyz if settings.occlusion else None
-    refine = settings.refine
+    refine = "onnx" if segment is not None else settings.refine
+    if refine == "onnx" and segment is None:
+        raise PipelineError("masks.propagate.refine is onnx but no segmenter is given", path=source or None,
+                            fix="set masks.onnx.model (and encoder), or masks.propagate.refine: auto")
     if refine == "auto":
         refine = choose_refinement(model, marked_views, read_image, settings)
     for name in names:
@@ -369,8 +426,27 @@ def propagate_masks(
         refined = None
         if refine == "grabcut":
             refined = refine_with_grabcut(_work_image(read_image, view, silhouette.shape), silhouette, settings)
+        elif refine == "onnx":
+            refined = prompted_mask(segment, read_image(name), silhouette, scale)
         mask = silhouette if refined is None else refined
         yield PropagatedMask(name, _resize_mask(mask, view.width, view.height), "propagated", refined is not None)
+
+
+def silhouette_box(silhouette: np.ndarray, scale: float = 1.0) -> tuple[float, float, float, float]:
+    """The bounding box (x0, y0, x1, y1, pixel edges) of a non-empty mask at ``scale`` of the photo, in the
+    photo's pixels."""
+    ys, xs = np.nonzero(silhouette)
+    return (xs.min() / scale, ys.min() / scale, (xs.max() + 1) / scale, (ys.max() + 1) / scale)
+
+
+def prompted_mask(segment: Callable[[np.ndarray, tuple[float, float, float, float]], np.ndarray], image: np.ndarray,
+                  silhouette: np.ndarray, scale: float) -> np.ndarray | None:
+    """``segment``'s mask of ``image`` prompted by the box of ``silhouette`` (at ``scale`` of the image), at the
+    silhouette's size; None when it finds nothing."""
+    mask = np.asarray(segment(image, silhouette_box(silhouette, scale)), bool)
+    if not mask.any():
+        return None
+    return _resize_mask(mask, *silhouette.shape[::-1])
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -4,6 +4,7 @@ ray-cast scene whose true masks are known (tests/masks_scene.py)."""
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -189,3 +190,111 @@ def test_stage_without_the_sfm_result_says_what_to_pass(scene, tmp_path):
     scene_dir, _ = _write_scene(tmp_path, model, rendered, suggest_views(model, 3))
     with pytest.raises(PipelineError, match="3 of 16 photos have a mask in transparent_masks/: propagating"):
         make_masks(scene_dir, tmp_path / "masks", MasksConfig(propagate=FAST), progress=False)
+
+
+# ----------------------------------------------------------------------------------------------
+# marks drawn in the config (masks.marks)
+
+
+def _loose_box(mask: np.ndarray, margin: int) -> list[float]:
+    """The mask's bounding box (pixel edges) grown by ``margin`` pixels, inside the image."""
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    return [float(max(0, xs.min() - margin)), float(max(0, ys.min() - margin)),
+            float(min(w, xs.max() + 1 + margin)), float(min(h, ys.max() + 1 + margin))]
+
+
+def _propagated_iou(out: Path, rendered, summary) -> float:
+    return float(np.mean([iou(read_mask(out / n), rendered[n][1])
+                          for n, s in summary.mask_sources.items() if s == "propagated"]))
+
+
+def test_box_marks_propagate_like_mask_files(scene, tmp_path):
+    model, rendered = scene
+    marked = suggest_views(model, 5)
+    scene_dir, sfm = _write_scene(tmp_path / "files", model, rendered, marked)
+    from_files = make_masks(scene_dir, tmp_path / "from_files", MasksConfig(propagate=FAST), progress=False,
+                            sfm_dir=sfm)
+    scene_dir, sfm = _write_scene(tmp_path / "boxes", model, rendered, [])
+    boxes = {n: {"box": _loose_box(rendered[n][1], margin=5)} for n in marked}
+    from_boxes = make_masks(scene_dir, tmp_path / "from_boxes", MasksConfig(marks=boxes, propagate=FAST),
+                            progress=False, sfm_dir=sfm)  # source auto: marks are propagated
+    assert from_boxes.source == "propagate" and sorted(from_boxes.marked) == sorted(marked)
+    assert from_boxes.mark_sources == dict.fromkeys(sorted(marked), "box")
+    assert set(from_files.mark_sources.values()) == {"file"}
+    for name in marked:  # GrabCut cut the object out of the loose box: far closer to it than the box
+        cut, truth = read_mask(tmp_path / "from_boxes" / name), rendered[name][1]
+        filled = np.zeros_like(truth)
+        x0, y0, x1, y1 = map(int, boxes[name]["box"])
+        filled[y0:y1, x0:x1] = True
+        assert iou(cut, truth) >= iou(filled, truth) + 0.2
+    # both propagate to about 0.995 mean IoU here: the boxes lose at most 0.02 against the mask files
+    files_iou = _propagated_iou(tmp_path / "from_files", rendered, from_files)
+    assert files_iou >= 0.9
+    assert _propagated_iou(tmp_path / "from_boxes", rendered, from_boxes) >= files_iou - 0.02
+
+
+def test_polygon_marks_are_taken_as_drawn(scene, tmp_path):
+    model, rendered = scene
+    marked = suggest_views(model, 4)
+    scene_dir, sfm = _write_scene(tmp_path, model, rendered, marked[:1])  # one mask file, three polygons
+    polygons = {}
+    for name in marked[1:]:
+        x0, y0, x1, y1 = _loose_box(rendered[name][1], margin=0)
+        cx, cy, rx, ry = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
+        angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)  # the ellipse that fits the box
+        polygons[name] = {"polygon": np.stack([cx + rx * np.cos(angles), cy + ry * np.sin(angles)], 1).tolist()}
+    summary = make_masks(scene_dir, tmp_path / "masks", MasksConfig(marks=polygons, propagate=FAST),
+                         progress=False, sfm_dir=sfm)
+    assert summary.mark_sources == {marked[0]: "file", **dict.fromkeys(marked[1:], "polygon")}
+    for name in marked[1:]:
+        assert iou(read_mask(tmp_path / "masks" / name), rendered[name][1]) >= 0.85  # the ellipse of the outline
+    assert _propagated_iou(tmp_path / "masks", rendered, summary) >= 0.85
+
+
+@pytest.mark.parametrize("mark, key, message", [
+    ({"view_0001.png": {"box": [10, 10, 40, 40]}}, "masks.marks.view_0001.png", "closest names: view_001.png"),
+    ({"view_001.png": {"box": [10, 10, 400, 40]}}, "masks.marks.view_001.png.box", "outside the photo (96x72"),
+    ({"view_001.png": {"box": [40, 10, 10, 40]}}, "masks.marks.view_001.png.box", "x1 > x0"),
+    ({"view_001.png": {"polygon": [[1, 1], [20, 1]]}}, "masks.marks.view_001.png.polygon", "too short"),
+    ({"view_001.png": {"polygon": [[1, 1], [20, 1], [40, 1]]}}, "masks.marks.view_001.png.polygon", "no area"),
+    ({"view_001.png": {"box": [1, 1, 9, 9], "polygon": [[1, 1], [20, 1], [9, 9]]}},
+     "masks.marks.view_001.png", "not both"),
+    ({"view_000.png": {"box": [1, 1, 9, 9]}}, "masks.marks.view_000.png", "has a mask file"),
+])
+def test_bad_marks_name_the_key_and_write_nothing(scene, tmp_path, mark, key, message):
+    model, rendered = scene
+    scene_dir, sfm = _write_scene(tmp_path, model, rendered, ["view_000.png"])
+    with pytest.raises(PipelineError, match=re.escape(message)) as err:
+        make_masks(scene_dir, tmp_path / "masks", MasksConfig(marks=mark, propagate=FAST), progress=False,
+                   sfm_dir=sfm)
+    assert key in str(err.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene", "sfm"]  # no output, no temporary leftovers
+
+
+def test_marks_with_another_source_are_refused(scene, tmp_path):
+    model, rendered = scene
+    scene_dir, sfm = _write_scene(tmp_path, model, rendered, [])
+    cfg = MasksConfig(source="none", marks={"view_001.png": {"box": [10, 10, 40, 40]}})
+    with pytest.raises(PipelineError, match="masks.source is none"):
+        make_masks(scene_dir, tmp_path / "masks", cfg, progress=False, sfm_dir=sfm)
+
+
+def test_bench_measures_drawn_marks_and_draws_the_figure(scene, tmp_path, capsys):
+    from rtsplat.bench.mask_propagation import main as bench
+    from rtsplat.io.images import read_image
+
+    model, rendered = scene
+    scene_dir, sfm = _write_scene(tmp_path, model, rendered, list(rendered))  # every view has its true mask
+    model_dir = str(sfm / "sparse" / "0")
+    for mark in ("file", "box"):
+        assert bench(["--data", str(scene_dir), "--model", model_dir, "--marked", "5", "--grid", "64",
+                      "--refine", "auto", "--mark", mark]) == 0
+    file_iou, box_iou = map(float, re.findall(r"mean IoU ([\d.]+)", capsys.readouterr().out))
+    assert box_iou >= file_iou - 0.02  # tinted glass: GrabCut cuts it out of the boxes (both 1.000 here)
+    figure = tmp_path / "figure.png"
+    assert bench(["--data", str(scene_dir), "--model", model_dir, "--marked", "5", "--refine", "none",
+                  "--grid", "64", "--mark", "polygon", "--figure", str(figure)]) == 0
+    image = read_image(figure)
+    assert image.shape == (72, 3 * 96 + 2 * 4, 3)  # the marked view and two neighbours, 4-pixel gaps
+    assert (image[:, 96:100] > 0.95).all()  # white gaps (colours at 5 bits)

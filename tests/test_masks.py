@@ -16,7 +16,7 @@ from fixtures_pipeline import make_corner_scene  # noqa: E402
 from rtsplat.cli import main as cli_main  # noqa: E402
 from rtsplat.config import MasksConfig, OnnxSegmenterConfig  # noqa: E402
 from rtsplat.errors import PipelineError  # noqa: E402
-from rtsplat.io.images import read_mask, write_mask, write_png  # noqa: E402
+from rtsplat.io.images import read_image, read_mask, write_mask, write_png  # noqa: E402
 from rtsplat.masks import OnnxSegmenter, make_masks  # noqa: E402
 
 torch = pytest.importorskip("torch")
@@ -505,3 +505,48 @@ def test_photos_sharing_a_stem_are_refused(tmp_path):
     cv2.imwrite(str(d / "images" / "view_001.jpg"), cv2.imread(str(d / "images" / "view_001.png")))
     with pytest.raises(PipelineError, match="two photos share a file stem: view_001.jpg and view_001.png"):
         make_masks(d, tmp_path / "out", progress=False)
+
+
+@pytest.mark.parametrize("kind", ["sam", "sam2"])
+def test_propagation_prompts_the_onnx_model_with_the_projected_box(onnx_models, tmp_path, kind):
+    # the ring scene's glass painted red, and a red patch in the corner of every photo: the toy decoders mark
+    # the red inside the prompt box, so the patch shows up only when the box prompt is not the glass's
+    from masks_scene import render, ring_model
+
+    from rtsplat.config import MaskPropagationConfig
+    from rtsplat.io.colmap import ColmapImage, ColmapPoints, write_sparse_model
+    from rtsplat.masks_propagate import suggest_views
+
+    model = ring_model(12)
+    truth = {v.name: render(v)[1] for v in model.views}
+    marked = suggest_views(model, 5)
+    scene = tmp_path / "scene"
+    (scene / "transparent_masks").mkdir(parents=True)
+    (scene / "images").mkdir()
+    patch = (slice(0, 8), slice(0, 12))
+    for name, mask in truth.items():
+        image = np.full(mask.shape + (3,), 0.1, np.float32)
+        image[mask] = (0.95, 0.1, 0.1)
+        image[patch] = (0.95, 0.1, 0.1)
+        assert not mask[patch].any()
+        write_png(scene / "images" / name, image)
+        if name in marked:
+            write_mask(scene / "transparent_masks" / name, mask)
+    write_sparse_model(tmp_path / "sfm" / "sparse" / "0",
+                       [ColmapImage(v.name, v.K, v.world_to_camera, v.width, v.height) for v in model.views],
+                       ColmapPoints(model.xyz, np.full((len(model.xyz), 3), 128, np.uint8), [[] for _ in model.xyz]))
+    dec, enc = onnx_models[kind]
+    onnx = OnnxSegmenterConfig(model=dec, encoder=enc)  # no prompt in the config: the projection gives it
+    cfg = MasksConfig(onnx=onnx, propagate=MaskPropagationConfig(grid=64))
+    summary = make_masks(scene, tmp_path / "masks", cfg, progress=False, sfm_dir=tmp_path / "sfm")
+    propagated = [n for n, s in summary.mask_sources.items() if s == "propagated"]
+    assert len(propagated) == 12 - 5 and sorted(summary.refined) == sorted(propagated)
+    assert summary.refinement == f"onnx ({kind})"
+    whole = OnnxSegmenter(onnx, boxes_per_image=True)(read_image(scene / "images" / propagated[0]), (0, 0, 96, 72))
+    assert (whole[1:7, 1:11] > 0).all()  # prompted with the whole photo the decoder takes the patch too
+    scores = []
+    for name in propagated:
+        mask = read_mask(tmp_path / "masks" / name)
+        assert not mask[patch].any()
+        scores.append((mask & truth[name]).sum() / (mask | truth[name]).sum())
+    assert min(scores) >= 0.85, scores

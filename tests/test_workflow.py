@@ -258,6 +258,18 @@ def test_masks_of_a_few_marked_views_make_the_masks_rule_wait_for_sfm(tmp_path):
     assert r.returncode != 0 and "sfm.use_masks" in r.stdout + r.stderr
 
 
+def test_marks_in_the_config_make_the_masks_rule_wait_for_sfm(tmp_path):
+    views = make_corner_scene(tmp_path / "data" / "drawn", n_views=9, width=160, height=120)
+    marks = {v.name: {"box": [10, 10, 150, 110]} for v in views[:3]}  # no mask file: three boxes in the config
+    target = str(tmp_path / "results" / "drawn" / "masks")
+    config = _config(tmp_path, overrides={"drawn": {"masks": {"marks": marks}}})
+    r = snakemake(tmp_path, "-n", "-p", target, config=config)
+    assert r.returncode == 0, r.stderr + r.stdout
+    masks = next(b for b in _jobs(r.stdout + r.stderr) if b.startswith("rule masks"))
+    assert f"--sfm {tmp_path}/results/drawn/sfm" in masks
+    assert views[0].name in masks and "[10, 10, 150, 110]" in masks  # the marks reach the stage's config
+
+
 def test_real_run_to_prepared_scenes_and_resume(dataset):
     r = snakemake(dataset, "--cores", "2", "prepared_all")
     assert r.returncode == 0, r.stderr[-4000:]

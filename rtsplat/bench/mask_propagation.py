@@ -1,6 +1,7 @@
 """Masks propagated from a few marked views against a scene's full mask set.
 
     python -m rtsplat.bench.mask_propagation --data DATASET_SCENE --marked 3,5,8 [--refine grabcut,none]
+        [--mark file|polygon|box]
 
 ``DATASET_SCENE`` has ``images/``, a mask for every photo in ``transparent_masks/`` and a COLMAP model
 (``sparse/0``, e.g. the ground-truth cameras of ``rtsplat synth``, or ``--model``). For each count in
@@ -8,6 +9,15 @@
 camera centres, :func:`rtsplat.masks_propagate.suggest_views`); the other views' propagated masks are
 compared with their true masks: mean and worst-view IoU (a view whose two masks are both empty counts 1),
 how many views GrabCut refined, and the seconds taken (wall clock, noisy on a shared machine).
+
+    python -m rtsplat.bench.mask_propagation --data DATASET_SCENE --marked 5 --mark polygon --figure PNG
+
+The marked views are marked with their true masks (``--mark file``), or like the config's ``masks.marks`` with a
+polygon (``--mark polygon``: the outline of their true mask's largest part with corners 1.5 pixels off it at
+most, filled) or a box (``--mark box``: their true mask's bounding box grown by a tenth on each side, cut out
+with GrabCut). ``--figure`` draws instead one PNG: the first marked view with its mark, and the two unmarked
+views whose cameras are nearest to it with their propagated masks (outlined in green, IoU against the true
+mask in the corner); colours are kept at 5 bits per channel to keep the file small.
 """
 
 from __future__ import annotations
@@ -30,6 +40,83 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return 1.0 if union == 0 else float((a & b).sum()) / union
 
 
+def _outlined(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int]) -> np.ndarray:
+    """8-bit RGB of ``image`` with ``mask`` tinted and outlined in ``colour``."""
+    import cv2
+
+    rgb = (np.clip(image[..., :3], 0, 1) * 255).round().astype(np.uint8)
+    tint = rgb.copy()
+    tint[mask] = (0.6 * tint[mask] + 0.4 * np.array(colour)).astype(np.uint8)
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(tint, contours, -1, colour, 1)
+    return tint
+
+
+def _label(panel: np.ndarray, text: str) -> None:
+    import cv2
+
+    for colour, width in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+        cv2.putText(panel, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, width, cv2.LINE_AA)
+
+
+def drawn_marks(marked: list[str], masks: dict[str, np.ndarray], by_name: dict[str, Path], mark: str,
+                settings: MaskPropagationConfig) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The outline [N, 2] (pixels) and the marked mask of each marked view, marked with its true mask (``file``),
+    a polygon around its largest part or a box around it (see the module's description)."""
+    import cv2
+
+    from rtsplat.masks_propagate import box_mask, polygon_mask
+
+    outlines, drawn = {}, {}
+    for name in marked:
+        true = masks[name]
+        h, w = true.shape
+        if mark == "box":
+            ys, xs = np.nonzero(true)
+            gx, gy = 0.1 * (xs.max() + 1 - xs.min()), 0.1 * (ys.max() + 1 - ys.min())
+            x0, y0 = max(0.0, xs.min() - gx), max(0.0, ys.min() - gy)
+            x1, y1 = min(w, xs.max() + 1 + gx), min(h, ys.max() + 1 + gy)
+            outlines[name] = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+            drawn[name], _ = box_mask(read_image(by_name[name]), (x0, y0, x1, y1), settings)
+            continue
+        contours, _ = cv2.findContours(true.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        largest = max(contours, key=cv2.contourArea)
+        if mark == "polygon":
+            outlines[name] = cv2.approxPolyDP(largest, 1.5, True)[:, 0] + 0.5
+            drawn[name] = polygon_mask(outlines[name], w, h)
+        else:
+            outlines[name], drawn[name] = largest[:, 0] + 0.5, true
+    return outlines, drawn
+
+
+def draw_figure(model, by_name: dict[str, Path], masks: dict[str, np.ndarray], names: list[str], count: int,
+                settings: MaskPropagationConfig, path: Path, mark: str = "polygon") -> None:
+    """The ``--figure`` PNG (see the module's description)."""
+    import cv2
+
+    marked = suggest_views(model, count)
+    outlines, drawn = drawn_marks(marked, masks, by_name, mark, settings)
+    first = model.view(marked[0])
+    others = sorted((n for n in names if n not in marked),
+                    key=lambda n: float(np.linalg.norm(model.view(n).center - first.center)))[:2]
+    results = {r.name: r for r in propagate_masks(model, drawn, others, lambda n: read_image(by_name[n]), settings)}
+    panel = _outlined(read_image(by_name[first.name]), drawn[first.name], (255, 0, 255))
+    corners = np.round(outlines[first.name] - 0.5).astype(np.int32).reshape(-1, 1, 2)
+    cv2.polylines(panel, [corners], True, (255, 220, 0), 1)
+    _label(panel, f"{first.name}: marked ({mark})")
+    panels = [panel]
+    for name in others:
+        panel = _outlined(read_image(by_name[name]), results[name].mask, (0, 255, 0))
+        _label(panel, f"{name}: IoU {iou(results[name].mask, masks[name]):.2f}")
+        panels.append(panel)
+    gap = np.full((panels[0].shape[0], 4, 3), 255, np.uint8)
+    row = np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1) & 0xF8
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ok, data = cv2.imencode(".png", row[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    path.write_bytes(data.tobytes())
+    print(f"{path}: {first.name} marked with a {mark} ({len(marked)} marked), {', '.join(others)} propagated")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, required=True, help="dataset scene with images/ and transparent_masks/")
@@ -38,6 +125,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--refine", default="auto,grabcut,none", help="refinements to compare, comma-separated")
     parser.add_argument("--grid", type=int, default=MaskPropagationConfig.grid)
     parser.add_argument("--no-occlusion", action="store_true", help="SfM points do not hide the object")
+    parser.add_argument("--figure", type=Path, help="write a PNG of a view marked with a box and two propagated "
+                        "neighbours (the first --marked count, the first --refine) instead of measuring")
+    parser.add_argument("--mark", choices=["file", "polygon", "box"], default="file",
+                        help="how the views are marked: their true masks, polygons or boxes drawn around them")
     args = parser.parse_args(argv)
     model = load_model(args.model or dataset_model_dir(args.data))
     images = list_images(args.data / "images")
@@ -46,14 +137,19 @@ def main(argv: list[str] | None = None) -> int:
     names = [v.name for v in model.views if v.name in masks]
     print(f"{args.data}: {len(names)} registered views with a true mask, "
           f"mean coverage {100 * np.mean([masks[n].mean() for n in names]):.2f}%")
+    if args.figure:
+        settings = MaskPropagationConfig(grid=args.grid, refine=args.refine.split(",")[0],
+                                         occlusion=not args.no_occlusion)
+        draw_figure(model, by_name, masks, names, int(args.marked.split(",")[0]), settings, args.figure, args.mark)
+        return 0
     for refine in args.refine.split(","):
         for count in (int(c) for c in args.marked.split(",")):
             marked = suggest_views(model, count)
             settings = MaskPropagationConfig(grid=args.grid, refine=refine, occlusion=not args.no_occlusion)
             start = time.perf_counter()
             scores, refined = {}, 0
-            for out in propagate_masks(model, {n: masks[n] for n in marked}, names,
-                                       lambda n: read_image(by_name[n]), settings):
+            _, drawn = drawn_marks(marked, masks, by_name, args.mark, settings)
+            for out in propagate_masks(model, drawn, names, lambda n: read_image(by_name[n]), settings):
                 if out.source != "given":
                     scores[out.name] = iou(out.mask, masks[out.name])
                     refined += out.refined
