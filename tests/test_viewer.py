@@ -23,6 +23,7 @@ from rtsplat.viewer import (
     ViewerSettings,
     _matrix_to_quaternion,
     _quaternion_to_matrix,
+    adaptive_long_side,
     camera_from_viewer,
     frame_size,
     open_viewer,
@@ -67,6 +68,46 @@ def test_viewer_pose_is_the_camera_centre_and_looks_along_its_z_axis():
     np.testing.assert_allclose(back.position, pose.position, atol=1e-12)
     np.testing.assert_allclose(back.wxyz, pose.wxyz, atol=1e-12)
     assert frame_size(1000, 500, 320) == (320, 160) and frame_size(200, 100, 320) == (200, 100)
+
+
+def test_moving_frames_are_sized_to_take_the_target_time():
+    """The preview's long side from recent render times: a render that costs ``c`` seconds per pixel
+    (a fake clock, no timing) gets the size whose frame takes the target, never above the largest."""
+    def fake_seconds(width, height, per_pixel):
+        return width * height * per_pixel
+
+    canvas = (1280, 720)
+    for per_pixel in (1e-5, 4e-6, 1e-6):
+        recent = [(w, h, fake_seconds(w, h, per_pixel)) for w, h in ((320, 180), (240, 135))]
+        side = adaptive_long_side(recent, *canvas, target_seconds=0.25, largest=10_000)
+        w, h = frame_size(*canvas, side)
+        assert fake_seconds(w, h, per_pixel) <= 0.25 * 1.01  # at most the target (rounding of the sides)
+        w, h = frame_size(*canvas, side + 2)
+        assert fake_seconds(w, h, per_pixel) > 0.25  # and the largest size that is
+    # slower renders give smaller frames; the largest caps fast ones; nothing timed yet: the largest
+    sides = [adaptive_long_side([(320, 180, fake_seconds(320, 180, c))], *canvas, target_seconds=0.25,
+                                largest=320) for c in (1e-4, 1e-5, 1e-6, 1e-8)]
+    assert sides[0] < sides[1] < sides[2] == sides[3] == 320
+    assert adaptive_long_side([], *canvas, target_seconds=0.25, largest=320) == 320
+    assert adaptive_long_side([(320, 180, 100.0)], *canvas, target_seconds=0.25, largest=320) == 32
+    assert adaptive_long_side([], 200, 100, target_seconds=0.25, largest=320) == 200  # never above the canvas
+
+
+def test_render_images_of_some_layers_equal_those_of_a_render_of_all(trained):
+    """Asking :func:`render_images` for a few layers (the viewer asks for the one it shows) computes less,
+    and each layer is the same as when all are rendered."""
+    root, scene = trained
+    run = load_run(root / "run", scene.root, split="test", device="cpu")
+    edits = Edits(tint=(1.0, 0.5, 0.25))
+    with torch.inference_mode():
+        every = render_images(run, run.cameras[0], edits)
+        for layers in (("normal",), ("depth", "normal"), ("transmission",), ("color", "depth")):
+            some = render_images(run, run.cameras[0], edits, layers=layers)
+            assert tuple(some) == layers
+            for layer in layers:
+                assert torch.equal(some[layer], every[layer]), layer
+    with pytest.raises(ValueError, match="unknown layers"):
+        render_images(run, run.cameras[0], edits, layers=("albedo",))
 
 
 def test_viewer_renders_a_view_as_rtsplat_render_does(trained, tmp_path):
