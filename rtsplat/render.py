@@ -185,7 +185,7 @@ def load_run(run_dir: str | Path, data_dir: str | Path | None, *, split: str = "
         raise PipelineError("no trained model here", path=model_path,
                             fix="run `rtsplat train` to completion for this run directory first")
     if data_dir is None:
-        checkpoint = read_checkpoint(model_path, device=device)
+        checkpoint = read_checkpoint(model_path, device=device, lazy=True)
         data_dir = (checkpoint.training.get("data") or {}).get("path")
         if not data_dir or not Path(data_dir).is_dir():
             raise PipelineError(f"the prepared scene this run was trained on is not at {data_dir!r}",
@@ -197,7 +197,7 @@ def load_run(run_dir: str | Path, data_dir: str | Path | None, *, split: str = "
     records = scene.test_cameras if split == "test" else scene.train_cameras if split == "train" else scene.cameras
     if not records:
         raise PipelineError(f"the prepared scene has no {split!r} views", path=data_dir)
-    checkpoint = checkpoint or read_checkpoint(model_path, device=device)
+    checkpoint = checkpoint or read_checkpoint(model_path, device=device, lazy=True)
     scene.check_run_belongs(checkpoint.training.get("data"), run_dir)
     model = checkpoint.build_model(device)
     model.eval()

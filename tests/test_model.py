@@ -399,6 +399,24 @@ def test_checkpoint_reads_version_1_files_and_names_unreadable_ones(tmp_path):
         read_checkpoint(tmp_path / "bad.pt")
 
 
+def test_a_lazy_checkpoint_read_gives_the_same_model_and_the_same_errors(tmp_path):
+    """``lazy`` (memory-mapped) reads give the model of a whole read, also from a file in torch's old
+    serialization format (which cannot be mapped), and name an unreadable file the same way."""
+    model = _model()
+    write_checkpoint(tmp_path / "m.pt", model, RasterSettings(), training={"iteration": 7})
+    state = torch.load(tmp_path / "m.pt", weights_only=False)
+    torch.save(state, tmp_path / "old.pt", _use_new_zipfile_serialization=False)
+    with torch.no_grad():
+        want = _render(read_checkpoint(tmp_path / "m.pt").build_model()).color
+        for name in ("m.pt", "old.pt"):
+            checkpoint = read_checkpoint(tmp_path / name, lazy=True)
+            assert checkpoint.training == {"iteration": 7}
+            torch.testing.assert_close(_render(checkpoint.build_model()).color, want, rtol=0, atol=0)
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="bad.pt: cannot read checkpoint"):
+        read_checkpoint(tmp_path / "bad.pt", lazy=True)
+
+
 def test_checkpoint_of_a_model_without_the_extra_specular_inputs_rebuilds_its_network(tmp_path):
     """A model written before the specular network had its extra inputs names neither setting; it is read
     with both off, the shape it was trained with, and renders as before."""
