@@ -9,7 +9,7 @@ import pytest
 import torch
 from raster_scenes import small_camera
 
-from rtsplat.model import rtmodel
+from rtsplat.model import rtmodel, specular
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
@@ -143,6 +143,44 @@ def test_single_level_sample_matches_the_by_hand_bilinear_lookup():
     got = EnvironmentMap.sample_level(env.features, u, v)
     for k in range(30):
         torch.testing.assert_close(got[k].double(), _env_lookup_by_hand(env, dirs[k], 0.0), rtol=1e-5, atol=1e-5)
+
+
+def test_lookups_without_autograd_give_the_values_of_the_autograd_lookups():
+    """The background's single-level samples and the specular network (more rows than one inference slice)
+    take other code paths without autograd (rtsplat render, the viewer); their values are the same bits."""
+    g = torch.Generator().manual_seed(8)
+    level = torch.randn(1, 3, 16, 32, generator=g).requires_grad_()
+    dirs = torch.nn.functional.normalize(torch.randn(5000, 3, generator=g), dim=-1)
+    u, v = EnvironmentMap.direction_to_uv(dirs)
+    with_grad = EnvironmentMap.sample_level(level, u, v)
+    assert with_grad.requires_grad
+    with torch.inference_mode():
+        assert torch.equal(EnvironmentMap.sample_level(level, u, v), with_grad.detach())
+
+    rows = specular.INFERENCE_ROWS + 123
+    net = SpecularNetwork(16, 4, 32)
+    material = torch.nn.functional.normalize(torch.randn(rows, 4, generator=g), dim=-1)
+    inputs = (torch.randn(rows, 16, generator=g), material, torch.rand(rows, 1, generator=g))
+    spec, beta = net(*inputs)
+    assert spec.requires_grad
+    with torch.no_grad():
+        spec_ng, beta_ng = net(*inputs)
+    assert torch.equal(spec_ng, spec.detach()) and torch.equal(beta_ng, beta.detach())
+
+
+def test_environment_map_without_autograd_reuses_its_texel_table_until_the_map_changes():
+    env = EnvironmentMap(channels=4, height=8, width=16, levels=3)
+    g = torch.Generator().manual_seed(9)
+    dirs = torch.nn.functional.normalize(torch.randn(50, 3, generator=g), dim=-1)
+    rough = torch.rand(50, generator=g)
+    with torch.no_grad():
+        env.features.copy_(torch.randn(env.features.shape, generator=g))
+        first = env(dirs, rough)
+        table = env._table_cache[1]
+        assert torch.equal(env(dirs, rough), first) and env._table_cache[1] is table  # reused
+        env.features.mul_(2.0)  # an edit of the map: the next lookup sees it
+        assert torch.equal(env(dirs, rough), 2.0 * first)
+    assert torch.equal(env(dirs, rough).detach(), 2.0 * first)  # the autograd lookup agrees
 
 
 def test_environment_map_gradients_match_finite_differences():
