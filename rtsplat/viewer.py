@@ -350,8 +350,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "machine only; reach it from elsewhere with ssh -L, or use 0.0.0.0)")
     parser.add_argument("--device", default="auto", help="auto (the GPU when torch sees one), cpu, cuda, cuda:N")
     parser.add_argument("--backend", default="auto", help="rasterizer backend (auto, cpu, triton, reference)")
+    parser.add_argument("--threads", type=int, help="CPU threads of the render (default: torch's, one per core); "
+                        "on a machine busy with other jobs, 1 is often faster: threads that wait for a busy "
+                        "core stall every step of the render")
     parser.add_argument("--preview-size", type=int, default=ViewerSettings.preview_size,
-                        help="long side in pixels of the frames while the camera moves")
+                        help="largest long side in pixels of the frames while the camera moves")
     parser.add_argument("--preview-seconds", type=float, default=ViewerSettings.preview_seconds,
                         help="while the camera moves, frames are made smaller until one renders in about this "
                         "many seconds (default %(default)s)")
@@ -381,6 +384,10 @@ def run(args: argparse.Namespace) -> int:
     from rtsplat.render import device_name
 
     resolve_device(args.device, key="--device")
+    if args.threads is not None:
+        if args.threads < 1:
+            raise PipelineError(f"--threads must be at least 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
     settings = replace(ViewerSettings(), preview_size=args.preview_size, max_size=args.max_size,
                        settle_seconds=args.settle, preview_seconds=args.preview_seconds)
     viewer = open_viewer(args.run, args.data, device=args.device, backend=args.backend, settings=settings)
