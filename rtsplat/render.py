@@ -164,7 +164,10 @@ class LoadedRun:
     appearance: dict  # view name -> its appearance correction [6] (rtsplat.model.appearance); empty: none
 
     def render(self, camera, stage: str = "full"):
-        return self.model.render(camera, stage=stage, raster_settings=self.checkpoint.raster, backend=self.backend)
+        """The model's render of ``camera``, the surfels outside its view left out before the rasterizer
+        (:meth:`rtsplat.model.rtmodel.RTModel.in_view`: the same image)."""
+        return self.model.render(camera, stage=stage, raster_settings=self.checkpoint.raster, backend=self.backend,
+                                 frustum_cull=True)
 
 
 def load_run(run_dir: str | Path, data_dir: str | Path | None, *, split: str = "test", edits: Edits | None = None,

@@ -9,6 +9,7 @@ import pytest
 import torch
 from raster_scenes import small_camera
 
+from rtsplat.camera import camera_from_fov
 from rtsplat.model import rtmodel, specular
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.envmap import EnvironmentMap
@@ -279,6 +280,29 @@ def _model(effects=None, ablations=None, seed=0):
 
 def _render(model, **kw):
     return model.render(small_camera(24, 18, torch.float32), stage="full", backend="reference", **kw)
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
+def test_frustum_culling_leaves_out_only_surfels_the_rasterizer_skips_and_keeps_the_image(backend):
+    from rtsplat.raster.projection import project_surfels
+
+    model = _model(seed=3)
+    # close to the cloud, looking past its side: many surfels outside the image, some behind the camera
+    camera = camera_from_fov((0.1, -0.9, 0.1), (0.9, 0.0, 0.2), width=32, height=24, fov_x_deg=40.0,
+                             dtype=torch.float32)
+    settings = RasterSettings()
+    kept = model.in_view(camera, settings)
+    drawn = project_surfels(model.rasterizer_surfels(camera), camera, settings).valid
+    assert int(kept.sum()) < 0.75 * len(kept) and drawn.any()
+    assert not (drawn & ~kept).any()  # every surfel the rasterizer draws is kept
+    with torch.no_grad():
+        full = model.render(camera, raster_settings=settings, backend=backend)
+        culled = model.render(camera, raster_settings=settings, backend=backend, frustum_cull=True)
+    assert torch.equal(culled.surfel_index, torch.nonzero(kept).flatten()) and full.surfel_index is None
+    assert torch.equal(culled.color, full.color) and full.color.abs().sum() > 0
+    assert culled.layers.keys() == full.layers.keys()
+    for name, image in full.layers.items():
+        assert torch.equal(culled.layers[name], image), name
 
 
 def test_occupancy_ablation_uses_one_opacity_for_both_weight_sets():
