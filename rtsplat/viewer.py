@@ -4,7 +4,7 @@ A `viser <https://viser.studio>`_ server (the library gsplat's viewer is built o
 browser sends its camera, and this process renders the model from it with :func:`rtsplat.render.render_images`
 (the renders of ``rtsplat render``) and sends the frame back as a JPEG that the page draws behind its
 controls. While the camera moves, frames are rendered small, with the long side chosen from the render
-times of the last moving frames so that one takes about ``--preview-seconds``
+times of the last moving frames so that one takes at most ``--preview-seconds``
 (:func:`adaptive_long_side`; at most ``--preview-size`` pixels), and the page stretches them over its
 canvas; once the camera has rested ``--settle`` seconds, one frame at the page's size (at most
 ``--max-size`` on the long side). Only the layer shown is computed (:func:`rtsplat.render.render_images`).
@@ -116,21 +116,42 @@ def frame_size(canvas_width: int, canvas_height: int, long_side: int) -> tuple[i
     return max(1, round(canvas_width * scale)), max(1, round(canvas_height * scale))
 
 
+def frame_time_model(recent) -> tuple[float, float]:
+    """``(fixed, per_pixel)`` seconds of a frame, ``fixed + per_pixel * pixels``, fitted by least squares
+    to the ``recent`` frames (``(width, height, seconds)`` each; the per-surfel steps cost the same at any
+    size, the per-pixel ones grow with it). With one size only, or a fit that says a frame costs less than
+    nothing, all of the time is taken as per-pixel time."""
+    pixels = [float(w * h) for w, h, _ in recent]
+    seconds = [float(t) for _, _, t in recent]
+    proportional = (0.0, sum(seconds) / sum(pixels))
+    n = len(pixels)
+    mean_p, mean_t = sum(pixels) / n, sum(seconds) / n
+    var = sum((p - mean_p) ** 2 for p in pixels)
+    if n < 2 or var <= (0.1 * mean_p) ** 2 * n:  # the sizes hardly differ: no slope to fit
+        return proportional
+    per_pixel = sum((p - mean_p) * (t - mean_t) for p, t in zip(pixels, seconds, strict=True)) / var
+    fixed = mean_t - per_pixel * mean_p
+    return (fixed, per_pixel) if per_pixel > 0 and fixed >= 0 else proportional
+
+
 def adaptive_long_side(recent, canvas_width: int, canvas_height: int, *, target_seconds: float,
                        largest: int, smallest: int = 32) -> int:
-    """The long side in pixels of the next moving frame: the size whose pixels take ``target_seconds`` at
-    the seconds per pixel of the ``recent`` frames (``(width, height, seconds)`` each; render time grows
-    with the pixel count), within ``smallest`` and ``largest`` (and the canvas's own long side);
-    ``largest`` while nothing has been timed."""
+    """The long side in pixels of the next moving frame: the largest size that renders in ``target_seconds``
+    by the :func:`frame_time_model` of the ``recent`` frames (``(width, height, seconds)`` each), within
+    ``smallest`` and ``largest`` (and the canvas's own long side); ``largest`` while nothing has been
+    timed, ``smallest`` when even a frame of no pixels would take longer than the target."""
     largest = max(1, min(largest, max(canvas_width, canvas_height)))
-    recent = [(w, h, s) for w, h, s in recent if w > 0 and h > 0 and s > 0]
+    smallest = min(smallest, largest)
+    recent = [(w, h, t) for w, h, t in recent if w > 0 and h > 0 and t > 0]
     if not recent:
         return largest
-    seconds_per_pixel = sum(s for _, _, s in recent) / sum(w * h for w, h, _ in recent)
+    fixed, per_pixel = frame_time_model(recent)
+    if fixed >= target_seconds:
+        return smallest
+    pixels = (target_seconds - fixed) / per_pixel  # a frame with the canvas's aspect of this many pixels
     long_side, short_side = max(canvas_width, canvas_height, 1), max(min(canvas_width, canvas_height), 1)
-    pixels = target_seconds / seconds_per_pixel  # a frame with the canvas's aspect of this many pixels
     side = math.floor(math.sqrt(pixels * long_side / short_side))
-    return max(min(smallest, largest), min(side, largest))
+    return max(smallest, min(side, largest))
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:
