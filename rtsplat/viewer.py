@@ -174,8 +174,8 @@ class _ClientState:
     changed_at: float = 0.0  # time.monotonic() of the last change of its camera or of the controls
     version: int = 0  # counts those changes
     shown: tuple[int, bool] | None = None  # (version, full size) of the frame on its page
-    moving_times: collections.deque = field(default_factory=collections.deque)  # (width, height, seconds) of
-    # its recent moving frames, the last ViewerSettings.preview_history
+    # (width, height, render seconds) of its last ViewerSettings.preview_history moving frames
+    moving_times: collections.deque = field(default_factory=collections.deque)
 
 
 class SceneViewer:
