@@ -163,8 +163,11 @@ class LoadedRun:
     backend: str
     appearance: dict  # view name -> its appearance correction [6] (rtsplat.model.appearance); empty: none
 
-    def render(self, camera):
-        return self.model.render(camera, stage="full", raster_settings=self.checkpoint.raster, backend=self.backend)
+    def render(self, camera, stage: str = "full"):
+        """The model's render of ``camera``, the surfels outside its view left out before the rasterizer
+        (:meth:`rtsplat.model.rtmodel.RTModel.in_view`: the same image)."""
+        return self.model.render(camera, stage=stage, raster_settings=self.checkpoint.raster, backend=self.backend,
+                                 frustum_cull=True)
 
 
 def load_run(run_dir: str | Path, data_dir: str | Path | None, *, split: str = "test", edits: Edits | None = None,
@@ -185,7 +188,7 @@ def load_run(run_dir: str | Path, data_dir: str | Path | None, *, split: str = "
         raise PipelineError("no trained model here", path=model_path,
                             fix="run `rtsplat train` to completion for this run directory first")
     if data_dir is None:
-        checkpoint = read_checkpoint(model_path, device=device)
+        checkpoint = read_checkpoint(model_path, device=device, lazy=True)
         data_dir = (checkpoint.training.get("data") or {}).get("path")
         if not data_dir or not Path(data_dir).is_dir():
             raise PipelineError(f"the prepared scene this run was trained on is not at {data_dir!r}",
@@ -197,7 +200,7 @@ def load_run(run_dir: str | Path, data_dir: str | Path | None, *, split: str = "
     records = scene.test_cameras if split == "test" else scene.train_cameras if split == "train" else scene.cameras
     if not records:
         raise PipelineError(f"the prepared scene has no {split!r} views", path=data_dir)
-    checkpoint = checkpoint or read_checkpoint(model_path, device=device)
+    checkpoint = checkpoint or read_checkpoint(model_path, device=device, lazy=True)
     scene.check_run_belongs(checkpoint.training.get("data"), run_dir)
     model = checkpoint.build_model(device)
     model.eval()
@@ -207,17 +210,30 @@ def load_run(run_dir: str | Path, data_dir: str | Path | None, *, split: str = "
     return LoadedRun(list(records), cameras, model, checkpoint, device, backend, appearance)
 
 
-def render_images(run: LoadedRun, camera, edits: Edits, appearance=None) -> dict[str, Tensor]:
-    """Every layer of :data:`LAYER_DIRS` ([H, W, 3], not clamped) of one render of ``camera``, after the
-    image-space ``edits`` (the parameter edits are already in ``run.model``); ``appearance`` (a view's [6]
-    correction, :mod:`rtsplat.model.appearance`) gives the final image that photo's exposure and white balance."""
-    result = run.render(camera)
-    images = decompose(result, edits)
-    if appearance is not None:
+COLOR_LAYERS = ("color", "reflection", "transmission", "scatter")  # the layers that need the specular pass
+
+
+def render_images(run: LoadedRun, camera, edits: Edits, appearance=None,
+                  layers: tuple[str, ...] = LAYER_DIRS) -> dict[str, Tensor]:
+    """The ``layers`` (default: every one of :data:`LAYER_DIRS`; [H, W, 3], not clamped) of one render of
+    ``camera``, after the image-space ``edits`` (the parameter edits are already in ``run.model``);
+    ``appearance`` (a view's [6] correction, :mod:`rtsplat.model.appearance`) gives the final image that
+    photo's exposure and white balance. Only what the asked layers need is computed: normals and depth alone
+    come from the model's volume stage (the rasterizer's output, no specular network), and each layer is
+    the same as in a render of all of them."""
+    unknown = set(layers) - set(LAYER_DIRS)
+    if unknown:
+        raise ValueError(f"unknown layers {sorted(unknown)}; choose from {LAYER_DIRS}")
+    needs_color = any(layer in COLOR_LAYERS for layer in layers)
+    result = run.render(camera, stage="full" if needs_color else "volume")
+    images = decompose(result, edits) if needs_color else {}
+    if appearance is not None and "color" in layers:
         images["color"] = apply_appearance(images["color"], torch.as_tensor(appearance, device=run.device))
-    images["normal"] = normal_image(result.layers["normal"])
-    images["depth"] = depth_image(result.layers["depth"], result.layers["alpha"])
-    return images
+    if "normal" in layers:
+        images["normal"] = normal_image(result.layers["normal"])
+    if "depth" in layers:
+        images["depth"] = depth_image(result.layers["depth"], result.layers["alpha"])
+    return {layer: images[layer] for layer in layers}
 
 
 def time_renders(run: LoadedRun, *, warmup: int, rounds: int = 1, scheduled_alone: bool = False) -> dict:

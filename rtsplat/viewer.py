@@ -3,10 +3,13 @@
 A `viser <https://viser.studio>`_ server (the library gsplat's viewer is built on) serves the page; the
 browser sends its camera, and this process renders the model from it with :func:`rtsplat.render.render_images`
 (the renders of ``rtsplat render``) and sends the frame back as a JPEG that the page draws behind its
-controls. While the camera moves, frames are rendered with the long side at ``--preview-size`` pixels;
-once it has rested ``--settle`` seconds, one frame at the page's size (at most ``--max-size`` on the long
-side). Controls: the layer shown (the image and its reflection / transmission / scatter layers, normals,
-inverse depth), the scene edits of ``rtsplat render --edit`` applied live to the model, a jump to any
+controls. While the camera moves, frames are rendered small, with the long side chosen from the render
+times of the last moving frames so that one takes at most ``--preview-seconds``
+(:func:`adaptive_long_side`; at most ``--preview-size`` pixels), and the page stretches them over its
+canvas; once the camera has rested ``--settle`` seconds, one frame at the page's size (at most
+``--max-size`` on the long side). Only the layer shown is computed (:func:`rtsplat.render.render_images`).
+Controls: the layer shown (the image and its reflection / transmission / scatter layers, normals, inverse
+depth), the scene edits of ``rtsplat render --edit`` applied live to the model, a jump to any
 training or test view (the run's corrected pose; the viewer then shows the scene's own colours, without
 that photo's appearance correction), and the last frame's render time.
 
@@ -23,10 +26,11 @@ view; :func:`camera_from_viewer` and :func:`viewer_pose_from_camera` convert bet
 from __future__ import annotations
 
 import argparse
+import collections
 import math
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -112,13 +116,53 @@ def frame_size(canvas_width: int, canvas_height: int, long_side: int) -> tuple[i
     return max(1, round(canvas_width * scale)), max(1, round(canvas_height * scale))
 
 
+def frame_time_model(recent) -> tuple[float, float]:
+    """``(fixed, per_pixel)`` seconds of a frame, ``fixed + per_pixel * pixels``, fitted by least squares
+    to the ``recent`` frames (``(width, height, seconds)`` each; the per-surfel steps cost the same at any
+    size, the per-pixel ones grow with it). With one size only, or a fit that says a frame costs less than
+    nothing, all of the time is taken as per-pixel time."""
+    pixels = [float(w * h) for w, h, _ in recent]
+    seconds = [float(t) for _, _, t in recent]
+    proportional = (0.0, sum(seconds) / sum(pixels))
+    n = len(pixels)
+    mean_p, mean_t = sum(pixels) / n, sum(seconds) / n
+    var = sum((p - mean_p) ** 2 for p in pixels)
+    if n < 2 or var <= (0.1 * mean_p) ** 2 * n:  # the sizes hardly differ: no slope to fit
+        return proportional
+    per_pixel = sum((p - mean_p) * (t - mean_t) for p, t in zip(pixels, seconds, strict=True)) / var
+    fixed = mean_t - per_pixel * mean_p
+    return (fixed, per_pixel) if per_pixel > 0 and fixed >= 0 else proportional
+
+
+def adaptive_long_side(recent, canvas_width: int, canvas_height: int, *, target_seconds: float,
+                       largest: int, smallest: int = 32) -> int:
+    """The long side in pixels of the next moving frame: the largest size that renders in ``target_seconds``
+    by the :func:`frame_time_model` of the ``recent`` frames (``(width, height, seconds)`` each), within
+    ``smallest`` and ``largest`` (and the canvas's own long side); ``largest`` while nothing has been
+    timed, ``smallest`` when even a frame of no pixels would take longer than the target."""
+    largest = max(1, min(largest, max(canvas_width, canvas_height)))
+    smallest = min(smallest, largest)
+    recent = [(w, h, t) for w, h, t in recent if w > 0 and h > 0 and t > 0]
+    if not recent:
+        return largest
+    fixed, per_pixel = frame_time_model(recent)
+    if fixed >= target_seconds:
+        return smallest
+    pixels = (target_seconds - fixed) / per_pixel  # a frame with the canvas's aspect of this many pixels
+    long_side, short_side = max(canvas_width, canvas_height, 1), max(min(canvas_width, canvas_height), 1)
+    side = math.floor(math.sqrt(pixels * long_side / short_side))
+    return max(smallest, min(side, largest))
+
+
 def to_uint8(image: torch.Tensor) -> np.ndarray:
     return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
 @dataclass
 class ViewerSettings:
-    preview_size: int = 320  # long side of the frames while the camera moves
+    preview_size: int = 320  # largest long side of the frames while the camera moves
+    preview_seconds: float = 0.25  # while moving, the long side is chosen so that a frame takes about this long
+    preview_history: int = 4  # how many recent moving frames' render times choose it
     max_size: int = 1280  # long side of the frame at rest (the page's size when smaller)
     settle_seconds: float = 0.3  # the camera rests this long -> the full-size frame
     jpeg_quality: int = 90
@@ -130,6 +174,8 @@ class _ClientState:
     changed_at: float = 0.0  # time.monotonic() of the last change of its camera or of the controls
     version: int = 0  # counts those changes
     shown: tuple[int, bool] | None = None  # (version, full size) of the frame on its page
+    # (width, height, render seconds) of its last ViewerSettings.preview_history moving frames
+    moving_times: collections.deque = field(default_factory=collections.deque)
 
 
 class SceneViewer:
@@ -161,7 +207,7 @@ class SceneViewer:
         camera = camera_from_viewer(pose, width, height, device=self.run.device)
         start = time.perf_counter()
         with self._model_lock, torch.inference_mode():
-            image = to_uint8(render_images(self.run, camera, self.edits)[layer])
+            image = to_uint8(render_images(self.run, camera, self.edits, layers=(layer,))[layer])
         self.last_frame = {"seconds": time.perf_counter() - start, "width": width, "height": height,
                            "layer": layer, "pose": pose}
         return image
@@ -263,7 +309,8 @@ class ViewerServer:
                 self._touch(state)
 
     def _connect(self, client) -> None:
-        state = _ClientState(client)
+        history = max(1, self.viewer.settings.preview_history)
+        state = _ClientState(client, moving_times=collections.deque(maxlen=history))
         with self._clients_lock:
             self._clients[client.client_id] = state
         client.camera.on_update(lambda _camera: self._touch(state))
@@ -297,12 +344,18 @@ class ViewerServer:
         camera = state.client.camera
         pose = ViewerPose(tuple(camera.wxyz), tuple(camera.position), float(camera.fov))
         settings = self.viewer.settings
-        width, height = frame_size(camera.image_width, camera.image_height,
-                                   settings.max_size if resting else settings.preview_size)
+        if resting:
+            long_side = settings.max_size
+        else:
+            long_side = adaptive_long_side(state.moving_times, camera.image_width, camera.image_height,
+                                           target_seconds=settings.preview_seconds, largest=settings.preview_size)
+        width, height = frame_size(camera.image_width, camera.image_height, long_side)
         image = self.viewer.render(pose, width, height)
         state.client.scene.set_background_image(image, format="jpeg", jpeg_quality=settings.jpeg_quality)
         state.shown = (version, resting)
         frame = self.viewer.last_frame
+        if not resting:
+            state.moving_times.append((width, height, frame["seconds"]))
         self.gui_time.content = (f"render time: {1000 * frame['seconds']:.0f} ms at {width}x{height} "
                                  f"({'full' if resting else 'moving'})")
 
@@ -318,8 +371,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "machine only; reach it from elsewhere with ssh -L, or use 0.0.0.0)")
     parser.add_argument("--device", default="auto", help="auto (the GPU when torch sees one), cpu, cuda, cuda:N")
     parser.add_argument("--backend", default="auto", help="rasterizer backend (auto, cpu, triton, reference)")
+    parser.add_argument("--threads", type=int, help="CPU threads of the render (default: torch's, one per core); "
+                        "on a machine busy with other jobs, 1 is often faster: threads that wait for a busy "
+                        "core stall every step of the render")
     parser.add_argument("--preview-size", type=int, default=ViewerSettings.preview_size,
-                        help="long side in pixels of the frames while the camera moves")
+                        help="largest long side in pixels of the frames while the camera moves")
+    parser.add_argument("--preview-seconds", type=float, default=ViewerSettings.preview_seconds,
+                        help="while the camera moves, frames are made smaller until one renders in about this "
+                        "many seconds (default %(default)s)")
     parser.add_argument("--max-size", type=int, default=ViewerSettings.max_size,
                         help="long side in pixels of the frame when the camera rests (at most the page's size)")
     parser.add_argument("--settle", type=float, default=ViewerSettings.settle_seconds,
@@ -333,6 +392,8 @@ def open_viewer(run_dir, data_dir=None, *, device: str = "auto", backend: str = 
     for key in ("preview_size", "max_size"):
         if getattr(settings, key) < 8:
             raise PipelineError(f"--{key.replace('_', '-')} must be at least 8 pixels, got {getattr(settings, key)}")
+    if not settings.preview_seconds > 0:
+        raise PipelineError(f"--preview-seconds must be more than 0, got {settings.preview_seconds}")
     viewer = SceneViewer(load_run(run_dir, data_dir, split="all", backend=backend, device=device), settings)
     first = next(iter(viewer.views().values()))
     viewer.render(viewer_pose_from_camera(first), 32, 24)  # compiles or loads the kernels before a page waits
@@ -344,8 +405,12 @@ def run(args: argparse.Namespace) -> int:
     from rtsplat.render import device_name
 
     resolve_device(args.device, key="--device")
+    if args.threads is not None:
+        if args.threads < 1:
+            raise PipelineError(f"--threads must be at least 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
     settings = replace(ViewerSettings(), preview_size=args.preview_size, max_size=args.max_size,
-                       settle_seconds=args.settle)
+                       settle_seconds=args.settle, preview_seconds=args.preview_seconds)
     viewer = open_viewer(args.run, args.data, device=args.device, backend=args.backend, settings=settings)
     try:
         server = ViewerServer(viewer, host=args.host, port=args.port)

@@ -9,7 +9,8 @@ import pytest
 import torch
 from raster_scenes import small_camera
 
-from rtsplat.model import rtmodel
+from rtsplat.camera import camera_from_fov
+from rtsplat.model import rtmodel, specular
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
@@ -145,6 +146,44 @@ def test_single_level_sample_matches_the_by_hand_bilinear_lookup():
         torch.testing.assert_close(got[k].double(), _env_lookup_by_hand(env, dirs[k], 0.0), rtol=1e-5, atol=1e-5)
 
 
+def test_lookups_without_autograd_give_the_values_of_the_autograd_lookups():
+    """The background's single-level samples and the specular network (more rows than one inference slice)
+    take other code paths without autograd (rtsplat render, the viewer); their values are the same bits."""
+    g = torch.Generator().manual_seed(8)
+    level = torch.randn(1, 3, 16, 32, generator=g).requires_grad_()
+    dirs = torch.nn.functional.normalize(torch.randn(5000, 3, generator=g), dim=-1)
+    u, v = EnvironmentMap.direction_to_uv(dirs)
+    with_grad = EnvironmentMap.sample_level(level, u, v)
+    assert with_grad.requires_grad
+    with torch.inference_mode():
+        assert torch.equal(EnvironmentMap.sample_level(level, u, v), with_grad.detach())
+
+    rows = specular.INFERENCE_ROWS + 123
+    net = SpecularNetwork(16, 4, 32)
+    material = torch.nn.functional.normalize(torch.randn(rows, 4, generator=g), dim=-1)
+    inputs = (torch.randn(rows, 16, generator=g), material, torch.rand(rows, 1, generator=g))
+    spec, beta = net(*inputs)
+    assert spec.requires_grad
+    with torch.no_grad():
+        spec_ng, beta_ng = net(*inputs)
+    assert torch.equal(spec_ng, spec.detach()) and torch.equal(beta_ng, beta.detach())
+
+
+def test_environment_map_without_autograd_reuses_its_texel_table_until_the_map_changes():
+    env = EnvironmentMap(channels=4, height=8, width=16, levels=3)
+    g = torch.Generator().manual_seed(9)
+    dirs = torch.nn.functional.normalize(torch.randn(50, 3, generator=g), dim=-1)
+    rough = torch.rand(50, generator=g)
+    with torch.no_grad():
+        env.features.copy_(torch.randn(env.features.shape, generator=g))
+        first = env(dirs, rough)
+        table = env._table_cache[1]
+        assert torch.equal(env(dirs, rough), first) and env._table_cache[1] is table  # reused
+        env.features.mul_(2.0)  # an edit of the map: the next lookup sees it
+        assert torch.equal(env(dirs, rough), 2.0 * first)
+    assert torch.equal(env(dirs, rough).detach(), 2.0 * first)  # the autograd lookup agrees
+
+
 def test_environment_map_gradients_match_finite_differences():
     env = EnvironmentMap(channels=2, height=8, width=16, levels=3).double()
     g = torch.Generator().manual_seed(3)
@@ -241,6 +280,29 @@ def _model(effects=None, ablations=None, seed=0):
 
 def _render(model, **kw):
     return model.render(small_camera(24, 18, torch.float32), stage="full", backend="reference", **kw)
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
+def test_frustum_culling_leaves_out_only_surfels_the_rasterizer_skips_and_keeps_the_image(backend):
+    from rtsplat.raster.projection import project_surfels
+
+    model = _model(seed=3)
+    # close to the cloud, looking past its side: many surfels outside the image, some behind the camera
+    camera = camera_from_fov((0.1, -0.9, 0.1), (0.9, 0.0, 0.2), width=32, height=24, fov_x_deg=40.0,
+                             dtype=torch.float32)
+    settings = RasterSettings()
+    kept = model.in_view(camera, settings)
+    drawn = project_surfels(model.rasterizer_surfels(camera), camera, settings).valid
+    assert int(kept.sum()) < 0.75 * len(kept) and drawn.any()
+    assert not (drawn & ~kept).any()  # every surfel the rasterizer draws is kept
+    with torch.no_grad():
+        full = model.render(camera, raster_settings=settings, backend=backend)
+        culled = model.render(camera, raster_settings=settings, backend=backend, frustum_cull=True)
+    assert torch.equal(culled.surfel_index, torch.nonzero(kept).flatten()) and full.surfel_index is None
+    assert torch.equal(culled.color, full.color) and full.color.abs().sum() > 0
+    assert culled.layers.keys() == full.layers.keys()
+    for name, image in full.layers.items():
+        assert torch.equal(culled.layers[name], image), name
 
 
 def test_occupancy_ablation_uses_one_opacity_for_both_weight_sets():
@@ -397,6 +459,24 @@ def test_checkpoint_reads_version_1_files_and_names_unreadable_ones(tmp_path):
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match="bad.pt: cannot read checkpoint"):
         read_checkpoint(tmp_path / "bad.pt")
+
+
+def test_a_lazy_checkpoint_read_gives_the_same_model_and_the_same_errors(tmp_path):
+    """``lazy`` (memory-mapped) reads give the model of a whole read, also from a file in torch's old
+    serialization format (which cannot be mapped), and name an unreadable file the same way."""
+    model = _model()
+    write_checkpoint(tmp_path / "m.pt", model, RasterSettings(), training={"iteration": 7})
+    state = torch.load(tmp_path / "m.pt", weights_only=False)
+    torch.save(state, tmp_path / "old.pt", _use_new_zipfile_serialization=False)
+    with torch.no_grad():
+        want = _render(read_checkpoint(tmp_path / "m.pt").build_model()).color
+        for name in ("m.pt", "old.pt"):
+            checkpoint = read_checkpoint(tmp_path / name, lazy=True)
+            assert checkpoint.training == {"iteration": 7}
+            torch.testing.assert_close(_render(checkpoint.build_model()).color, want, rtol=0, atol=0)
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="bad.pt: cannot read checkpoint"):
+        read_checkpoint(tmp_path / "bad.pt", lazy=True)
 
 
 def test_checkpoint_of_a_model_without_the_extra_specular_inputs_rebuilds_its_network(tmp_path):

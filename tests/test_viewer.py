@@ -3,6 +3,7 @@ Chromium draws the frames it sends (layer switch included)."""
 
 from __future__ import annotations
 
+import collections
 import math
 import shutil
 import socket
@@ -23,8 +24,10 @@ from rtsplat.viewer import (
     ViewerSettings,
     _matrix_to_quaternion,
     _quaternion_to_matrix,
+    adaptive_long_side,
     camera_from_viewer,
     frame_size,
+    frame_time_model,
     open_viewer,
     to_uint8,
     viewer_pose_from_camera,
@@ -67,6 +70,52 @@ def test_viewer_pose_is_the_camera_centre_and_looks_along_its_z_axis():
     np.testing.assert_allclose(back.position, pose.position, atol=1e-12)
     np.testing.assert_allclose(back.wxyz, pose.wxyz, atol=1e-12)
     assert frame_size(1000, 500, 320) == (320, 160) and frame_size(200, 100, 320) == (200, 100)
+
+
+def test_moving_frames_are_sized_to_take_the_target_time():
+    """The preview's long side from recent render times, with a fake clock (a frame costs ``fixed`` seconds
+    plus ``per_pixel`` per pixel; no timing): after a few moving frames, the frames take the target (within
+    1%: frame sizes are whole pixels, and the sizes are chosen from the average of the last frames); never
+    above the largest."""
+    canvas, target = (1280, 720), 0.25
+    for fixed, per_pixel in ((0.0, 1e-5), (0.1, 4e-6), (0.2, 1e-6), (0.05, 4e-7)):
+        def fake_seconds(width, height):
+            return fixed + per_pixel * width * height  # noqa: B023 - used inside this iteration only
+
+        recent = collections.deque(maxlen=ViewerSettings.preview_history)
+        for _ in range(10):  # the viewer's moving frames: each sized from the times of the ones before
+            side = adaptive_long_side(recent, *canvas, target_seconds=target, largest=10_000)
+            width, height = frame_size(*canvas, side)
+            recent.append((width, height, fake_seconds(width, height)))
+        assert target * 0.99 <= fake_seconds(width, height) <= target * 1.01, (fixed, per_pixel)
+        spread = [(w, h, fake_seconds(w, h)) for w, h in ((320, 180), (200, 112), (100, 56))]
+        torch.testing.assert_close(frame_time_model(spread), (fixed, per_pixel), rtol=1e-6, atol=1e-9)
+    # slower renders give smaller frames; the largest caps fast ones; nothing timed yet: the largest
+    sides = [adaptive_long_side([(320, 180, c * 320 * 180)], *canvas, target_seconds=target, largest=320)
+             for c in (1e-4, 1e-5, 1e-6, 1e-8)]
+    assert sides[0] < sides[1] < sides[2] == sides[3] == 320
+    assert adaptive_long_side([], *canvas, target_seconds=target, largest=320) == 320
+    assert adaptive_long_side([], 200, 100, target_seconds=target, largest=320) == 200  # never above the canvas
+    # a frame of any size takes longer than the target: the smallest
+    slow = [(320, 180, 0.5 + 1e-6 * 320 * 180), (160, 90, 0.5 + 1e-6 * 160 * 90)]
+    assert adaptive_long_side(slow, *canvas, target_seconds=target, largest=320) == 32
+
+
+def test_render_images_of_some_layers_equal_those_of_a_render_of_all(trained):
+    """Asking :func:`render_images` for a few layers (the viewer asks for the one it shows) computes less,
+    and each layer is the same as when all are rendered."""
+    root, scene = trained
+    run = load_run(root / "run", scene.root, split="test", device="cpu")
+    edits = Edits(tint=(1.0, 0.5, 0.25))
+    with torch.inference_mode():
+        every = render_images(run, run.cameras[0], edits)
+        for layers in (("normal",), ("depth", "normal"), ("transmission",), ("color", "depth")):
+            some = render_images(run, run.cameras[0], edits, layers=layers)
+            assert tuple(some) == layers
+            for layer in layers:
+                assert torch.equal(some[layer], every[layer]), layer
+    with pytest.raises(ValueError, match="unknown layers"):
+        render_images(run, run.cameras[0], edits, layers=("albedo",))
 
 
 def test_viewer_renders_a_view_as_rtsplat_render_does(trained, tmp_path):

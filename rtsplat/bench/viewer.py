@@ -10,7 +10,11 @@ Builds a demo-like model (the toy scene's wall and pane seen from ``--views`` vi
   sends it;
 * frames per second while moving: ``--frames`` frames along an orbit around the first view's look-at
   point, each a new camera, rendered and encoded the same way (the server's work per frame; the browser's
-  drawing and the network are not timed).
+  drawing and the network are not timed), at ``--width`` x ``--height``;
+* the same orbit as the viewer renders it while the camera moves on a ``--canvas`` page: each frame's
+  size chosen by :func:`rtsplat.viewer.adaptive_long_side` from the render times of the frames before it
+  (the viewer's defaults: ``preview_seconds``, at most ``preview_size`` pixels on the long side), with its
+  frames per second and the long sides it chose.
 
 Timed on the threads torch has (``--threads``); numbers on a machine shared with other jobs are noisy.
 """
@@ -21,6 +25,7 @@ import argparse
 import math
 import tempfile
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +52,29 @@ def _encode(image: np.ndarray, quality: int) -> bytes:
     return data.tobytes()
 
 
+def orbit_poses(viewer, frames: int) -> list:
+    """``frames`` viewer poses swinging +-0.5 rad about the vertical around the point 2 units ahead of the
+    first view of ``viewer`` (a :class:`rtsplat.viewer.SceneViewer`), looking at it."""
+    from rtsplat.viewer import ViewerPose, _matrix_to_quaternion, viewer_pose_from_camera
+
+    camera = next(iter(viewer.views().values()))
+    first = viewer_pose_from_camera(camera)
+    centre = np.asarray(first.position)
+    target = centre + 2.0 * camera.world_to_camera[2, :3].double().cpu().numpy()  # 2 units ahead
+    poses = []
+    for i in range(frames):
+        angle = 0.5 * math.sin(2 * math.pi * i / frames)  # swing +-0.5 rad about the vertical
+        c, s = math.cos(angle), math.sin(angle)
+        offset = centre - target
+        eye = target + np.array([c * offset[0] - s * offset[1], s * offset[0] + c * offset[1], offset[2]])
+        forward = (target - eye) / np.linalg.norm(target - eye)
+        right = np.cross(forward, (0.0, 0.0, 1.0))
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        poses.append(ViewerPose(_matrix_to_quaternion(np.stack([right, down, forward], 1)), tuple(eye), first.fov_y))
+    return poses
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=Path, help="a trained run (default: build the demo-like model)")
@@ -54,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--frames", type=int, default=20)
+    parser.add_argument("--canvas", default="1280x720", help="page size WxH of the adaptive run (default 1280x720)")
     parser.add_argument("--views", type=int, default=12)
     parser.add_argument("--surfels", type=int, default=30_000)
     parser.add_argument("--iterations", type=int, default=3)
@@ -63,13 +92,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
 
-    from rtsplat.viewer import (
-        ViewerPose,
-        ViewerSettings,
-        _matrix_to_quaternion,
-        open_viewer,
-        viewer_pose_from_camera,
-    )
+    from rtsplat.viewer import ViewerSettings, adaptive_long_side, frame_size, open_viewer, viewer_pose_from_camera
+
+    try:
+        canvas = tuple(int(v) for v in args.canvas.lower().split("x"))
+        if len(canvas) != 2 or min(canvas) < 1:
+            raise ValueError
+    except ValueError:
+        parser.error(f"--canvas must be WxH, e.g. 1280x720, got {args.canvas!r}")
 
     with tempfile.TemporaryDirectory(prefix="rtsplat-bench-viewer-") as tmp:
         run_dir, data_dir = args.run, args.data
@@ -84,30 +114,32 @@ def main(argv: list[str] | None = None) -> int:
         _encode(viewer.render(first, args.width, args.height), quality)
         first_frame = time.perf_counter() - start
 
-        centre = np.asarray(first.position)
-        camera = next(iter(viewer.views().values()))
-        target = centre + 2.0 * camera.world_to_camera[2, :3].double().cpu().numpy()  # 2 units ahead
-        poses = []
-        for i in range(args.frames):
-            angle = 0.5 * math.sin(2 * math.pi * i / args.frames)  # swing +-0.5 rad about the vertical
-            c, s = math.cos(angle), math.sin(angle)
-            offset = centre - target
-            eye = target + np.array([c * offset[0] - s * offset[1], s * offset[0] + c * offset[1], offset[2]])
-            forward = (target - eye) / np.linalg.norm(target - eye)
-            right = np.cross(forward, (0.0, 0.0, 1.0))
-            right /= np.linalg.norm(right)
-            down = np.cross(forward, right)
-            poses.append(ViewerPose(_matrix_to_quaternion(np.stack([right, down, forward], 1)), tuple(eye),
-                                    first.fov_y))
+        poses = orbit_poses(viewer, args.frames)
         start = time.perf_counter()
         for pose in poses:
             _encode(viewer.render(pose, args.width, args.height), quality)
         seconds = time.perf_counter() - start
+
+        settings = viewer.settings
+        recent = deque(maxlen=max(1, settings.preview_history))
+        sides = []
+        start = time.perf_counter()
+        for pose in poses:
+            long_side = adaptive_long_side(recent, *canvas, target_seconds=settings.preview_seconds,
+                                           largest=settings.preview_size)
+            width, height = frame_size(*canvas, long_side)
+            _encode(viewer.render(pose, width, height), quality)
+            recent.append((width, height, viewer.last_frame["seconds"]))
+            sides.append(long_side)
+        adaptive_seconds = time.perf_counter() - start
         print(f"surfels: {len(viewer.run.model.surfels)}, device: {viewer.run.device}, torch threads: "
               f"{torch.get_num_threads()}, frame {args.width}x{args.height}, JPEG quality {quality}")
         print(f"time to first frame: {first_frame:.2f} s (model read, warm-up frame, first frame)")
         print(f"while moving: {args.frames / seconds:.2f} frames per second ({1000 * seconds / args.frames:.0f} ms "
               f"per frame over {args.frames} cameras)")
+        print(f"while moving, adaptive on a {canvas[0]}x{canvas[1]} page (target {settings.preview_seconds} s, at most "
+              f"{settings.preview_size} px): {args.frames / adaptive_seconds:.2f} frames per second, long side "
+              f"{min(sides)}-{max(sides)} px (mean {sum(sides) / len(sides):.0f})")
     return 0
 
 

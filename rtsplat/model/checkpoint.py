@@ -90,11 +90,19 @@ def write_checkpoint(path: str | Path, model: RTModel, raster: RasterSettings,
     return path
 
 
-def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Checkpoint:
-    """Read a checkpoint or model file; :class:`CheckpointError` names the file and the fix."""
+def read_checkpoint(path: str | Path, device: str | torch.device = "cpu", *, lazy: bool = False) -> Checkpoint:
+    """Read a checkpoint or model file; :class:`CheckpointError` names the file and the fix. ``lazy``:
+    memory-map the file, so that only the tensors used are read from it (a run's ``model.pt`` also holds
+    the optimizer's state, about two thirds of its bytes, which a render never reads); a file that cannot
+    be mapped is read whole."""
     path = Path(path)
     try:
-        state = torch.load(path, map_location=device, weights_only=False)
+        try:
+            state = torch.load(path, map_location=device, weights_only=False, mmap=True) if lazy else None
+        except Exception:  # not mappable (an old serialization format): read it whole below
+            state = None
+        if state is None:
+            state = torch.load(path, map_location=device, weights_only=False)
     except Exception as exc:  # truncated or foreign files
         raise CheckpointError(f"cannot read checkpoint ({exc.__class__.__name__}: {exc}); delete it to start over",
                               path=path) from exc

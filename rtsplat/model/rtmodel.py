@@ -23,6 +23,7 @@ how see-through the surface is (1 - its blended optical opacity): opaque parts c
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -75,8 +76,9 @@ class ActiveEffects:
 @dataclass
 class RenderResult:
     color: Tensor  # [H,W,3] final colour
-    raster: RasterOutput
+    raster: RasterOutput  # its per-surfel tensors are over the surfels of ``surfel_index`` when culled
     layers: dict[str, Tensor] = field(default_factory=dict)  # [H,W,C] decomposition and G-buffers
+    surfel_index: Tensor | None = None  # [n] the surfels rasterized (render with frustum_cull); None: all
 
 
 class RTModel(nn.Module):
@@ -132,32 +134,65 @@ class RTModel(nn.Module):
         return self.effects.transmission and self.ablations.scattering
 
     # -- rasterizer inputs -------------------------------------------------------------------
-    def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None) -> Surfels:
+    def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None, index: Tensor | None = None) -> Surfels:
+        """The rasterizer's inputs for ``camera``: every surfel, or those of ``index`` [n] (in its order)."""
         p = self.surfels
-        directions = F.normalize(p.means - camera.center, dim=-1)
-        colors = eval_sh(p.sh, directions, p.sh_degree if sh_degree is None else sh_degree)
-        occupancy = p.occupancy
-        opacity = p.opacity if self.uses_opacity else torch.ones_like(occupancy)
-        inside = ((p.means - self.roi_center).norm(dim=-1) <= self.roi_radius).to(p.means.dtype)
+        take = (lambda t: t) if index is None else (lambda t: t[index])  # noqa: E731
+        means, sh = take(p.means), take(p.sh)
+        directions = F.normalize(means - camera.center, dim=-1)
+        colors = eval_sh(sh, directions, p.sh_degree if sh_degree is None else sh_degree)
+        occupancy = take(p.occupancy)
+        opacity = take(p.opacity) if self.uses_opacity else torch.ones_like(occupancy)
+        inside = ((means - self.roi_center).norm(dim=-1) <= self.roi_radius).to(means.dtype)
         if self.effects.specular and self.settings.view_independent_roi:
-            colors = torch.where(inside[:, None] > 0, eval_sh(p.sh, directions, 0), colors)
+            colors = torch.where(inside[:, None] > 0, eval_sh(sh, directions, 0), colors)
         features = torch.cat(
-            [p.scatter, p.transmissivity[:, None], p.roughness[:, None], p.material, p.reflectance[:, None],
-             inside[:, None], opacity[:, None]], 1,
+            [take(p.scatter), take(p.transmissivity)[:, None], take(p.roughness)[:, None], take(p.material),
+             take(p.reflectance)[:, None], inside[:, None], opacity[:, None]], 1,
         )
-        return Surfels(p.means, p.quats, p.scales, occupancy, opacity, features, colors)
+        return Surfels(means, take(p.quats), take(p.scales), occupancy, opacity, features, colors)
+
+    def in_view(self, camera: Camera, settings: RasterSettings | None = None) -> Tensor:
+        """[N] bool, True for every surfel the rasterizer may draw in ``camera``'s image (and some it
+        will not): a surfel is left out only when its centre is not beyond the near plane (the rasterizer
+        skips those) or when its bounding sphere (radius ``extent_sigma`` times its larger scale, which
+        holds its cut-off ellipse) lies in front of the camera and wholly outside one side of the image
+        widened by the low-pass radius and a pixel. A camera with skewed pixels gets the near-plane
+        test alone."""
+        settings = settings or RasterSettings()
+        p = self.surfels
+        with torch.no_grad():
+            R, t, K = (x.detach().double() for x in (camera.rotation, camera.translation, camera.K))
+            X, Y, Z = (p.means.detach().double() @ R.T + t).unbind(-1)
+            keep = Z > settings.near * (1 - 1e-6) - 1e-9
+            if float(K[0, 1]) != 0.0:
+                return keep
+            radius = settings.extent_sigma * p.scales.detach().double().amax(-1) * (1 + 1e-6) + 1e-9
+            fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+            margin = settings.lowpass_radius + 1.0
+            ahead = Z - radius > 0  # the whole sphere in front of the camera: its image is bounded
+            for f, coord, c, low, high in ((fx, X, cx, -margin, camera.width + margin),
+                                           (fy, Y, cy, -margin, camera.height + margin)):
+                # signed distances to the planes through the camera centre at pixel coordinate low and high
+                past_low = (f * coord + (c - low) * Z) / math.hypot(f, c - low) < -radius
+                past_high = (-f * coord + (high - c) * Z) / math.hypot(f, high - c) < -radius
+                keep &= ~(ahead & (past_low | past_high))
+        return keep
 
     # -- the hybrid render --------------------------------------------------------------------
     def render(
         self, camera: Camera, *, stage: str = "full", gating: Gating | None = None,
         raster_settings: RasterSettings | None = None, backend: str = "auto", sh_degree: int | None = None,
-        background: Tensor | None = None,
+        background: Tensor | None = None, frustum_cull: bool = False,
     ) -> RenderResult:
         """``background``: an RGB colour [3] that replaces the model's background for this render (the
-        trainer's random background)."""
+        trainer's random background). ``frustum_cull``: rasterize only the surfels of :meth:`in_view`
+        (the same image, less per-surfel work; ``result.surfel_index`` says which surfels the per-surfel
+        outputs of ``result.raster`` are)."""
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
-        out = rasterize(self.rasterizer_surfels(camera, sh_degree), camera, raster_settings, backend=backend)
+        index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
+        out = rasterize(self.rasterizer_surfels(camera, sh_degree, index), camera, raster_settings, backend=backend)
         far = self.background_radiance(camera) if background is None else background.to(out.color)
         c_trans = out.color + (1.0 - out.volume_alpha) * far
         alpha = out.alpha
@@ -169,7 +204,7 @@ class RTModel(nn.Module):
             "volume_alpha": out.volume_alpha, "blended_opacity": g["opacity"],
         }
         if stage == "volume" or not (self.effects.transmission or self.effects.specular):
-            return RenderResult(c_trans, out, layers)
+            return RenderResult(c_trans, out, layers, index)
 
         shade = alpha > self.settings.shade_alpha_threshold  # [H,W,1]
         roi = (g["roi"] / alpha_safe).clamp(0, 1)
@@ -212,7 +247,7 @@ class RTModel(nn.Module):
         layers.update(roi=roi, sub=sub, shade=shade.to(color.dtype))
         layers["transmission"] = transmission_layer(beta, direct, c_trans, roi, shade)
         layers["reflection"] = reflection_layer(spec, roi, shade)
-        return RenderResult(color, out, layers)
+        return RenderResult(color, out, layers, index)
 
     def background_radiance(self, camera: Camera) -> Tensor:
         """``B(d)`` for every pixel ray [H,W,3] (learned), or a constant colour [3] (black, white, random)."""

@@ -11,6 +11,7 @@ from torch import Tensor, nn
 LOG_HALF = math.log(0.5)
 NEAR_WEIGHT_START_LOGIT = 2.0  # sigmoid(2) = 0.88
 MAX_LOG_SPECULAR = 8.0  # exp() argument cap: keeps C_spec finite under any learning rate
+INFERENCE_ROWS = 4096  # rows per slice of the MLP without autograd: its [rows, width] activations stay in cache
 
 
 @functools.cache
@@ -33,7 +34,11 @@ class SpecularNetwork(nn.Module):
 
     ``precision``: the dtype of the MLP's matrix products. float32, or bfloat16 (autocast: float32
     weights and outputs, bfloat16 products; forward and backward), or auto: bfloat16 on a CPU with
-    native bfloat16 products (:func:`cpu_has_bfloat16_matmul`), float32 elsewhere."""
+    native bfloat16 products (:func:`cpu_has_bfloat16_matmul`), float32 elsewhere.
+
+    Without autograd (inference, ``torch.no_grad``) the MLP runs on slices of :data:`INFERENCE_ROWS` rows
+    with its ReLUs in place (:meth:`_mlp_inference`): the same products row by row, so the same values,
+    in about half the time on a CPU."""
 
     def __init__(self, env_channels: int = 16, material_channels: int = 4, width: int = 256,
                  precision: str = "float32", mirror: bool = False, near_weight: bool = False):
@@ -68,10 +73,10 @@ class SpecularNetwork(nn.Module):
         x = torch.cat([outer, env_features], -1)
         if self.uses_bfloat16(x.device):
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
-                out = self.mlp(x)
+                out = self._run_mlp(x)
             out = out.to(x.dtype)
         else:
-            out = self.mlp(x)
+            out = self._run_mlp(x)
         specular = torch.exp((out[:, :3] + LOG_HALF).clamp_max(MAX_LOG_SPECULAR))
         if mirror is not None:
             weight = torch.sigmoid(out[:, 4:5])
@@ -82,3 +87,16 @@ class SpecularNetwork(nn.Module):
         specular = specular * reflectance
         beta = torch.sigmoid(out[:, 3:4])
         return specular, beta
+
+    def _run_mlp(self, x: Tensor) -> Tensor:
+        return self.mlp(x) if torch.is_grad_enabled() else self._mlp_inference(x)
+
+    def _mlp_inference(self, x: Tensor) -> Tensor:
+        """``self.mlp(x)`` without autograd: slices of :data:`INFERENCE_ROWS` rows, the ReLUs in place."""
+        first, _, hidden, _, last = self.mlp
+        out = x.new_empty(x.shape[0], last.out_features)
+        for rows, result in zip(x.split(INFERENCE_ROWS), out.split(INFERENCE_ROWS), strict=True):
+            h = first(rows).relu_()
+            h = hidden(h).relu_()
+            result.copy_(last(h))
+        return out
