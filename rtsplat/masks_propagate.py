@@ -292,6 +292,24 @@ def project_hull(hull: Hull, view: ColmapView, scale: float = 1.0, occluders: np
     return out & ~_occluded(opaque_depth(view, occluders, scale), nearest, hull.step)
 
 
+def _grabcut(image: np.ndarray, labels: np.ndarray, rect: tuple[int, int, int, int] | None,
+             iterations: int) -> np.ndarray | None:
+    """OpenCV GrabCut of ``image`` (float RGB [H, W, 3]), started from the seed ``labels`` [H, W] (uint8
+    ``GC_*`` values) when ``rect`` is None, else from the rectangle ``rect`` (x, y, width, height; outside it
+    is background); the foreground (sure or probable) as a bool [H, W] mask, or None when OpenCV refuses the
+    seeds."""
+    import cv2
+
+    pixels = np.ascontiguousarray((np.clip(image[..., :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    mode = cv2.GC_INIT_WITH_MASK if rect is None else cv2.GC_INIT_WITH_RECT
+    try:
+        cv2.grabCut(pixels, labels, rect, bgd, fgd, iterations, mode)
+    except cv2.error:
+        return None
+    return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
+
+
 def refine_with_grabcut(image: np.ndarray, silhouette: np.ndarray,
                         settings: MaskPropagationConfig) -> np.ndarray | None:
     """GrabCut of ``image`` (float RGB [H, W, 3]) seeded by ``silhouette``: probable foreground inside, probable
@@ -314,14 +332,11 @@ def refine_with_grabcut(image: np.ndarray, silhouette: np.ndarray,
     if not (seeds == cv2.GC_BGD).any():  # GrabCut needs background samples: the crop's border
         seeds[[0, -1], :] = cv2.GC_BGD
         seeds[:, [0, -1]] = cv2.GC_BGD
-    pixels = np.ascontiguousarray((np.clip(image[y0:y1, x0:x1, :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
-    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    try:
-        cv2.grabCut(pixels, seeds, None, bgd, fgd, settings.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
-    except cv2.error:
+    foreground = _grabcut(image[y0:y1, x0:x1], seeds, None, settings.grabcut_iterations)
+    if foreground is None:
         return None
     cut = np.zeros_like(silhouette)
-    cut[y0:y1, x0:x1] = (seeds == cv2.GC_FGD) | (seeds == cv2.GC_PR_FGD)
+    cut[y0:y1, x0:x1] = foreground
     if cut.sum() < settings.min_kept * area:
         return None
     return cut
@@ -358,14 +373,10 @@ def box_mask(image: np.ndarray, box: tuple[float, float, float, float],
     rect = (left, top, right - left, bottom - top)
     if rect[2] < 3 or rect[3] < 3 or (rect[2] >= sw and rect[3] >= sh):  # too small, or no background left
         return filled, False
-    pixels = np.ascontiguousarray((np.clip(small[..., :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
-    labels = np.zeros((sh, sw), np.uint8)
-    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    try:
-        cv2.grabCut(pixels, labels, rect, bgd, fgd, settings.grabcut_iterations, cv2.GC_INIT_WITH_RECT)
-    except cv2.error:
+    foreground = _grabcut(small, np.zeros((sh, sw), np.uint8), rect, settings.grabcut_iterations)
+    if foreground is None:
         return filled, False
-    cut = _resize_mask((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD), w, h) & filled
+    cut = _resize_mask(foreground, w, h) & filled
     if cut.sum() < MIN_BOX_KEPT * filled.sum():
         return filled, False
     return cut, True
