@@ -168,6 +168,16 @@ class ViewerSettings:
     jpeg_quality: int = 90
 
 
+def moving_frame_size(recent, canvas_width: int, canvas_height: int, settings: ViewerSettings) -> tuple[int, int]:
+    """The size (width, height) of the next frame while the camera moves over a ``canvas_width`` x
+    ``canvas_height`` page: the canvas's aspect at the :func:`adaptive_long_side` of the ``recent`` moving
+    frames (``(width, height, seconds)`` each) for ``settings.preview_seconds``, at most ``settings.preview_size``."""
+    long_side = adaptive_long_side(recent, canvas_width, canvas_height, target_seconds=settings.preview_seconds,
+                                   largest=settings.preview_size)
+    return frame_size(canvas_width, canvas_height, long_side)
+
+
+
 @dataclass
 class _ClientState:
     client: object
@@ -345,11 +355,9 @@ class ViewerServer:
         pose = ViewerPose(tuple(camera.wxyz), tuple(camera.position), float(camera.fov))
         settings = self.viewer.settings
         if resting:
-            long_side = settings.max_size
+            width, height = frame_size(camera.image_width, camera.image_height, settings.max_size)
         else:
-            long_side = adaptive_long_side(state.moving_times, camera.image_width, camera.image_height,
-                                           target_seconds=settings.preview_seconds, largest=settings.preview_size)
-        width, height = frame_size(camera.image_width, camera.image_height, long_side)
+            width, height = moving_frame_size(state.moving_times, camera.image_width, camera.image_height, settings)
         image = self.viewer.render(pose, width, height)
         state.client.scene.set_background_image(image, format="jpeg", jpeg_quality=settings.jpeg_quality)
         state.shown = (version, resting)

@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
 
-    from rtsplat.viewer import ViewerSettings, adaptive_long_side, frame_size, open_viewer, viewer_pose_from_camera
+    from rtsplat.viewer import ViewerSettings, moving_frame_size, open_viewer, viewer_pose_from_camera
 
     try:
         canvas = tuple(int(v) for v in args.canvas.lower().split("x"))
@@ -125,12 +125,10 @@ def main(argv: list[str] | None = None) -> int:
         sides = []
         start = time.perf_counter()
         for pose in poses:
-            long_side = adaptive_long_side(recent, *canvas, target_seconds=settings.preview_seconds,
-                                           largest=settings.preview_size)
-            width, height = frame_size(*canvas, long_side)
+            width, height = moving_frame_size(recent, *canvas, settings)
             _encode(viewer.render(pose, width, height), quality)
             recent.append((width, height, viewer.last_frame["seconds"]))
-            sides.append(long_side)
+            sides.append(max(width, height))
         adaptive_seconds = time.perf_counter() - start
         print(f"surfels: {len(viewer.run.model.surfels)}, device: {viewer.run.device}, torch threads: "
               f"{torch.get_num_threads()}, frame {args.width}x{args.height}, JPEG quality {quality}")
