@@ -125,6 +125,13 @@ class LearningRates:
     env_map: float = setting(2e-3, help="environment feature map", minimum=0.0)
     mlp: float = setting(5e-4, help="specular network", minimum=0.0)
     background: float = setting(1e-2, help="learned background map (model.background: learned)", minimum=0.0)
+    mirror_plane_rotation: float = setting(
+        0.0, help="the near reflections' mirror planes turned about their centres to fit the images (radians per "
+        "Adam step; rtsplat.train.planes); 0 together with mirror_plane_shift: the planes stay as fitted",
+        minimum=0.0)
+    mirror_plane_shift: float = setting(
+        0.0, help="the mirror planes moved along their normals to fit the images (times the scene extent per Adam "
+        "step)", minimum=0.0)
 
     def scaled(self, factor: float) -> LearningRates:
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}

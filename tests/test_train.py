@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import signal
@@ -605,6 +606,41 @@ def test_mirror_planes_are_fitted_once_as_the_reflections_start_and_come_back_on
     for _ in range(6):
         off.step()
     assert off.near_fit is None and not off.model.uses_near_reflection
+
+
+def test_mirror_planes_learnt_from_the_images_move_stay_planes_and_resume(glass_scene, tmp_path):
+    lr = {"mirror_plane_rotation": 1e-3, "mirror_plane_shift": 1e-3}
+    cfg = config(12, effects={"near_reflection": "on"}, lr=lr)
+    trainer = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
+    for _ in range(cfg.schedule.specular_from):
+        trainer.step()
+    assert trainer.plane_refinement is None  # nothing to refine before the planes are fitted
+    trainer.step()
+    fitted = trainer.near_fit and trainer.plane_refinement.fitted.clone()
+    assert trainer.model.uses_near_reflection and fitted is not None
+    for _ in range(4):
+        trainer.step()
+    planes = trainer.model.mirror_planes
+    assert not torch.equal(planes, fitted.to(planes))  # the image loss moved them
+    torch.testing.assert_close(planes[:, :3].norm(dim=-1), torch.ones(planes.shape[0]))
+    assert float((planes[:, :3] * planes[:, 6:9]).sum(-1).abs().max()) < 1e-5  # the rectangle turned with them
+    torch.testing.assert_close(planes[:, 9:], fitted[:, 9:].to(planes))  # extents and thickness kept
+    moved = trainer.plane_refinement.moved()
+    # five Adam steps of 1e-3 rad at most (to rounding); a shift of at most 5e-3 x the extent
+    assert any(m["degrees"] > 0 for m in moved) and all(m["degrees"] <= math.degrees(5e-3) + 1e-3 for m in moved)
+    assert all(abs(m["shift"]) <= 5e-3 * trainer.extent * 1.001 for m in moved)
+    path = trainer.save_checkpoint()
+    resumed = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
+    resumed.load_checkpoint(path)
+    torch.testing.assert_close(resumed.plane_refinement.fitted, trainer.plane_refinement.fitted)
+    torch.testing.assert_close(resumed.model.mirror_planes, trainer.model.mirror_planes)
+    assert resumed.plane_refinement.moved() == moved
+    # off by default: the fitted planes are kept as they are
+    still = Trainer(glass_scene, config(12, effects={"near_reflection": "on"}), tmp_path / "still", progress=False,
+                    log=lambda m: None)
+    for _ in range(cfg.schedule.specular_from + 3):
+        still.step()
+    assert still.plane_refinement is None and still.model.uses_near_reflection
 
 
 SPIN = "while True: pass\n"

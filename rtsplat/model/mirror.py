@@ -76,6 +76,30 @@ def mirror_quats(quats: Tensor, normal: Tensor) -> Tensor:
     return quat_multiply(quat_multiply(about_normal.to(quats.dtype), quats), about_x)
 
 
+def rotate_vectors(vectors: Tensor, rotation: Tensor) -> Tensor:
+    """``vectors`` [K,3] turned by the rotation vectors ``rotation`` [K,3] (axis times angle, radians;
+    Rodrigues' formula). Smooth at a zero rotation: the sine and cosine terms use their series below
+    1e-4 radians, so the gradient there is exact and finite."""
+    angle_sq = (rotation * rotation).sum(-1, keepdim=True)
+    small = angle_sq < 1e-8
+    angle = torch.sqrt(torch.where(small, torch.ones_like(angle_sq), angle_sq))
+    sin_over = torch.where(small, 1.0 - angle_sq / 6.0, torch.sin(angle) / angle)
+    one_minus_cos_over = torch.where(small, 0.5 - angle_sq / 24.0, (1.0 - torch.cos(angle)) / (angle * angle))
+    cross = torch.cross(rotation, vectors, dim=-1)
+    return vectors + sin_over * cross + one_minus_cos_over * torch.cross(rotation, cross, dim=-1)
+
+
+def move_planes(planes: Tensor, rotation: Tensor, shift: Tensor) -> Tensor:
+    """Plane rows [K,12] turned about their centres by the rotation vectors ``rotation`` [K,3] (normal and
+    rectangle together) and then moved by ``shift`` [K] along their turned normals; extents and thickness
+    stay. Differentiable in ``rotation`` and ``shift`` (the trainer refines the fitted planes this way)."""
+    n, c, u, _, half, thickness = plane_parts(planes)
+    n = rotate_vectors(n, rotation)
+    u = rotate_vectors(u, rotation)
+    c = c + shift[:, None] * n
+    return torch.cat([n, c, u, half, thickness[:, None]], -1)
+
+
 def plane_assignment(camera: Camera, planes: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
     """For each pixel ray (unit ``directions`` [H,W,3] from the camera centre), the index of the first
     plane rectangle it hits in front of the camera (-1: none) [H,W] and the distance to it [H,W]

@@ -183,12 +183,14 @@ class RTModel(nn.Module):
     def render(
         self, camera: Camera, *, stage: str = "full", gating: Gating | None = None,
         raster_settings: RasterSettings | None = None, backend: str = "auto", sh_degree: int | None = None,
-        background: Tensor | None = None, frustum_cull: bool = False,
+        background: Tensor | None = None, frustum_cull: bool = False, mirror_planes: Tensor | None = None,
     ) -> RenderResult:
         """``background``: an RGB colour [3] that replaces the model's background for this render (the
         trainer's random background). ``frustum_cull``: rasterize only the surfels of :meth:`in_view`
         (the same image, less per-surfel work; ``result.surfel_index`` says which surfels the per-surfel
-        outputs of ``result.raster`` are)."""
+        outputs of ``result.raster`` are). ``mirror_planes``: plane rows [K,12] that replace the model's
+        mirror planes in this render (as many as it has), through which gradients reach them (the trainer's
+        plane refinement)."""
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
@@ -216,7 +218,8 @@ class RTModel(nn.Module):
             near = None
             if self.uses_near_reflection:
                 near_color, near_alpha = self._near_reflection(camera, wanted[..., 0], raster_settings, backend,
-                                                               surface_depth=out.depth[..., 0].detach())
+                                                               surface_depth=out.depth[..., 0].detach(),
+                                                               planes=mirror_planes)
                 if self.uses_opacity:  # a mirror of the glass: weighed by how see-through the surface is
                     clear = (1.0 - g["opacity"] / alpha_safe).clamp(0, 1)
                     near_color, near_alpha = clear * near_color, clear * near_alpha
@@ -257,17 +260,25 @@ class RTModel(nn.Module):
         return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
     def _near_reflection(self, camera: Camera, wanted: Tensor, raster_settings: RasterSettings | None,
-                         backend: str, surface_depth: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                         backend: str, surface_depth: Tensor | None = None,
+                         planes: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """C_near [H,W,3] (premultiplied) and its coverage A_near [H,W,1]: for the ``wanted`` pixels [H,W]
         whose ray hits a mirror plane, the volume colour of the surfels on the camera's side of the
         first plane hit, reflected in it (:mod:`rtsplat.model.mirror`); zero elsewhere. At most
         ``near_reflection_planes`` planes are rendered per view, those that cover the most pixels. The
-        reflected surfels show their view-independent colour (SH degree 0)."""
+        reflected surfels show their view-independent colour (SH degree 0). ``planes``: rows [K,12] in place
+        of the model's mirror planes; the mirrored surfels' positions and rotations carry their gradient
+        (which pixel meets which plane, and which surfels are mirrored, are discrete choices, without it)."""
         H, W = wanted.shape
         p = self.surfels
+        planes = self.mirror_planes if planes is None else planes
+        if planes.shape != self.mirror_planes.shape:
+            raise ValueError(f"mirror_planes must be {tuple(self.mirror_planes.shape)} (the model's), "
+                             f"got {tuple(planes.shape)}")
         directions = image_ray_directions(camera)
-        index, distance = plane_assignment(camera, self.mirror_planes, directions)
-        normals, centres, _, _, _, thickness = plane_parts(self.mirror_planes.to(p.means.dtype))
+        index, distance = plane_assignment(camera, planes.detach(), directions)
+        normals, centres, _, _, _, thickness = plane_parts(planes.to(p.means.dtype))
+        thickness = thickness.detach()
         if self.settings.near_reflection_on_surface and surface_depth is not None:
             wanted = wanted & on_plane_surface(index, distance, directions, camera, surface_depth, thickness)
         index = torch.where(wanted, index, torch.full_like(index, -1))
@@ -284,7 +295,7 @@ class RTModel(nn.Module):
             camera_side = signed_distance(center, n, c).detach()  # which side: no gradient
             if float(camera_side.abs()) <= float(thickness[k]):
                 continue  # the camera is inside the pane's slab: no side to mirror
-            side = signed_distance(p.means, n, c) * torch.sign(camera_side)
+            side = signed_distance(p.means.detach(), n.detach(), c.detach()) * torch.sign(camera_side)
             keep = torch.nonzero(side > thickness[k], as_tuple=False).flatten()
             if keep.numel() == 0:
                 continue
@@ -292,13 +303,14 @@ class RTModel(nn.Module):
             # the view-independent (degree 0) colour, which no direction changes: a reflection sees the
             # surfels from directions that no view may have seen them from, where higher degrees extrapolate
             colors = eval_sh(p.sh[keep], F.normalize(means - center, dim=-1), 0)
+            quats, scales = p.quats[keep], p.scales[keep]
             occupancy = p.occupancy[keep]
             opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)
-            parts = [mirror_points(means, n, c), mirror_quats(p.quats[keep], n), p.scales[keep], occupancy, opacity,
-                     means.new_zeros(keep.numel(), 0), colors]
             if not self.settings.near_reflection_trains_surfels:  # the reflection reads the surfels only
-                parts = [t.detach() for t in parts]
-            mirrored = Surfels(*parts)
+                means, quats, scales, occupancy, opacity, colors = (
+                    t.detach() for t in (means, quats, scales, occupancy, opacity, colors))
+            mirrored = Surfels(mirror_points(means, n, c), mirror_quats(quats, n), scales, occupancy, opacity,
+                               means.new_zeros(keep.numel(), 0), colors)
             out = rasterize(mirrored, camera, raster_settings, backend=backend)
             on_plane = (index == k)[..., None]
             color = torch.where(on_plane, out.color, color)

@@ -70,6 +70,7 @@ from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import decide_effects, decide_near_planes, see_through_planes
 from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
+from rtsplat.train.planes import PlaneRefinement
 from rtsplat.train_config import TrainConfig, resume_differences
 from rtsplat.usage import Usage, UsageClock, compute_threads
 
@@ -148,6 +149,7 @@ class Trainer:
             cfg.effects, self.train_views.transparent_fraction, roi_source
         )
         self.near_fit: dict | None = None  # the mirror-plane fit (fit_mirror_planes), once it ran
+        self.plane_refinement: PlaneRefinement | None = None  # the planes learnt from the images, once fitted
         xyz, rgb = scene.load_points()
         self.points = (torch.as_tensor(np.asarray(xyz), dtype=torch.float32),
                        torch.as_tensor(np.asarray(rgb), dtype=torch.float32) / 255.0)
@@ -252,6 +254,7 @@ class Trainer:
         if dropped:
             why += f" ({dropped} plane(s) with nothing behind them left out)"
         self.model.set_mirror_planes(planes if use else empty_planes())
+        self._start_plane_refinement()
         self.near_fit = {"iteration": self.iteration, "points": int(xyz.shape[0]), "planes": int(planes.shape[0]),
                          "planar_share": share, "on": use, "reason": why,
                          "seconds": round(time.perf_counter() - start, 3)}
@@ -259,6 +262,15 @@ class Trainer:
                  f"fitted in {self.near_fit['seconds']:.1f} s)")
         self._write_effects()
         return self.near_fit
+
+    def _start_plane_refinement(self) -> None:
+        """Learn the mirror planes from the images from here on (:mod:`rtsplat.train.planes`) when near
+        reflections are on and a plane learning rate is set."""
+        lr = self.cfg.lr
+        self.plane_refinement = None
+        if self.model.uses_near_reflection and (lr.mirror_plane_rotation > 0 or lr.mirror_plane_shift > 0):
+            self.plane_refinement = PlaneRefinement(self.model.mirror_planes, self.extent, lr.mirror_plane_rotation,
+                                                    lr.mirror_plane_shift)
 
     def _transparent_surface_surfels(self, xyz: np.ndarray, normal: np.ndarray) -> SurfelParameters:
         """Surfels where the see-through surface is (prepare's points on the masks' visual hull), which
@@ -312,8 +324,10 @@ class Trainer:
         stage = "volume" if background_phase else stage_at(it, cfg)
         sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
         background = torch.rand(3, generator=self.rng) if cfg.model.background == "random" else None
+        refine_planes = self.plane_refinement is not None and self.model.uses_near_reflection
         result = self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
-                                   backend=cfg.backend, sh_degree=sh_degree, background=background)
+                                   backend=cfg.backend, sh_degree=sh_degree, background=background,
+                                   mirror_planes=self.plane_refinement.planes() if refine_planes else None)
         weight = (1.0 - mask) if (background_phase and mask is not None) else None
         color = result.color
         learn_appearance = self.appearance is not None and it > cfg.appearance.start(cfg.schedule)
@@ -357,6 +371,8 @@ class Trainer:
         gradients = self._optimizer_step()
         if refine_pose:
             self.poses.step()
+        if refine_planes:
+            self.model.set_mirror_planes(self.plane_refinement.step())
         if learn_appearance:
             self.appearance.step()
         events, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
@@ -535,6 +551,7 @@ class Trainer:
             "appearance": None if self.appearance is None else self.appearance.state_dict(),
             "appearance_corrections": self.appearance_corrections(),
             "near_fit": self.near_fit,
+            "plane_refinement": None if self.plane_refinement is None else self.plane_refinement.state_dict(),
             "rng": self.rng.get_state(),
             "torch_rng": torch.get_rng_state(),
         }
@@ -603,6 +620,9 @@ class Trainer:
         self._restore_test_rows(self.test_appearance, state.get("appearance_corrections", {}))
         self.any_frozen = bool(self.frozen.any())
         self.near_fit = state.get("near_fit")
+        self._start_plane_refinement()
+        if self.plane_refinement is not None and state.get("plane_refinement") is not None:
+            self.plane_refinement.load_state_dict(state["plane_refinement"])
         self.order = list(state["order"])
         # generator states are CPU byte tensors (the checkpoint was read onto self.device)
         self.rng.set_state(state["rng"].cpu())
@@ -726,7 +746,9 @@ class Trainer:
                    "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
                    "surfels": len(self.model.surfels), "starting_surfels": self.starting.to_dict(),
                    "effects": self.effects.to_dict(),
-                   "near_reflection": self.near_fit, "appearance": self.appearance_summary(), **metrics,
+                   "near_reflection": self.near_fit, "appearance": self.appearance_summary(),
+                   "mirror_planes_moved": None if self.plane_refinement is None else self.plane_refinement.moved(),
+                   **metrics,
                    **self._correction_sizes(),
                    **best_test_psnr(self.out / "train_log.jsonl", self.iteration, metrics)}
         _write_json(self.out / "summary.json", summary)
