@@ -493,16 +493,28 @@ def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -
 
 
 def near_reflection_rows(runs: dict[str, Run]) -> list[list[str]]:
-    """One row per run whose model asked for near reflections: on/off, planes, planar share, why, s/it."""
+    """One row per run whose model asked for near reflections: on/off, planes, planar share, why, how far the
+    image loss moved the planes (``mirror_planes_moved``), s/it."""
     rows = []
     for m, r in sorted(runs.items()):
         fit = r.summary.get("near_reflection")
         if not r.summary.get("effects", {}).get("near_reflection") or not isinstance(fit, dict):
             continue
         rows.append([m, "on" if fit.get("on") else "off", _fmt(fit.get("planes"), 0), _fmt(fit.get("planar_share")),
-                     str(fit.get("reason", "")), _fmt(r.summary.get("seconds_per_iteration"), 3),
+                     str(fit.get("reason", "")), _planes_moved(r.summary.get("mirror_planes_moved")),
+                     _fmt(r.summary.get("seconds_per_iteration"), 3),
                      _fmt(_per_iteration(r.summary.get("train_cpu_seconds"), r.summary.get("iterations")), 3)])
     return rows
+
+
+def _planes_moved(moved) -> str:
+    """The largest turn (degrees) and shift (scene units) of the learnt mirror planes; "-" when they were
+    kept as fitted."""
+    if not isinstance(moved, list) or not moved:
+        return "-"
+    turn = max(float(m.get("degrees", 0.0)) for m in moved)
+    shift = max(abs(float(m.get("shift", 0.0))) for m in moved)
+    return f"up to {turn:.1f} deg, {shift:.3g}"
 
 
 def layer_reference_rows(prepared: Path, names: set[str] | None) -> tuple[list[list[str]], str]:
@@ -787,10 +799,12 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             if near_rows:
                 doc.paragraph("Whether each run reflected its own surfels in planes fitted to the see-through "
                               "surface (effects.near_reflection; auto keeps them where planes explain enough of it), "
-                              "and the seconds per training iteration it paid (wall seconds, and CPU seconds, which "
-                              "depend less on what ran beside it).")
-                doc.table(["method", "near reflection", "planes", "planar share", "why", "wall s / iteration",
-                           "CPU s / iteration"], near_rows)
+                              "how far the image loss moved the planes where they are learnt "
+                              "(lr.mirror_plane_rotation, lr.mirror_plane_shift), and the seconds per training "
+                              "iteration it paid (wall seconds, and CPU seconds, which depend less on what ran "
+                              "beside it).")
+                doc.table(["method", "near reflection", "planes", "planar share", "why", "planes learnt",
+                           "wall s / iteration", "CPU s / iteration"], near_rows)
 
         exposure_rows = appearance_rows(runs)
         if any(row[1] == "on" for row in exposure_rows):

@@ -267,9 +267,15 @@ def test_near_reflection_rows_list_the_runs_that_asked_for_them():
         "2dgs": Run("film", "2dgs", summary={"effects": {"near_reflection": False}, "near_reflection": None,
                                              "seconds_per_iteration": 0.3}),
         "old": Run("film", "old", summary={"effects": {"transmission": True}}),  # written before the term
+        "learnt": Run("film", "learnt", summary={"effects": {"near_reflection": True}, "near_reflection": fit,
+                                                 "mirror_planes_moved": [{"degrees": 0.48, "shift": 0.0015},
+                                                                         {"degrees": 1.67, "shift": -0.034}],
+                                                 "seconds_per_iteration": 0.64, "iterations": 200,
+                                                 "train_cpu_seconds": 110.0}),
     }
     rows = near_reflection_rows(runs)
-    assert rows == [["rtsplat", "on", "4", "0.92", "auto: planar glass", "0.610", "0.500"]]
+    assert rows == [["learnt", "on", "4", "0.92", "auto: planar glass", "up to 1.7 deg, 0.034", "0.640", "0.550"],
+                    ["rtsplat", "on", "4", "0.92", "auto: planar glass", "-", "0.610", "0.500"]]
 
 
 def _table_rows(md: str, header_start: str) -> dict[str, dict[str, str]]:

@@ -51,6 +51,9 @@ METHODS = {
     # near reflections that read the reflected surfels without training them (no backward of the mirrored pass)
     "rtsplat_near_reads": {"effects": {"near_reflection": "on"},
                            "model": {**DEMO_OPTIONS["model"], "near_reflection_trains_surfels": False}},
+    # near reflections whose mirror planes are learnt from the images (rtsplat.train.planes)
+    "rtsplat_near_planes": {"effects": {"near_reflection": "on"},
+                            "lr": {"mirror_plane_rotation": 3e-4, "mirror_plane_shift": 1e-4}},
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
 }
 PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",
