@@ -65,6 +65,19 @@ def test_the_hull_silhouette_holds_the_object(scene):
         assert silhouette.sum() <= 2.0 * truth.sum()
 
 
+
+def test_the_splatted_voxels_do_not_grow_the_outline(scene):
+    # every view marked, voxels about 1.8 pixels across (discs of radius 1): the silhouette follows the
+    # true outline instead of standing a disc's radius beyond it, and still holds the object
+    model, rendered = scene
+    hull = visual_hull(model, [(v, rendered[v.name][1]) for v in model.views], MaskPropagationConfig(grid=32))
+    scores = []
+    for view in model.views:
+        silhouette, truth = project_hull(hull, view), rendered[view.name][1]
+        assert (silhouette & truth).sum() >= 0.98 * truth.sum()
+        scores.append(iou(silhouette, truth))
+    assert np.mean(scores) >= 0.9 and min(scores) >= 0.88
+
 def test_sfm_points_in_front_of_the_object_hide_it(scene):
     # a wall of points halfway between the camera and the object, over the upper half of the picture
     model, rendered = scene
