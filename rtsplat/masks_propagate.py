@@ -9,9 +9,9 @@ much smaller than the largest are dropped.
 
 Every other registered view gets the hull's silhouette: the hull's boundary voxels projected with the
 view's camera (COLMAP models with distortion through pycolmap), each splatted as a disc of half its
-projected size, holes filled and the outline shrunk by the discs' median radius, so that the discs fill the
-gaps between voxel centres without growing the silhouette past them (:func:`project_hull`). A visual hull holds the object, so the silhouette is
-the object's mask plus the excess of the few marked directions. OpenCV's GrabCut on the view's image,
+projected size, holes filled and the outline shrunk by the discs' median radius, so that the discs fill
+the gaps between voxel centres without growing the silhouette past them (:func:`project_hull`). A visual
+hull holds the object, so the silhouette is the object's mask plus the excess of the few marked directions. OpenCV's GrabCut on the view's image,
 seeded with the silhouette as probable foreground, a ring around it as probable background and the rest
 as background, can cut that excess where the image shows an edge (:func:`refine_with_grabcut`); when it
 keeps less than ``min_kept`` of the silhouette the silhouette is kept. Whether GrabCut helps depends on
