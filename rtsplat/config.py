@@ -196,9 +196,12 @@ class MaskPropagationConfig:
     )
 
 
+_CORNER = {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}  # [x, y]
+
+
 @dataclass
 class MaskMark:
-    """A marked view's see-through surface drawn in the config: a box or a polygon (not both)."""
+    """A marked view's see-through surface drawn in the config: the union of its boxes and polygons."""
 
     box: list[float] | None = _f(
         None, help="[x0, y0, x1, y1] in pixels of the photo as it is in images/ (x to the right, y down; x1 > x0, "
@@ -206,8 +209,15 @@ class MaskMark:
     )
     polygon: list[list[float]] | None = _f(
         None, help="[[x, y], ...] in pixels of the photo, at least 3 corners, the outline of the see-through "
-        "surface (taken as drawn)", minItems=3, items={"type": "array", "items": {"type": "number"},
-                                                        "minItems": 2, "maxItems": 2}
+        "surface (taken as drawn)", minItems=3, items=_CORNER
+    )
+    boxes: list[list[float]] | None = _f(
+        None, help="several boxes like box, e.g. one per pane of an object of several panes", minItems=1,
+        items={"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4}
+    )
+    polygons: list[list[list[float]]] | None = _f(
+        None, help="several polygons like polygon, e.g. one outline per pane of an object of several panes",
+        minItems=1, items={"type": "array", "items": _CORNER, "minItems": 3}
     )
 
 
@@ -239,8 +249,9 @@ class MasksConfig:
     max_coverage: float = _f(0.5, help="ingest with polarity auto: a larger mean coverage means inverted masks",
                              exclusiveMinimum=0.0, maximum=1.0)
     marks: dict[str, MaskMark] = _f(
-        help="marked views drawn in the config, by photo name (e.g. IMG_0001.jpg: {box: [x0, y0, x1, y1]} or "
-        "{polygon: [[x, y], ...]}): marked views like the mask files of <dir>, carried to the other photos "
+        help="marked views drawn in the config, by photo name (e.g. IMG_0001.jpg: {box: [x0, y0, x1, y1]}, "
+        "{polygon: [[x, y], ...]} or {polygons: [[[x, y], ...], ...]}; a view's boxes and polygons are unioned): "
+        "marked views like the mask files of <dir>, carried to the other photos "
         "(source propagate; auto chooses it when marks are given)", factory=dict
     )
     onnx: OnnxSegmenterConfig = _f(help="the ONNX segmenter", factory=OnnxSegmenterConfig)

@@ -7,10 +7,10 @@ Three ways (function API :func:`make_masks`; :func:`resolve_source` decides ``ma
   (:func:`match_masks`); names and sizes are validated against the images, masks are binarised (JPEG
   masks with a tolerance for compression noise, :func:`interpret_mask`), coverage is reported;
 * **propagate** the masks of a few marked photos (at least 3: mask files that fewer than half the photos
-  have, and boxes or polygons drawn in ``masks.marks``, :func:`check_marks`, :func:`marks_to_masks`) to every
-  photo through the SfM cameras of ``--sfm`` (:mod:`rtsplat.masks_propagate`); the summary records each
-  mark's source (``mark_sources``: file, polygon, box, filled box) and each mask's source (``mask_sources``:
-  given, propagated, empty, unregistered);
+  have, and boxes and polygons drawn in ``masks.marks``, several per photo unioned, :func:`check_marks`,
+  :func:`marks_to_masks`) to every photo through the SfM cameras of ``--sfm`` (:mod:`rtsplat.masks_propagate`);
+  the summary records each mark's source (``mark_sources``: file, or the kinds of its shapes: polygon, box,
+  filled box) and each mask's source (``mask_sources``: given, propagated, empty, unregistered);
 * **segment** with a local ONNX model through onnxruntime (:class:`OnnxSegmenter`): the common SAM
   and SAM2 exports (an image encoder plus a prompted mask decoder; the kind is detected from the
   decoder's input names) prompted by the points/box of the config, or a plain "image in, mask
@@ -34,6 +34,7 @@ import numpy as np
 
 from rtsplat.config import (
     MaskMark,
+    MaskPropagationConfig,
     MasksConfig,
     OnnxSegmenterConfig,
     add_config_arguments,
@@ -76,7 +77,8 @@ class MasksSummary:
     without_mask: list[str] = field(default_factory=list)  # ingest with allow_missing: photos given empty masks
     marked: list[str] = field(default_factory=list)  # propagate: the photos whose masks were given
     mark_sources: dict[str, str] = field(default_factory=dict)  # propagate: per marked photo file | polygon | box
-    # (GrabCut's cut inside it) | filled box (GrabCut found no object inside it: the box as drawn)
+    # (GrabCut's cut inside it) | filled box (GrabCut found no object inside it: the box as drawn); a mark of several
+    # shapes lists their kinds joined by ", " (e.g. "polygon, polygon")
     mask_sources: dict[str, str] = field(default_factory=dict)  # propagate: per photo given | propagated | empty
     # | unregistered (rtsplat.masks_propagate.PropagatedMask.source)
     refined: list[str] = field(default_factory=list)  # propagate: photos whose propagated mask was refined
@@ -535,10 +537,21 @@ def resolve_source(scene_dir: str | Path, cfg: MasksConfig, images: list[Path] |
     return "propagate" if 2 * sum(m is not None for m in found.values()) < len(found) else "ingest"
 
 
+def _shapes(mark: MaskMark) -> list[tuple[str, str, list]]:
+    """A mark's boxes and polygons as (kind, config key below the photo's, corners or edges), in the order
+    box, polygon, boxes, polygons."""
+    shapes = [("box", "box", mark.box)] if mark.box is not None else []
+    shapes += [("polygon", "polygon", mark.polygon)] if mark.polygon is not None else []
+    shapes += [("box", f"boxes.{i}", box) for i, box in enumerate(mark.boxes or [])]
+    shapes += [("polygon", f"polygons.{i}", polygon) for i, polygon in enumerate(mark.polygons or [])]
+    return shapes
+
+
 def check_marks(marks: dict[str, MaskMark | dict], images: list[Path]) -> dict[str, MaskMark]:
     """``masks.marks`` as :class:`MaskMark` by photo name, checked against the photos: a name that is no photo
-    (the closest names suggested), not exactly one of box and polygon, a polygon of fewer than 3 corners or no
-    area, a box with x1 <= x0 or y1 <= y0, coordinates outside the photo."""
+    (the closest names suggested), no box or polygon, a polygon of fewer than 3 corners or no area, a box with
+    x1 <= x0 or y1 <= y0, coordinates outside the photo. Errors name the photo and the shape's key (``box``,
+    ``polygon``, ``boxes.<index>``, ``polygons.<index>``)."""
     import difflib
 
     from rtsplat.schema import from_dict, plain
@@ -555,62 +568,77 @@ def check_marks(marks: dict[str, MaskMark | dict], images: list[Path]) -> dict[s
                 path=key, fix="use the photo's file name as it is in images/ (with its extension)",
             )
         mark = mark if isinstance(mark, MaskMark) else from_dict(MaskMark, plain(mark), root=f"masks.marks.{name}")
-        if (mark.box is None) == (mark.polygon is None):
+        if not _shapes(mark):
             raise PipelineError(
-                "a mark is either a box or a polygon" + (", not both" if mark.box is not None else ""),
-                path=key, fix="give box: [x0, y0, x1, y1] or polygon: [[x, y], ...] (pixels of the photo)",
+                "a mark needs a box or a polygon", path=key,
+                fix="give box: [x0, y0, x1, y1], polygon: [[x, y], ...], or several as boxes: [...] and "
+                "polygons: [...] (pixels of the photo)",
             )
         header = read_header(by_name[name])
         w, h = header.width, header.height
-        if mark.box is not None:
-            x0, y0, x1, y1 = (list(mark.box) + [0.0] * 4)[:4]
-            if len(mark.box) != 4 or not (x1 > x0 and y1 > y0):
+        for kind, where, shape in _shapes(mark):
+            if kind == "box":
+                x0, y0, x1, y1 = (list(shape) + [0.0] * 4)[:4]
+                if len(shape) != 4 or not (x1 > x0 and y1 > y0):
+                    raise PipelineError(
+                        f"box {list(shape)} is not [x0, y0, x1, y1] with x1 > x0 and y1 > y0", path=f"{key}.{where}",
+                        fix="give the left, top, right and bottom edges in pixels (x to the right, y down)",
+                    )
+                corners = np.array([[x0, y0], [x1, y1]], np.float64)
+            else:
+                corners = np.asarray(shape, np.float64)
+                if corners.ndim != 2 or corners.shape[1] != 2 or len(corners) < 3:
+                    raise PipelineError(
+                        f"polygon of {len(shape)} point(s): a polygon needs at least 3 corners [x, y]",
+                        path=f"{key}.{where}", fix="give the outline's corners [[x, y], ...] in pixels of the photo",
+                    )
+                x, y = corners[:, 0], corners[:, 1]
+                if abs(float(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))) < 1.0:
+                    raise PipelineError(
+                        "the polygon has no area (its corners lie on a line)", path=f"{key}.{where}",
+                        fix="give the outline's corners in order around the see-through surface",
+                    )
+            outside = (corners[:, 0] < 0) | (corners[:, 0] > w) | (corners[:, 1] < 0) | (corners[:, 1] > h)
+            if outside.any():
                 raise PipelineError(
-                    f"box {list(mark.box)} is not [x0, y0, x1, y1] with x1 > x0 and y1 > y0", path=f"{key}.box",
-                    fix="give the left, top, right and bottom edges in pixels (x to the right, y down)",
+                    f"{kind} corner {corners[outside][0].tolist()} lies outside the photo ({w}x{h} pixels: x in "
+                    f"0..{w}, y in 0..{h})", path=f"{key}.{where}",
+                    fix=f"give coordinates in pixels of {name} as it is in images/ (not of a downsampled copy)",
                 )
-            corners = np.array([[x0, y0], [x1, y1]], np.float64)
-        else:
-            corners = np.asarray(mark.polygon, np.float64)
-            if corners.ndim != 2 or corners.shape[1] != 2 or len(corners) < 3:
-                raise PipelineError(
-                    f"polygon of {len(mark.polygon)} point(s): a polygon needs at least 3 corners [x, y]",
-                    path=f"{key}.polygon", fix="give the outline's corners [[x, y], ...] in pixels of the photo",
-                )
-            x, y = corners[:, 0], corners[:, 1]
-            if abs(float(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))) < 1.0:
-                raise PipelineError(
-                    "the polygon has no area (its corners lie on a line)", path=f"{key}.polygon",
-                    fix="give the outline's corners in order around the see-through surface",
-                )
-        outside = (corners[:, 0] < 0) | (corners[:, 0] > w) | (corners[:, 1] < 0) | (corners[:, 1] > h)
-        if outside.any():
-            what = "box" if mark.box is not None else "polygon"
-            raise PipelineError(
-                f"{what} corner {corners[outside][0].tolist()} lies outside the photo ({w}x{h} pixels: x in 0..{w}, "
-                f"y in 0..{h})", path=f"{key}.{what}",
-                fix=f"give coordinates in pixels of {name} as it is in images/ (not of a downsampled copy)",
-            )
         checked[name] = mark
     return checked
+
+
+def mark_to_mask(mark: MaskMark, image: Path, settings: MaskPropagationConfig) -> tuple[np.ndarray, str]:
+    """The mask of one view's checked mark at the photo's size, the union of its shapes: a polygon filled, a
+    box cut out with GrabCut (:func:`rtsplat.masks_propagate.box_mask`), and the mark's source: its shapes'
+    kinds (``polygon``, ``box``, ``filled box`` where GrabCut found no object inside the box) joined by
+    commas, e.g. ``polygon, polygon``."""
+    from rtsplat.masks_propagate import box_mask, polygon_mask
+
+    header = read_header(image)
+    mask = np.zeros((header.height, header.width), bool)
+    pixels, kinds = None, []
+    for kind, _, shape in _shapes(mark):
+        if kind == "polygon":
+            mask |= polygon_mask(np.asarray(shape), header.width, header.height)
+            kinds.append("polygon")
+            continue
+        pixels = read_image(image) if pixels is None else pixels
+        cut, kept = box_mask(pixels, tuple(shape), settings)
+        mask |= cut
+        kinds.append("box" if kept else "filled box")
+    return mask, ", ".join(kinds)
 
 
 def marks_to_masks(marks: dict[str, MaskMark], images: list[Path],
                    cfg: MasksConfig) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """The masks of the config's marks (checked by :func:`check_marks`) at their photos' sizes and each mark's
-    source: ``polygon`` (filled), ``box`` (GrabCut's cut inside it, :func:`rtsplat.masks_propagate.box_mask`) or
-    ``filled box`` (GrabCut found no object inside it)."""
-    from rtsplat.masks_propagate import box_mask, polygon_mask
-
+    source (:func:`mark_to_mask`)."""
     by_name = {img.name: img for img in images}
     masks, sources = {}, {}
     for name, mark in marks.items():
-        if mark.polygon is not None:
-            header = read_header(by_name[name])
-            masks[name], sources[name] = polygon_mask(np.asarray(mark.polygon), header.width, header.height), "polygon"
-        else:
-            masks[name], cut = box_mask(read_image(by_name[name]), tuple(mark.box), cfg.propagate)
-            sources[name] = "box" if cut else "filled box"
+        masks[name], sources[name] = mark_to_mask(mark, by_name[name], cfg.propagate)
     return masks, sources
 
 

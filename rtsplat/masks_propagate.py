@@ -9,17 +9,18 @@ much smaller than the largest are dropped.
 
 Every other registered view gets the hull's silhouette: the hull's boundary voxels projected with the
 view's camera (COLMAP models with distortion through pycolmap), each splatted as a disc of half its
-projected size, holes filled (:func:`project_hull`). A visual hull holds the object, so the silhouette is
-the object's mask plus the excess of the few marked directions. OpenCV's GrabCut on the view's image,
-seeded with the silhouette as probable foreground, a ring around it as probable background and the rest
-as background, can cut that excess where the image shows an edge (:func:`refine_with_grabcut`); when it
-keeps less than ``min_kept`` of the silhouette the silhouette is kept. Whether GrabCut helps depends on
-how much the glass differs from what it shows: ``refine: auto`` decides per scene by leaving each marked
-view out in turn and comparing both with its given mask (:func:`choose_refinement`). A prompted segmenter
-(the ONNX SAM/SAM2 model of ``masks.onnx``) can take GrabCut's place: it gets the silhouette's bounding box
-as its box prompt (:func:`prompted_mask`).
+projected size, holes filled and the outline shrunk by the discs' median radius, so that the discs fill
+the gaps between voxel centres without growing the silhouette past them (:func:`project_hull`). A visual
+hull holds the object, so the silhouette is the object's mask plus the excess of the few marked directions.
+OpenCV's GrabCut on the view's image, seeded with the silhouette as probable foreground, a ring around it
+as probable background and the rest as background, can cut that excess where the image shows an edge
+(:func:`refine_with_grabcut`); when it keeps less than ``min_kept`` of the silhouette the silhouette is
+kept. Whether GrabCut helps depends on how much the glass differs from what it shows: ``refine: auto``
+decides per scene by leaving each marked view out in turn and comparing both with its given mask
+(:func:`choose_refinement`). A prompted segmenter (the ONNX SAM/SAM2 model of ``masks.onnx``) can take
+GrabCut's place: it gets the silhouette's bounding box as its box prompt (:func:`prompted_mask`).
 
-A marked view is a mask, or a box or polygon drawn on the photo: a polygon is filled
+A marked view is a mask, or boxes and polygons drawn on the photo (their union): a polygon is filled
 (:func:`polygon_mask`), a box is cut out with GrabCut started from the rectangle (:func:`box_mask`).
 
 Each mask's source is recorded: ``given`` (a marked view), ``propagated``, ``empty`` (the hull does not
@@ -261,8 +262,9 @@ def visual_hull(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
 
 def project_hull(hull: Hull, view: ColmapView, scale: float = 1.0, occluders: np.ndarray | None = None) -> np.ndarray:
     """The hull's silhouette in ``view`` (bool, the view's size times ``scale``): every boundary voxel
-    splatted as a disc of half its projected size, holes filled; with ``occluders`` (SfM points) the
-    pixels where those lie clearly in front of the hull's nearest voxel are left out."""
+    splatted as a disc of half its projected size, holes filled, then shrunk by the discs' median radius (the
+    discs close the gaps between voxel centres without growing the outline past them); with ``occluders``
+    (SfM points) the pixels where those lie clearly in front of the hull's nearest voxel are left out."""
     import cv2
     from scipy import ndimage
 
@@ -286,6 +288,10 @@ def project_hull(hull: Hull, view: ColmapView, scale: float = 1.0, occluders: np
         nearest = np.minimum(nearest, cv2.erode(canvas, kernel)[pad:-pad, pad:-pad])
     covered = np.isfinite(nearest)
     out = ndimage.binary_fill_holes(covered)
+    typical = int(np.median(radius[near]))
+    if typical > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * typical + 1, 2 * typical + 1))
+        out = cv2.erode(out.astype(np.uint8), kernel, borderType=cv2.BORDER_REPLICATE) > 0
     if occluders is None or not len(occluders) or not covered.any():
         return out
     nearest[out & ~covered] = np.median(nearest[covered])

@@ -65,6 +65,19 @@ def test_the_hull_silhouette_holds_the_object(scene):
         assert silhouette.sum() <= 2.0 * truth.sum()
 
 
+
+def test_the_splatted_voxels_do_not_grow_the_outline(scene):
+    # every view marked, voxels about 1.8 pixels across (discs of radius 1): the silhouette follows the
+    # true outline instead of standing a disc's radius beyond it, and still holds the object
+    model, rendered = scene
+    hull = visual_hull(model, [(v, rendered[v.name][1]) for v in model.views], MaskPropagationConfig(grid=32))
+    scores = []
+    for view in model.views:
+        silhouette, truth = project_hull(hull, view), rendered[view.name][1]
+        assert (silhouette & truth).sum() >= 0.98 * truth.sum()
+        scores.append(iou(silhouette, truth))
+    assert np.mean(scores) >= 0.9 and min(scores) >= 0.88
+
 def test_sfm_points_in_front_of_the_object_hide_it(scene):
     # a wall of points halfway between the camera and the object, over the upper half of the picture
     model, rendered = scene
@@ -252,14 +265,57 @@ def test_polygon_marks_are_taken_as_drawn(scene, tmp_path):
     assert _propagated_iou(tmp_path / "masks", rendered, summary) >= 0.85
 
 
+def _split_polygons(mask: np.ndarray) -> list[list[list[float]]]:
+    """The outlines of the left and right parts of ``mask`` cut at its middle column: two separate panes."""
+    import cv2
+
+    xs = np.nonzero(mask.any(0))[0]
+    cut = mask.copy()
+    middle = (xs.min() + xs.max()) // 2
+    cut[:, middle] = False
+    contours, _ = cv2.findContours(cut.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    assert len(contours) == 2
+    return [(c[:, 0] + 0.5).tolist() for c in contours]
+
+
+def test_several_shapes_per_view_are_unioned(scene, tmp_path):
+    # every marked view drawn as two panes (its mask split at the middle): the view's mask holds both
+    from rtsplat.masks import check_marks, marks_to_masks
+
+    model, rendered = scene
+    marked = suggest_views(model, 5)
+    scene_dir, sfm = _write_scene(tmp_path, model, rendered, [])
+    panes = {n: _split_polygons(rendered[n][1]) for n in marked}
+    both = {n: {"polygons": panes[n]} for n in marked}
+    both[marked[0]] = {"polygon": panes[marked[0]][0], "boxes": [_loose_box(rendered[marked[0]][1], 5)]}
+    images = sorted((scene_dir / "images").iterdir())
+    cfg = MasksConfig(propagate=FAST)
+    one_pane, _ = marks_to_masks(check_marks({n: {"polygon": panes[n][0]} for n in marked}, images), images, cfg)
+    summary = make_masks(scene_dir, tmp_path / "masks", MasksConfig(marks=both, propagate=FAST), progress=False,
+                         sfm_dir=sfm)
+    assert summary.mark_sources == {marked[0]: "polygon, box", **dict.fromkeys(marked[1:], "polygon, polygon")}
+    for name in marked:
+        drawn, truth = read_mask(tmp_path / "masks" / name), rendered[name][1]
+        assert one_pane[name].sum() < 0.7 * truth.sum()
+        assert iou(drawn, truth) >= 0.9  # both panes less the gap between them, or the box's cut
+        assert (drawn >= one_pane[name]).all()
+    assert _propagated_iou(tmp_path / "masks", rendered, summary) >= 0.85
+
+
 @pytest.mark.parametrize("mark, key, message", [
     ({"view_0001.png": {"box": [10, 10, 40, 40]}}, "masks.marks.view_0001.png", "closest names: view_001.png"),
     ({"view_001.png": {"box": [10, 10, 400, 40]}}, "masks.marks.view_001.png.box", "outside the photo (96x72"),
     ({"view_001.png": {"box": [40, 10, 10, 40]}}, "masks.marks.view_001.png.box", "x1 > x0"),
     ({"view_001.png": {"polygon": [[1, 1], [20, 1]]}}, "masks.marks.view_001.png.polygon", "too short"),
     ({"view_001.png": {"polygon": [[1, 1], [20, 1], [40, 1]]}}, "masks.marks.view_001.png.polygon", "no area"),
-    ({"view_001.png": {"box": [1, 1, 9, 9], "polygon": [[1, 1], [20, 1], [9, 9]]}},
-     "masks.marks.view_001.png", "not both"),
+    ({"view_001.png": {}}, "masks.marks.view_001.png", "a mark needs a box or a polygon"),
+    ({"view_001.png": {"polygons": [[[1, 1], [20, 1], [9, 9]], [[1, 1], [20, 1], [40, 1]]]}},
+     "masks.marks.view_001.png.polygons.1", "no area"),
+    ({"view_001.png": {"polygons": [[[1, 1], [20, 1], [9, 9]], [[1, 1], [20, 1]]]}},
+     "masks.marks.view_001.png.polygons.1", "too short"),
+    ({"view_001.png": {"polygon": [[1, 1], [20, 1], [9, 9]], "boxes": [[1, 1, 9, 9], [1, 1, 9, 99]]}},
+     "masks.marks.view_001.png.boxes.1", "outside the photo (96x72"),
+    ({"view_001.png": {"boxes": [[1, 1, 9, 9], [9, 1, 1, 9]]}}, "masks.marks.view_001.png.boxes.1", "x1 > x0"),
     ({"view_000.png": {"box": [1, 1, 9, 9]}}, "masks.marks.view_000.png", "has a mask file"),
 ])
 def test_bad_marks_name_the_key_and_write_nothing(scene, tmp_path, mark, key, message):

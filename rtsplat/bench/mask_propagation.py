@@ -12,12 +12,13 @@ how many views GrabCut refined, and the seconds taken (wall clock, noisy on a sh
 
     python -m rtsplat.bench.mask_propagation --data DATASET_SCENE --marked 5 --mark polygon --figure PNG
 
-The marked views are marked with their true masks (``--mark file``), or like the config's ``masks.marks`` with a
-polygon (``--mark polygon``: the outline of their true mask's largest part with corners 1.5 pixels off it at
-most, filled) or a box (``--mark box``: their true mask's bounding box grown by a tenth on each side, cut out
-with GrabCut). ``--figure`` draws instead one PNG: the first marked view with its mark, and the two unmarked
-views whose cameras are nearest to it with their propagated masks (outlined in green, IoU against the true
-mask in the corner); colours are kept at 5 bits per channel to keep the file small.
+The marked views are marked with their true masks (``--mark file``), or like the config's ``masks.marks`` with
+polygons (``--mark polygon``: one polygon per part of their true mask, its outline with corners 1.5 pixels off
+it at most, filled; parts under a pixel of area are left out) or a box (``--mark box``: their true mask's
+bounding box grown by a tenth on each side, cut out with GrabCut). ``--figure`` draws instead one PNG: the
+first marked view with its mark, and the two unmarked views whose cameras are nearest to it with their
+propagated masks (outlined in green, IoU against the true mask in the corner); colours are kept at 5 bits per
+channel to keep the file small.
 """
 
 from __future__ import annotations
@@ -60,12 +61,14 @@ def _label(panel: np.ndarray, text: str) -> None:
 
 
 def drawn_marks(marked: list[str], masks: dict[str, np.ndarray], by_name: dict[str, Path], mark: str,
-                settings: MaskPropagationConfig) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """The outline [N, 2] (pixels) and the marked mask of each marked view, marked with its true mask (``file``),
-    a polygon around its largest part or a box around it (see the module's description)."""
+                settings: MaskPropagationConfig) -> tuple[dict[str, list[np.ndarray]], dict[str, np.ndarray]]:
+    """The outlines (each [N, 2], pixels) and the marked mask of each marked view, marked with its true mask
+    (``file``), a polygon around each of its parts or a box around it (see the module's description); drawn
+    marks become masks like the config's (:func:`rtsplat.masks.mark_to_mask`)."""
     import cv2
 
-    from rtsplat.masks_propagate import box_mask, polygon_mask
+    from rtsplat.config import MaskMark
+    from rtsplat.masks import mark_to_mask
 
     outlines, drawn = {}, {}
     for name in marked:
@@ -76,16 +79,17 @@ def drawn_marks(marked: list[str], masks: dict[str, np.ndarray], by_name: dict[s
             gx, gy = 0.1 * (xs.max() + 1 - xs.min()), 0.1 * (ys.max() + 1 - ys.min())
             x0, y0 = max(0.0, xs.min() - gx), max(0.0, ys.min() - gy)
             x1, y1 = min(w, xs.max() + 1 + gx), min(h, ys.max() + 1 + gy)
-            outlines[name] = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
-            drawn[name], _ = box_mask(read_image(by_name[name]), (x0, y0, x1, y1), settings)
+            outlines[name] = [np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])]
+            drawn[name], _ = mark_to_mask(MaskMark(box=[x0, y0, x1, y1]), by_name[name], settings)
             continue
         contours, _ = cv2.findContours(true.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        largest = max(contours, key=cv2.contourArea)
         if mark == "polygon":
-            outlines[name] = cv2.approxPolyDP(largest, 1.5, True)[:, 0] + 0.5
-            drawn[name] = polygon_mask(outlines[name], w, h)
+            polygons = [cv2.approxPolyDP(c, 1.5, True)[:, 0] + 0.5 for c in contours]
+            outlines[name] = [p for p in polygons if len(p) >= 3 and cv2.contourArea(p.astype(np.float32)) >= 1.0]
+            drawn[name], _ = mark_to_mask(MaskMark(polygons=[p.tolist() for p in outlines[name]]), by_name[name],
+                                          settings)
         else:
-            outlines[name], drawn[name] = largest[:, 0] + 0.5, true
+            outlines[name], drawn[name] = [c[:, 0] + 0.5 for c in contours], true
     return outlines, drawn
 
 
@@ -101,8 +105,8 @@ def draw_figure(model, by_name: dict[str, Path], masks: dict[str, np.ndarray], n
                     key=lambda n: float(np.linalg.norm(model.view(n).center - first.center)))[:2]
     results = {r.name: r for r in propagate_masks(model, drawn, others, lambda n: read_image(by_name[n]), settings)}
     panel = _outlined(read_image(by_name[first.name]), drawn[first.name], (255, 0, 255))
-    corners = np.round(outlines[first.name] - 0.5).astype(np.int32).reshape(-1, 1, 2)
-    cv2.polylines(panel, [corners], True, (255, 220, 0), 1)
+    corners = [np.round(o - 0.5).astype(np.int32).reshape(-1, 1, 2) for o in outlines[first.name]]
+    cv2.polylines(panel, corners, True, (255, 220, 0), 1)
     _label(panel, f"{first.name}: marked ({mark})")
     panels = [panel]
     for name in others:
