@@ -63,6 +63,7 @@ from rtsplat.raster.binning import TileBins
 from rtsplat.raster.cpu_frame import bin_tiles, project_surfels
 from rtsplat.raster.numba_runtime import (
     SURFEL_CHUNK,
+    TILE_CHUNK,
     cache_dir,
     load_numba_module,
     numba_threads,
@@ -149,6 +150,7 @@ class _Composite(torch.autograd.Function):
             kernels.surfel_bounds_kernel(*arrays[:4], scalars[7], scalars[9], cut, boxes)
         with numba_threads():
             kernels.tile_entries_kernel(arrays[6], boxes, arrays[7], arrays[8], scalars[0], scalars[1], keep, n_keep)
+        with numba_threads(TILE_CHUNK):
             kernels.forward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, used)
         ctx.saved = (arrays, scalars, lists, out, stats, n_done, median_k)
         ctx.meta = (n, fc, width, height, M.dtype)
