@@ -16,7 +16,8 @@ inputs (projected by :mod:`rtsplat.raster.projection`):
   :func:`tile_entries_kernel` keeps per tile the entries whose box meets it (``keep``/``n_keep``),
   then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
   positions in that block list), and each pixel skips entries whose box it is outside of. The
-  parallel work unit is one 4x4 block.
+  parallel work unit of the forward is one tile (its blocks one after the other, so that the tile's
+  packed entries stay in cache), that of the backward one 4x4 block.
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
