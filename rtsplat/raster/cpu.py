@@ -44,6 +44,16 @@ Technology choice (measured on the 2-core development machine):
   later processes load them from the cache in ~1 s.
   ``python -m rtsplat.bench.raster``: forward+backward at 20k surfels, 160x120 takes 0.04-0.07x
   the reference's time (0.6-1.3 s against 20-31 s, 2 threads) and ~2% of its peak memory;
+* the forward composites the candidate pixels of an entry in a scalar loop. A variant that
+  composited all 16 slots of the block in one branch-free loop (selects instead of branches, the
+  block's state in one flat array, a polynomial ``exp`` in place of libm's so that LLVM vectorises
+  it) was 1.33x slower on the dome's 320x240 frame (one thread, alternating runs, minimum CPU
+  time 325 against 244 ms; loaded machine): a block has ~10 candidates of 16 slots on average, and
+  the state goes through memory on every entry. Where the forward's 263 ms go on that frame (one
+  thread, minimum CPU time, loaded machine, from variants that leave parts out): packing and block
+  lists ~16 ms, the reach tests of the 1.58M entry-block visits ~50 ms, the exact geometry of the
+  5.0M in-reach pairs ~35 ms, their compositing (libm's ``exp``, both weight sets, 15 feature
+  channels) ~160 ms;
 * a ``torch.utils.cpp_extension`` C++/OpenMP extension was the alternative: a one-function
   extension including ``torch/extension.h`` already took 64 s to build on this machine (ninja +
   g++ -O3), it needs a matching compiler at run time on every install, and the compiled kernel

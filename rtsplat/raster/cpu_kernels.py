@@ -466,7 +466,7 @@ def forward_kernel(
         ty0 = (t // tiles_x) * tile_size
         pk = np.empty((nk, PACK), dtype=np.float64)
         _pack_tile(M, centers, occ, opa, ids, boxes, rho_cut, keep, start, nk, pk)
-        lists = np.empty((nb2, nk), dtype=np.int64)
+        lists = np.empty((nb2, nk), dtype=np.int32)  # positions in the tile's kept entries
         counts = np.empty(nb2, dtype=np.int64)
         _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts)
         # per pixel: T_s T_v A dsum med dist S1 S2 c0 c1 c2 Av dvsum
