@@ -16,7 +16,8 @@ inputs (projected by :mod:`rtsplat.raster.projection`):
   :func:`tile_entries_kernel` keeps per tile the entries whose box meets it (``keep``/``n_keep``),
   then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
   positions in that block list), and each pixel skips entries whose box it is outside of. The
-  parallel work unit is one 4x4 block.
+  parallel work unit of the forward is one tile (its blocks one after the other, so that the tile's
+  packed entries stay in cache), that of the backward one 4x4 block.
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
@@ -238,6 +239,10 @@ def _block_pixels(tx0, ty0, tile_size, bx, by, width, height):
         pxs[p] = xi + 0.5
         pys[p] = yi + 0.5
         pixs[p] = yi * width + xi
+    for p in range(npx, NPIX):  # padding, for loops over all NPIX slots: a copy of a real pixel
+        pxs[p] = x0 + 0.5
+        pys[p] = y0 + 0.5
+        pixs[p] = -1
     return pxs, pys, pixs, npx
 
 
@@ -308,6 +313,108 @@ def _entry_geometry(M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass,
     return m0, m1, m2, m3, m4, m5, m6, m7, m8
 
 
+# Packed entry row of the forward (one per kept entry of a tile, in depth order, read sequentially by
+# the tile's blocks): box (4) | M (9) | centre (2) | rho cut-off | occupancy | occupancy x opacity.
+P_BOX, P_M, P_CENTER, P_CUT, P_OCC, P_OCC_OPA, PACK = 0, 4, 13, 15, 16, 17, 18
+
+
+@njit(inline="always", **_JIT)
+def _pack_tile(M, centers, occ, opa, ids, boxes, rho_cut, keep, start, nk, pk):
+    """Row j of ``pk``: the packed data of the tile's kept entry j (list position ``keep[start + j]``)."""
+    for j in range(nk):
+        i = ids[start + keep[start + j]]
+        for c in range(4):
+            pk[j, P_BOX + c] = boxes[i, c]
+        for c in range(9):
+            pk[j, P_M + c] = M[i, c]
+        pk[j, P_CENTER] = centers[i, 0]
+        pk[j, P_CENTER + 1] = centers[i, 1]
+        pk[j, P_CUT] = rho_cut[i]
+        o = occ[i]
+        pk[j, P_OCC] = o
+        pk[j, P_OCC_OPA] = o * opa[i]
+
+
+@njit(inline="always", **_JIT)
+def _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts):
+    """Per block b of the tile, ``lists[b, :counts[b]]``: the kept entries (rows of ``pk``, depth order
+    kept) whose box meets the block, in one pass over the tile's entries; the same lists (same box test)
+    as :func:`_block_list` builds block by block."""
+    for b in range(nbx * nbx):
+        counts[b] = 0
+    for j in range(nk):
+        b0 = pk[j, P_BOX]
+        b1 = pk[j, P_BOX + 1]
+        b2 = pk[j, P_BOX + 2]
+        b3 = pk[j, P_BOX + 3]
+        for by in range(nbx):
+            lo_y = ty0 + by * BLOCK + 0.5
+            hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
+            if not (b3 >= lo_y and b2 <= hi_y):
+                continue
+            for bx in range(nbx):
+                lo_x = tx0 + bx * BLOCK + 0.5
+                hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
+                if b1 >= lo_x and b0 <= hi_x:
+                    b = by * nbx + bx
+                    lists[b, counts[b]] = j
+                    counts[b] += 1
+
+
+REACH_MARGIN = 1e-12  # relative margin of :func:`_entry_reach`'s test over the exact rho test's rounding
+
+
+@njit(inline="always", **_JIT)
+def _entry_reach(pk, j, pxs, pys, lowpass, active, cand):
+    """``cand[p]``: pixel slot ``p`` of the block is active and may be in reach of packed entry ``j``;
+    returns how many are. A superset of the pixels the exact test (:func:`_eval_pair`, as in
+    :func:`_entry_geometry`) finds inside the box with rho within the cut-off, tested without division
+    in one loop over all NPIX slots that LLVM vectorises: with p = hx x hy of :func:`_eval_pair`,
+    rho_3d = (p0^2 + p1^2) / p2^2 <= cut is tested as p0^2 + p1^2 <= cut' p2^2 where cut' exceeds the
+    cut-off by ``REACH_MARGIN`` (relative), far more than the few ulp by which the two roundings differ;
+    rho_2d and the box are tested as the exact test does; edge-on planes (rho_3d = inf in the exact
+    test) are left to it. Tiny or non-finite terms and NaN fall to the candidate side. The exact
+    geometry is then computed only for the candidates, so the outputs are those of the exact test."""
+    b0 = pk[j, P_BOX]
+    b1 = pk[j, P_BOX + 1]
+    b2 = pk[j, P_BOX + 2]
+    b3 = pk[j, P_BOX + 3]
+    m0 = pk[j, P_M]
+    m1 = pk[j, P_M + 1]
+    m2 = pk[j, P_M + 2]
+    m3 = pk[j, P_M + 3]
+    m4 = pk[j, P_M + 4]
+    m5 = pk[j, P_M + 5]
+    m6 = pk[j, P_M + 6]
+    m7 = pk[j, P_M + 7]
+    m8 = pk[j, P_M + 8]
+    cx = pk[j, P_CENTER]
+    cy = pk[j, P_CENTER + 1]
+    cut = pk[j, P_CUT]
+    cut_hi = cut + abs(cut) * REACH_MARGIN
+    n = 0
+    for p in range(NPIX):
+        px = pxs[p]
+        py = pys[p]
+        hx0 = m0 - px * m6
+        hx1 = m1 - px * m7
+        hx2 = m2 - px * m8
+        hy0 = m3 - py * m6
+        hy1 = m4 - py * m7
+        hy2 = m5 - py * m8
+        p0, p1, p2 = _cross(hx0, hx1, hx2, hy0, hy1, hy2)
+        q2 = p2 * p2
+        plane_out = (p0 * p0 + p1 * p1 > cut_hi * q2) & (q2 > 1e-200)
+        dx = cx - px
+        dy = cy - py
+        rho2 = lowpass * (dx * dx + dy * dy)
+        out = (px < b0) | (px > b1) | (py < b2) | (py > b3) | ((rho2 > cut_hi) & plane_out)
+        c = active[p] & (not out)
+        cand[p] = c
+        n += c
+    return n
+
+
 @njit(parallel=True, **_JIT)
 def forward_kernel(
     M,
@@ -340,111 +447,155 @@ def forward_kernel(
     median_k,
     used,
 ):
-    """Composite every pixel front to back; one 4x4 block per work unit, entry by entry: the
-    geometry of an entry is evaluated for all pixels of the block in one branch-free loop, then
-    each pixel that is still traversing composites it."""
+    """Composite every pixel front to back; one tile per work unit. The tile's kept entries are packed
+    (:func:`_pack_tile`) and listed per 4x4 block (:func:`_tile_block_lists`); then block by block,
+    entry by entry: a division-free test over the block's pixels (:func:`_entry_reach`) skips the
+    entry when no pixel still traversing can be in its reach, else each candidate pixel gets the
+    exact geometry (:func:`_eval_pair`) and composites the entry if it is within reach."""
     n_tiles = tile_count.shape[0]
     fc = feats.shape[1]
     ndc_scale = far / (far - near)
     nbx = (tile_size + BLOCK - 1) // BLOCK
     nb2 = nbx * nbx
-    for unit in prange(n_tiles * nb2):
-        start, pxs, pys, pixs, npx, lst, n_scan = _unit_block(
-            unit, nbx, tiles_x, tile_size, width, height, tile_start, n_keep, keep, ids, boxes
-        )
-        if npx == 0:
+    for t in prange(n_tiles):
+        nk = n_keep[t]
+        if nk == 0:
             continue
-        rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b = _geometry_buffers()
+        start = tile_start[t]
+        tx0 = (t % tiles_x) * tile_size
+        ty0 = (t // tiles_x) * tile_size
+        pk = np.empty((nk, PACK), dtype=np.float64)
+        _pack_tile(M, centers, occ, opa, ids, boxes, rho_cut, keep, start, nk, pk)
+        lists = np.empty((nb2, nk), dtype=np.int32)  # positions in the tile's kept entries
+        counts = np.empty(nb2, dtype=np.int64)
+        _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts)
         # per pixel: T_s T_v A dsum med dist S1 S2 c0 c1 c2 Av dvsum
-        st = np.zeros((13, NPIX), dtype=np.float64)
-        medk_b = np.full(NPIX, -1, dtype=np.int64)
-        live = np.ones((2, NPIX), dtype=np.bool_)
-        running = np.ones(NPIX, dtype=np.bool_)
-        for p in range(npx):
-            st[0, p] = 1.0
-            st[1, p] = 1.0
-            n_done[pixs[p]] = n_scan
-        alive = npx
-        for j in range(n_scan):
-            if alive == 0:
-                break
-            k = lst[j]
-            i = ids[start + k]
-            _entry_geometry(M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
-                            rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b)
-            o = occ[i]
-            oo = o * opa[i]
-            entry_used = False
+        st = np.empty((13, NPIX), dtype=np.float64)
+        medk_b = np.empty(NPIX, dtype=np.int64)
+        live = np.empty((2, NPIX), dtype=np.bool_)
+        running = np.empty(NPIX, dtype=np.bool_)
+        cand = np.empty(NPIX, dtype=np.bool_)
+        for b in range(nb2):
+            by = b // nbx
+            bx = b - by * nbx
+            pxs, pys, pixs, npx = _block_pixels(tx0, ty0, tile_size, bx, by, width, height)
+            if npx == 0:
+                continue
+            n_scan = counts[b]
+            for p in range(NPIX):
+                for r in range(13):
+                    st[r, p] = 0.0
+                st[0, p] = 1.0
+                st[1, p] = 1.0
+                medk_b[p] = -1
+                live[0, p] = True
+                live[1, p] = True
+                running[p] = p < npx
             for p in range(npx):
-                if not ok_b[p] or not running[p]:
+                n_done[pixs[p]] = n_scan
+            alive = npx
+            for jj in range(n_scan):
+                if alive == 0:
+                    break
+                j = lists[b, jj]
+                if _entry_reach(pk, j, pxs, pys, lowpass, running, cand) == 0:
                     continue
+                k = keep[start + j]
+                i = ids[start + k]
+                b0 = pk[j, P_BOX]
+                b1 = pk[j, P_BOX + 1]
+                b2 = pk[j, P_BOX + 2]
+                b3 = pk[j, P_BOX + 3]
+                m0 = pk[j, P_M]
+                m1 = pk[j, P_M + 1]
+                m2 = pk[j, P_M + 2]
+                m3 = pk[j, P_M + 3]
+                m4 = pk[j, P_M + 4]
+                m5 = pk[j, P_M + 5]
+                m6 = pk[j, P_M + 6]
+                m7 = pk[j, P_M + 7]
+                m8 = pk[j, P_M + 8]
+                cx = pk[j, P_CENTER]
+                cy = pk[j, P_CENTER + 1]
+                cut = pk[j, P_CUT]
+                o = pk[j, P_OCC]
+                oo = pk[j, P_OCC_OPA]
+                entry_used = False
+                for p in range(npx):
+                    if not cand[p]:
+                        continue
+                    px = pxs[p]
+                    py = pys[p]
+                    z, rho, _, _, _, _, _ = _eval_pair(
+                        m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
+                    )
+                    if (px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near)):
+                        continue
+                    pix = pixs[p]
+                    gauss = math.exp(-0.5 * rho)
+                    a_s = o * gauss
+                    if a_s > alpha_max:
+                        a_s = alpha_max
+                    a_v = oo * gauss
+                    if a_v > alpha_max:
+                        a_v = alpha_max
+                    if live[0, p] and a_s >= alpha_min:
+                        T_s = st[0, p]
+                        t_next = T_s * (1.0 - a_s)
+                        if t_next < t_min:
+                            live[0, p] = False
+                        else:
+                            w = a_s * T_s
+                            for c in range(fc):
+                                out[pix, c] += w * feats[i, c]
+                            m = ndc_scale * (1.0 - near / z)
+                            A = st[2, p]
+                            S1 = st[6, p]
+                            S2 = st[7, p]
+                            st[5, p] += w * (m * m * A + S2 - 2.0 * m * S1)
+                            st[2, p] = A + w
+                            st[6, p] = S1 + w * m
+                            st[7, p] = S2 + w * m * m
+                            st[3, p] += w * z
+                            if T_s > 0.5:
+                                st[4, p] = z
+                                medk_b[p] = k
+                            st[0, p] = t_next
+                            entry_used = True
+                    if live[1, p] and a_v >= alpha_min:
+                        T_v = st[1, p]
+                        t_next = T_v * (1.0 - a_v)
+                        if t_next < t_min:
+                            live[1, p] = False
+                        else:
+                            w = a_v * T_v
+                            st[8, p] += w * colors[i, 0]
+                            st[9, p] += w * colors[i, 1]
+                            st[10, p] += w * colors[i, 2]
+                            st[11, p] += w
+                            st[12, p] += w * z
+                            st[1, p] = t_next
+                            entry_used = True
+                    if not live[0, p] and not live[1, p]:
+                        running[p] = False
+                        n_done[pix] = jj + 1
+                        alive -= 1
+                if entry_used and used[start + k] == 0:
+                    used[start + k] = 1
+            for p in range(npx):
                 pix = pixs[p]
-                z = z_b[p]
-                gauss = math.exp(-0.5 * rho_b[p])
-                a_s = o * gauss
-                if a_s > alpha_max:
-                    a_s = alpha_max
-                a_v = oo * gauss
-                if a_v > alpha_max:
-                    a_v = alpha_max
-                if live[0, p] and a_s >= alpha_min:
-                    T_s = st[0, p]
-                    t_next = T_s * (1.0 - a_s)
-                    if t_next < t_min:
-                        live[0, p] = False
-                    else:
-                        w = a_s * T_s
-                        for c in range(fc):
-                            out[pix, c] += w * feats[i, c]
-                        m = ndc_scale * (1.0 - near / z)
-                        A = st[2, p]
-                        S1 = st[6, p]
-                        S2 = st[7, p]
-                        st[5, p] += w * (m * m * A + S2 - 2.0 * m * S1)
-                        st[2, p] = A + w
-                        st[6, p] = S1 + w * m
-                        st[7, p] = S2 + w * m * m
-                        st[3, p] += w * z
-                        if T_s > 0.5:
-                            st[4, p] = z
-                            medk_b[p] = k
-                        st[0, p] = t_next
-                        entry_used = True
-                if live[1, p] and a_v >= alpha_min:
-                    T_v = st[1, p]
-                    t_next = T_v * (1.0 - a_v)
-                    if t_next < t_min:
-                        live[1, p] = False
-                    else:
-                        w = a_v * T_v
-                        st[8, p] += w * colors[i, 0]
-                        st[9, p] += w * colors[i, 1]
-                        st[10, p] += w * colors[i, 2]
-                        st[11, p] += w
-                        st[12, p] += w * z
-                        st[1, p] = t_next
-                        entry_used = True
-                if not live[0, p] and not live[1, p]:
-                    running[p] = False
-                    n_done[pix] = j + 1
-                    alive -= 1
-            if entry_used and used[start + k] == 0:  # read first: blocks of one tile share the flags
-                used[start + k] = 1
-        for p in range(npx):
-            pix = pixs[p]
-            median_k[pix] = medk_b[p]
-            out[pix, fc] = st[2, p]
-            out[pix, fc + 1] = st[3, p]
-            out[pix, fc + 2] = st[4, p]
-            out[pix, fc + 3] = st[5, p]
-            out[pix, fc + 4] = st[8, p]
-            out[pix, fc + 5] = st[9, p]
-            out[pix, fc + 6] = st[10, p]
-            out[pix, fc + 7] = st[11, p]
-            out[pix, fc + 8] = st[12, p]
-            stats[pix, 0] = st[6, p]
-            stats[pix, 1] = st[7, p]
-
+                median_k[pix] = medk_b[p]
+                out[pix, fc] = st[2, p]
+                out[pix, fc + 1] = st[3, p]
+                out[pix, fc + 2] = st[4, p]
+                out[pix, fc + 3] = st[5, p]
+                out[pix, fc + 4] = st[8, p]
+                out[pix, fc + 5] = st[9, p]
+                out[pix, fc + 6] = st[10, p]
+                out[pix, fc + 7] = st[11, p]
+                out[pix, fc + 8] = st[12, p]
+                stats[pix, 0] = st[6, p]
+                stats[pix, 1] = st[7, p]
 
 @njit(parallel=True, **_JIT)
 def backward_kernel(

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["CHUNK", "SURFEL_CHUNK", "cache_dir", "load_numba_module", "numba_threads", "to_float64_array"]
+__all__ = ["CHUNK", "SURFEL_CHUNK", "TILE_CHUNK", "cache_dir", "load_numba_module", "numba_threads", "to_float64_array"]
 
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
@@ -73,6 +73,7 @@ def load_numba_module(name: str):
 
 
 CHUNK = 4  # 4x4 pixel blocks per dynamic chunk of the parallel compositing kernels (uneven work)
+TILE_CHUNK = 1  # tiles per dynamic chunk of the forward compositing kernel (uneven work, ~1 ms a tile)
 SURFEL_CHUNK = 256  # surfels per dynamic chunk of the per-surfel kernels (even, cheap work: ~1 us per chunk saved)
 
 
