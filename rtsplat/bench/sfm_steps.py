@@ -43,6 +43,8 @@ def main(argv: list[str] | None = None) -> None:
                 decided = ("skipped" if refinement.get("skipped") else
                            ("kept" if refinement.get("kept") else ("not kept" if refinement else "off")))
                 before = refinement.get("mean_reprojection_error_before")
+                matched = refinement.get("matched_pairs")  # None: the attempt's matches reused
+                pairs = f", {matched} pairs matched" if matched is not None else ", the attempt's matches"
                 pose = ""
                 if s.pose_errors:  # the scene's sparse/0 holds reference cameras
                     pose = (f"; vs sparse/0: rotation {s.pose_errors['rotation_error_deg_mean']:.3f} deg "
@@ -51,7 +53,7 @@ def main(argv: list[str] | None = None) -> None:
                 print(f"{scene.name} {variant}: {s.seconds:.1f} s [{steps}] {s.registered}/{s.total} registered, "
                       f"{s.mean_reprojection_error:.3f} px, {s.num_points} points, track "
                       f"{s.mean_track_length or 0:.2f}; {s.matcher}: {s.matcher_reason}; refinement {decided}"
-                      + (f" (from {before:.3f} px, {refinement.get('matched_pairs')} pairs)" if before else "") + pose,
+                      + (f" (from {before:.3f} px{pairs})" if before else "") + pose,
                       flush=True)
 
 
