@@ -361,6 +361,14 @@ def _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts):
                     counts[b] += 1
 
 
+@njit(inline="always", **_JIT)
+def _packed_geometry(pk, j):
+    """Packed entry ``j``'s box (4), ray transform (9), projected centre (2) and rho cut-off."""
+    return (pk[j, P_BOX], pk[j, P_BOX + 1], pk[j, P_BOX + 2], pk[j, P_BOX + 3], pk[j, P_M], pk[j, P_M + 1],
+            pk[j, P_M + 2], pk[j, P_M + 3], pk[j, P_M + 4], pk[j, P_M + 5], pk[j, P_M + 6], pk[j, P_M + 7],
+            pk[j, P_M + 8], pk[j, P_CENTER], pk[j, P_CENTER + 1], pk[j, P_CUT])
+
+
 REACH_MARGIN = 1e-12  # relative margin of :func:`_entry_reach`'s test over the exact rho test's rounding
 
 
@@ -375,22 +383,7 @@ def _entry_reach(pk, j, pxs, pys, lowpass, active, cand):
     rho_2d and the box are tested as the exact test does; edge-on planes (rho_3d = inf in the exact
     test) are left to it. Tiny or non-finite terms and NaN fall to the candidate side. The exact
     geometry is then computed only for the candidates, so the outputs are those of the exact test."""
-    b0 = pk[j, P_BOX]
-    b1 = pk[j, P_BOX + 1]
-    b2 = pk[j, P_BOX + 2]
-    b3 = pk[j, P_BOX + 3]
-    m0 = pk[j, P_M]
-    m1 = pk[j, P_M + 1]
-    m2 = pk[j, P_M + 2]
-    m3 = pk[j, P_M + 3]
-    m4 = pk[j, P_M + 4]
-    m5 = pk[j, P_M + 5]
-    m6 = pk[j, P_M + 6]
-    m7 = pk[j, P_M + 7]
-    m8 = pk[j, P_M + 8]
-    cx = pk[j, P_CENTER]
-    cy = pk[j, P_CENTER + 1]
-    cut = pk[j, P_CUT]
+    b0, b1, b2, b3, m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, cut = _packed_geometry(pk, j)
     cut_hi = cut + abs(cut) * REACH_MARGIN
     n = 0
     for p in range(NPIX):
@@ -502,22 +495,7 @@ def forward_kernel(
                     continue
                 k = keep[start + j]
                 i = ids[start + k]
-                b0 = pk[j, P_BOX]
-                b1 = pk[j, P_BOX + 1]
-                b2 = pk[j, P_BOX + 2]
-                b3 = pk[j, P_BOX + 3]
-                m0 = pk[j, P_M]
-                m1 = pk[j, P_M + 1]
-                m2 = pk[j, P_M + 2]
-                m3 = pk[j, P_M + 3]
-                m4 = pk[j, P_M + 4]
-                m5 = pk[j, P_M + 5]
-                m6 = pk[j, P_M + 6]
-                m7 = pk[j, P_M + 7]
-                m8 = pk[j, P_M + 8]
-                cx = pk[j, P_CENTER]
-                cy = pk[j, P_CENTER + 1]
-                cut = pk[j, P_CUT]
+                b0, b1, b2, b3, m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, cut = _packed_geometry(pk, j)
                 o = pk[j, P_OCC]
                 oo = pk[j, P_OCC_OPA]
                 entry_used = False
