@@ -46,15 +46,18 @@ def _cross(a0, a1, a2, b0, b1, b2):
 
 
 @njit(inline="always", **_JIT)
+def _pixel_rows(m0, m1, m2, m3, m4, m5, m6, m7, m8, px, py):
+    """The two planes through pixel centre (px, py) in the surfel's (u, v, 1) frame: the rows x w - px w
+    and y w - py w of the ray transform (rows m0..m2, m3..m5, m6..m8), whose cross product gives the
+    ray-splat intersection (:func:`_eval_pair`)."""
+    return m0 - px * m6, m1 - px * m7, m2 - px * m8, m3 - py * m6, m4 - py * m7, m5 - py * m8
+
+
+@njit(inline="always", **_JIT)
 def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio):
     """Ray-splat intersection at pixel centre (px, py) of the surfel with ray transform rows
     (m0 m1 m2 | m3 m4 m5 | m6 m7 m8) and projected centre (cx, cy): reference semantics."""
-    hx0 = m0 - px * m6
-    hx1 = m1 - px * m7
-    hx2 = m2 - px * m8
-    hy0 = m3 - py * m6
-    hy1 = m4 - py * m7
-    hy2 = m5 - py * m8
+    hx0, hx1, hx2, hy0, hy1, hy2 = _pixel_rows(m0, m1, m2, m3, m4, m5, m6, m7, m8, px, py)
     p0, p1, p2 = _cross(hx0, hx1, hx2, hy0, hy1, hy2)
     plane_ok = abs(p2) > edge_on_ratio * max(abs(p0), abs(p1))
     if plane_ok:
@@ -389,12 +392,7 @@ def _entry_reach(pk, j, pxs, pys, lowpass, active, cand):
     for p in range(NPIX):
         px = pxs[p]
         py = pys[p]
-        hx0 = m0 - px * m6
-        hx1 = m1 - px * m7
-        hx2 = m2 - px * m8
-        hy0 = m3 - py * m6
-        hy1 = m4 - py * m7
-        hy2 = m5 - py * m8
+        hx0, hx1, hx2, hy0, hy1, hy2 = _pixel_rows(m0, m1, m2, m3, m4, m5, m6, m7, m8, px, py)
         p0, p1, p2 = _cross(hx0, hx1, hx2, hy0, hy1, hy2)
         q2 = p2 * p2
         plane_out = (p0 * p0 + p1 * p1 > cut_hi * q2) & (q2 > 1e-200)
@@ -757,12 +755,7 @@ def backward_kernel(
                         u = u_b[p]
                         v = v_b[p]
                         p2 = p2_b[p]
-                        hx0 = m0 - px * m6
-                        hx1 = m1 - px * m7
-                        hx2 = m2 - px * m8
-                        hy0 = m3 - py * m6
-                        hy1 = m4 - py * m7
-                        hy2 = m5 - py * m8
+                        hx0, hx1, hx2, hy0, hy1, hy2 = _pixel_rows(m0, m1, m2, m3, m4, m5, m6, m7, m8, px, py)
                         # z = u m6 + v m7 + m8 ; rho = u^2 + v^2
                         eg[G_M + 6] += g_z * u
                         eg[G_M + 7] += g_z * v
