@@ -324,7 +324,7 @@ class Trainer:
         stage = "volume" if background_phase else stage_at(it, cfg)
         sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
         background = torch.rand(3, generator=self.rng) if cfg.model.background == "random" else None
-        refine_planes = self.plane_refinement is not None and self.model.uses_near_reflection
+        refine_planes = self.plane_refinement is not None  # only made where near reflections are on
         result = self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
                                    backend=cfg.backend, sh_degree=sh_degree, background=background,
                                    mirror_planes=self.plane_refinement.planes() if refine_planes else None)
