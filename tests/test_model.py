@@ -169,6 +169,24 @@ def test_lookups_without_autograd_give_the_values_of_the_autograd_lookups():
     assert torch.equal(spec_ng, spec.detach()) and torch.equal(beta_ng, beta.detach())
 
 
+@pytest.mark.parametrize("channels,dtype", [(1, torch.float32), (4, torch.float32), (16, torch.float32),
+                                            (17, torch.float64)])
+def test_environment_lookup_without_autograd_gives_the_values_of_the_autograd_lookup(channels, dtype):
+    """The trilinear lookup writes its weighed taps one by one without autograd (the specular pass of
+    rtsplat render and the viewer): the same bits as the autograd lookup, for any channel count."""
+    env = EnvironmentMap(channels=channels, height=16, width=32, levels=4).to(dtype)
+    g = torch.Generator().manual_seed(channels)
+    with torch.no_grad():
+        env.features.copy_(torch.randn(env.features.shape, generator=g, dtype=dtype))
+    dirs = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g, dtype=dtype), dim=-1)
+    rough = torch.rand(3000, generator=g, dtype=dtype)
+    with_grad = env(dirs, rough)
+    assert with_grad.requires_grad
+    with torch.inference_mode():
+        without = env(dirs, rough)
+    assert torch.equal(without, with_grad.detach()) and without.abs().max() > 0
+
+
 def test_environment_map_without_autograd_reuses_its_texel_table_until_the_map_changes():
     env = EnvironmentMap(channels=4, height=8, width=16, levels=3)
     g = torch.Generator().manual_seed(9)
@@ -339,9 +357,9 @@ def test_composite_equation_with_every_branch_on():
 class _EveryShadedPixel(RTModel):
     """Runs the specular network on every shaded pixel, region of interest or not."""
 
-    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None, near=None):
+    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None, near=None, rays=None):
         return super()._specular(camera, normal, g, alpha_safe, alpha_safe > self.settings.shade_alpha_threshold,
-                                 every_pixel, near)
+                                 every_pixel, near, rays)
 
 
 def test_specular_runs_only_where_the_roi_weighs_and_the_image_and_gradients_do_not_change():
