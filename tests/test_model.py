@@ -12,6 +12,7 @@ from raster_scenes import small_camera
 from rtsplat.camera import camera_from_fov
 from rtsplat.model import rtmodel, specular
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
+from rtsplat.model.background import BackgroundMap
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
 from rtsplat.model.rtmodel import ActiveEffects, RTModel
@@ -185,6 +186,28 @@ def test_environment_lookup_without_autograd_gives_the_values_of_the_autograd_lo
     with torch.inference_mode():
         without = env(dirs, rough)
     assert torch.equal(without, with_grad.detach()) and without.abs().max() > 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_background_lookup_without_autograd_gives_the_values_of_the_autograd_lookup(dtype):
+    """Without autograd the learned background's levels are sampled by a numba kernel (rtsplat render, the
+    viewer): the same bits as the torch lookup, at the poles and the longitude seam too, and after an edit
+    of a level (its texel table is rebuilt)."""
+    background = BackgroundMap(16, 32, 3).to(dtype)
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        for level in background.maps:
+            level.copy_(torch.randn(level.shape, generator=g, dtype=dtype))
+    dirs = torch.nn.functional.normalize(torch.randn(4000, 3, generator=g, dtype=dtype), dim=-1)
+    dirs[:4] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [-1.0, -1e-7, 0.0]], dtype=dtype)
+    for edit in range(2):
+        with_grad = background(dirs)
+        assert with_grad.requires_grad
+        with torch.inference_mode():
+            without = background(dirs)
+        assert torch.equal(without, with_grad.detach()) and without.std() > 0.01
+        with torch.no_grad():
+            background.maps[1].mul_(-2.0)
 
 
 def test_environment_map_without_autograd_reuses_its_texel_table_until_the_map_changes():
