@@ -32,7 +32,6 @@ class BackgroundMap(nn.Module):
         sizes = [(max(height >> i, 2), max(width >> i, 2)) for i in range(levels)]
         # logit 0 everywhere: mid grey until the training views say otherwise
         self.maps = nn.ParameterList([nn.Parameter(torch.zeros(1, 3, h, w)) for h, w in sizes])
-        self._table_cache: tuple | None = None  # (key, tables) of the lookup without autograd
 
     def forward(self, directions: Tensor) -> Tensor:
         """RGB [..., 3] in (0, 1) at unit ``directions`` [..., 3]. Without autograd, on CPU tensors of one
@@ -65,11 +64,10 @@ class BackgroundMap(nn.Module):
 
     def _texel_table(self) -> tuple[Tensor, Tensor, Tensor]:
         """Every level's texels [3, T] (channel-major, level after level), each level's first column [L] and
-        its (H, W) [L, 2]; kept and reused until a level changes (its version counter moves)."""
-        key = tuple((level._version, level.data_ptr()) for level in self.maps)
-        if self._table_cache is None or self._table_cache[0] != key:
-            columns = [level.detach()[0].reshape(3, -1) for level in self.maps]
-            starts = torch.tensor([0] + [c.shape[1] for c in columns[:-1]], dtype=torch.int64).cumsum(0)
-            sizes = torch.tensor([list(level.shape[-2:]) for level in self.maps], dtype=self.maps[0].dtype)
-            self._table_cache = (key, (torch.cat(columns, 1).contiguous(), starts, sizes))
-        return self._table_cache[1]
+        its (H, W) [L, 2]. Built on every call (~2 MB for the default levels, well under a millisecond):
+        a kept table could not tell when the maps change, since the trainer's fused Adam step updates them
+        without moving their version counters."""
+        columns = [level.detach()[0].reshape(3, -1) for level in self.maps]
+        starts = torch.tensor([0] + [c.shape[1] for c in columns[:-1]], dtype=torch.int64).cumsum(0)
+        sizes = torch.tensor([list(level.shape[-2:]) for level in self.maps], dtype=self.maps[0].dtype)
+        return torch.cat(columns, 1).contiguous(), starts, sizes
