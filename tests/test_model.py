@@ -11,8 +11,8 @@ from raster_scenes import small_camera
 
 from rtsplat.camera import camera_from_fov
 from rtsplat.model import rtmodel, specular
-from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.background import BackgroundMap
+from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
 from rtsplat.model.rtmodel import ActiveEffects, RTModel
@@ -201,7 +201,7 @@ def test_background_lookup_without_autograd_gives_the_values_of_the_autograd_loo
     dirs = torch.nn.functional.normalize(torch.randn(4000, 3, generator=g, dtype=dtype), dim=-1)
     dirs[:4] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [-1.0, -1e-7, 0.0]], dtype=dtype)
     optimizer = torch.optim.Adam(background.parameters(), lr=0.5, fused=True)
-    for step in range(3):
+    for _ in range(3):
         with_grad = background(dirs)
         assert with_grad.requires_grad
         with torch.inference_mode():

@@ -325,9 +325,10 @@ class RTModel(nn.Module):
                   every_pixel: bool | None = None, near: tuple[Tensor, Tensor] | None = None,
                   rays: Tensor | None = None):
         """C_spec and beta where ``shade`` (the render passes the shaded pixels with region-of-interest
-        weight); 0 and 1 elsewhere (``rays``: the camera's :func:`image_ray_directions`, when known). On the CPU only those pixels are evaluated; on other devices
-        (``every_pixel``, default: not on the CPU) every pixel is and the others are masked out, because
-        gathering them would wait for the device to count them. Both give the same values and gradients."""
+        weight); 0 and 1 elsewhere (``rays``: the camera's :func:`image_ray_directions`, when known). On the
+        CPU only those pixels are evaluated; on other devices (``every_pixel``, default: not on the CPU) every
+        pixel is and the others are masked out, because gathering them would wait for the device to count
+        them. Both give the same values and gradients."""
         H, W = normal.shape[:2]
         flat = shade.reshape(-1)
         every_pixel = normal.device.type != "cpu" if every_pixel is None else every_pixel
