@@ -11,6 +11,7 @@ from raster_scenes import small_camera
 
 from rtsplat.camera import camera_from_fov
 from rtsplat.model import rtmodel, specular
+from rtsplat.model.background import BackgroundMap
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
@@ -167,6 +168,48 @@ def test_lookups_without_autograd_give_the_values_of_the_autograd_lookups():
     with torch.no_grad():
         spec_ng, beta_ng = net(*inputs)
     assert torch.equal(spec_ng, spec.detach()) and torch.equal(beta_ng, beta.detach())
+
+
+@pytest.mark.parametrize("channels,dtype", [(1, torch.float32), (4, torch.float32), (16, torch.float32),
+                                            (17, torch.float64)])
+def test_environment_lookup_without_autograd_gives_the_values_of_the_autograd_lookup(channels, dtype):
+    """The trilinear lookup writes its weighed taps one by one without autograd (the specular pass of
+    rtsplat render and the viewer): the same bits as the autograd lookup, for any channel count."""
+    env = EnvironmentMap(channels=channels, height=16, width=32, levels=4).to(dtype)
+    g = torch.Generator().manual_seed(channels)
+    with torch.no_grad():
+        env.features.copy_(torch.randn(env.features.shape, generator=g, dtype=dtype))
+    dirs = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g, dtype=dtype), dim=-1)
+    rough = torch.rand(3000, generator=g, dtype=dtype)
+    with_grad = env(dirs, rough)
+    assert with_grad.requires_grad
+    with torch.inference_mode():
+        without = env(dirs, rough)
+    assert torch.equal(without, with_grad.detach()) and without.abs().max() > 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_background_lookup_without_autograd_gives_the_values_of_the_autograd_lookup(dtype):
+    """Without autograd the learned background's levels are sampled by a numba kernel (rtsplat render, the
+    viewer): the same bits as the torch lookup, at the poles and the longitude seam too, and after a
+    fused Adam step changed the levels (which leaves their version counters where they were)."""
+    background = BackgroundMap(16, 32, 3).to(dtype)
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        for level in background.maps:
+            level.copy_(torch.randn(level.shape, generator=g, dtype=dtype))
+    dirs = torch.nn.functional.normalize(torch.randn(4000, 3, generator=g, dtype=dtype), dim=-1)
+    dirs[:4] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [-1.0, -1e-7, 0.0]], dtype=dtype)
+    optimizer = torch.optim.Adam(background.parameters(), lr=0.5, fused=True)
+    for _ in range(3):
+        with_grad = background(dirs)
+        assert with_grad.requires_grad
+        with torch.inference_mode():
+            without = background(dirs)
+        assert torch.equal(without, with_grad.detach()) and without.std() > 0.01
+        optimizer.zero_grad()
+        (with_grad * torch.linspace(-1, 1, with_grad.numel(), dtype=dtype).reshape(with_grad.shape)).sum().backward()
+        optimizer.step()
 
 
 def test_environment_map_without_autograd_reuses_its_texel_table_until_the_map_changes():
@@ -339,9 +382,9 @@ def test_composite_equation_with_every_branch_on():
 class _EveryShadedPixel(RTModel):
     """Runs the specular network on every shaded pixel, region of interest or not."""
 
-    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None, near=None):
+    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None, near=None, rays=None):
         return super()._specular(camera, normal, g, alpha_safe, alpha_safe > self.settings.shade_alpha_threshold,
-                                 every_pixel, near)
+                                 every_pixel, near, rays)
 
 
 def test_specular_runs_only_where_the_roi_weighs_and_the_image_and_gradients_do_not_change():

@@ -160,6 +160,36 @@ def test_layered_sphere_float32_terminates_early_like_the_reference(n):
     assert (fast.alpha <= 1.0 - t_min + 1e-6).all() and (fast.volume_alpha <= 1.0 - t_min + 1e-6).all()
 
 
+def test_spread_order_deals_every_tile_once_and_each_half_of_it_from_all_over_the_image():
+    kernels = cpu_backend._load_kernels()
+    for n in (1, 2, 3, 7, 8, 300, 301, 1200):
+        order = kernels.spread_order(n).tolist()
+        assert sorted(order) == list(range(n)), n
+        # the workqueue layer gives the first of 2 threads the first n // 2 iterations: the even tiles
+        assert all(t % 2 == 0 for t in order[: n // 2]), n
+    order = kernels.spread_order(300).tolist()
+    for quarter in range(4):  # and with 4 threads one residue modulo 4 each
+        assert {t % 4 for t in order[75 * quarter: 75 * (quarter + 1)]} == {[0, 2, 1, 3][quarter]}
+
+
+def test_forward_outputs_are_the_same_bits_with_one_thread_or_two():
+    camera = small_camera(70, 45, torch.float32)  # 5 x 3 tiles of 16 px, visited in the spread order
+    surfels = random_surfels(400, 21, dtype=torch.float32, n_features=6)
+    threads = torch.get_num_threads()
+    outputs = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            with torch.no_grad():
+                outputs.append(rasterize(surfels, camera, backend="cpu"))
+    finally:
+        torch.set_num_threads(threads)
+    one, two = outputs
+    for name in IMAGE_OUTPUTS:
+        assert torch.equal(getattr(one, name), getattr(two, name)), name
+    assert torch.equal(one.visible, two.visible) and one.alpha.max() > 0.5
+
+
 def test_custom_settings_reach_the_kernels():
     settings = RasterSettings(
         tile_size=8, near=2.5, far=20.0, alpha_max=0.9, alpha_min=0.02, transmittance_min=0.05, lowpass_inv_var=0.5

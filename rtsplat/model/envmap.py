@@ -143,12 +143,25 @@ class EnvironmentMap(nn.Module):
             count = self.levels
         table = self._lookup_table(count)
         info = self.level_layout.to(u.device)  # [levels, 3]: first row, H, W
+        stacked = torch.is_grad_enabled()
         rows, weights = [], []
         for idx, blend in ((lo_i, 1 - frac), (hi_i, frac * has_hi)):
             at = info[idx]
-            r, w = self._bilinear_taps(u, v, at[:, 0], at[:, 1].to(u.dtype), at[:, 2].to(u.dtype))
-            rows.append(r)
-            weights.append(w * blend[:, None])
+            r, w = self._bilinear_taps(u, v, at[:, 0], at[:, 1].to(u.dtype), at[:, 2].to(u.dtype), stacked=stacked)
+            if stacked:
+                rows.append(r)
+                weights.append(w * blend[:, None])
+            else:
+                rows.extend(r)
+                weights.extend(w_k * blend for w_k in w)
+        if not stacked:
+            # without autograd each weighed tap is written straight into its slot of the [M, 8, C] tensor
+            # (no [M*8] index or weight tensors, no separate product tensor): the same products and the
+            # same sum, so the same bits, in about 3/4 of the time
+            taps = table.new_empty(u.shape[0], len(rows), table.shape[1])
+            for k, (r, w) in enumerate(zip(rows, weights, strict=True)):
+                torch.mul(table.index_select(0, r), w.to(table.dtype)[:, None], out=taps[:, k])
+            return taps.sum(1).to(directions.dtype)
         rows = torch.cat(rows, 1)  # [M, 8]
         weights = torch.cat(weights, 1).to(table.dtype)
         taps = table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, table.shape[1])  # [M, 8, C]

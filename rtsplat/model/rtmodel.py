@@ -137,7 +137,7 @@ class RTModel(nn.Module):
     def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None, index: Tensor | None = None) -> Surfels:
         """The rasterizer's inputs for ``camera``: every surfel, or those of ``index`` [n] (in its order)."""
         p = self.surfels
-        take = (lambda t: t) if index is None else (lambda t: t[index])  # noqa: E731
+        take = (lambda t: t) if index is None else (lambda t: t.index_select(0, index))  # noqa: E731
         means, sh = take(p.means), take(p.sh)
         directions = F.normalize(means - camera.center, dim=-1)
         colors = eval_sh(sh, directions, p.sh_degree if sh_degree is None else sh_degree)
@@ -195,7 +195,10 @@ class RTModel(nn.Module):
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
         out = rasterize(self.rasterizer_surfels(camera, sh_degree, index), camera, raster_settings, backend=backend)
-        far = self.background_radiance(camera) if background is None else background.to(out.color)
+        # without autograd the background and the specular pass share one set of pixel rays [H,W,3]; with it
+        # each builds its own, so a camera pose's gradient sums its two parts as it always has
+        rays = None if torch.is_grad_enabled() else image_ray_directions(camera)
+        far = self.background_radiance(camera, rays) if background is None else background.to(out.color)
         c_trans = out.color + (1.0 - out.volume_alpha) * far
         alpha = out.alpha
         alpha_safe = alpha.clamp_min(1e-6)
@@ -225,7 +228,7 @@ class RTModel(nn.Module):
                     near_color, near_alpha = clear * near_color, clear * near_alpha
                 near = (near_color, near_alpha)
                 layers.update(near=near_color, near_alpha=near_alpha)
-            spec, beta = self._specular(camera, normal, g, alpha_safe, wanted, near=near)
+            spec, beta = self._specular(camera, normal, g, alpha_safe, wanted, near=near, rays=rays)
             if not self.ablations.attenuation:
                 beta = torch.ones_like(beta)
             layers.update(spec=spec, beta=beta)
@@ -252,10 +255,11 @@ class RTModel(nn.Module):
         layers["reflection"] = reflection_layer(spec, roi, shade)
         return RenderResult(color, out, layers, index)
 
-    def background_radiance(self, camera: Camera) -> Tensor:
-        """``B(d)`` for every pixel ray [H,W,3] (learned), or a constant colour [3] (black, white, random)."""
+    def background_radiance(self, camera: Camera, rays: Tensor | None = None) -> Tensor:
+        """``B(d)`` for every pixel ray [H,W,3] (learned), or a constant colour [3] (black, white, random).
+        ``rays``: the camera's :func:`image_ray_directions`, when the caller has them."""
         if self.background_map is not None:
-            return self.background_map(image_ray_directions(camera))
+            return self.background_map(image_ray_directions(camera) if rays is None else rays)
         value = 1.0 if self.settings.background == "white" else 0.0
         return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
@@ -318,11 +322,13 @@ class RTModel(nn.Module):
         return color, alpha
 
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
-                  every_pixel: bool | None = None, near: tuple[Tensor, Tensor] | None = None):
+                  every_pixel: bool | None = None, near: tuple[Tensor, Tensor] | None = None,
+                  rays: Tensor | None = None):
         """C_spec and beta where ``shade`` (the render passes the shaded pixels with region-of-interest
-        weight); 0 and 1 elsewhere. On the CPU only those pixels are evaluated; on other devices
-        (``every_pixel``, default: not on the CPU) every pixel is and the others are masked out, because
-        gathering them would wait for the device to count them. Both give the same values and gradients."""
+        weight); 0 and 1 elsewhere (``rays``: the camera's :func:`image_ray_directions`, when known). On the
+        CPU only those pixels are evaluated; on other devices (``every_pixel``, default: not on the CPU) every
+        pixel is and the others are masked out, because gathering them would wait for the device to count
+        them. Both give the same values and gradients."""
         H, W = normal.shape[:2]
         flat = shade.reshape(-1)
         every_pixel = normal.device.type != "cpu" if every_pixel is None else every_pixel
@@ -332,7 +338,7 @@ class RTModel(nn.Module):
         if idx is not None and idx.numel() == 0:
             return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
         rows = (lambda t: t) if idx is None else (lambda t: t[idx])  # noqa: E731
-        incident = rows(image_ray_directions(camera).reshape(-1, 3))
+        incident = rows((image_ray_directions(camera) if rays is None else rays).reshape(-1, 3))
         n = rows(normal.reshape(-1, 3))
         incidence = (incident * n).sum(-1, keepdim=True)  # cosine of the angle of incidence (signed)
         cos_incidence = incidence.abs().clamp(0, 1)

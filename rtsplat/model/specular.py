@@ -92,11 +92,27 @@ class SpecularNetwork(nn.Module):
         return self.mlp(x) if torch.is_grad_enabled() else self._mlp_inference(x)
 
     def _mlp_inference(self, x: Tensor) -> Tensor:
-        """``self.mlp(x)`` without autograd: slices of :data:`INFERENCE_ROWS` rows, the ReLUs in place."""
+        """``self.mlp(x)`` without autograd: slices of :data:`INFERENCE_ROWS` rows, the ReLUs in place.
+        Outside autocast each layer writes into one buffer per layer that every slice reuses (and the
+        last layer straight into the output): ``torch.addmm`` with ``out``, the product ``nn.Linear``
+        computes, so the same bits; a fresh [rows, width] result per layer and slice cost about as
+        much as the product itself on a CPU (new pages for every 4 MB result)."""
         first, _, hidden, _, last = self.mlp
         out = x.new_empty(x.shape[0], last.out_features)
+        fused = not torch.is_autocast_enabled(x.device.type) and all(
+            layer.bias is not None and layer.weight.dtype == x.dtype for layer in (first, hidden, last))
+        if fused:
+            slice_rows = min(INFERENCE_ROWS, x.shape[0])
+            h1 = x.new_empty(slice_rows, first.out_features)
+            h2 = x.new_empty(slice_rows, hidden.out_features)
         for rows, result in zip(x.split(INFERENCE_ROWS), out.split(INFERENCE_ROWS), strict=True):
-            h = first(rows).relu_()
-            h = hidden(h).relu_()
-            result.copy_(last(h))
+            if fused:
+                k = rows.shape[0]
+                h = torch.addmm(first.bias, rows, first.weight.T, out=h1[:k]).relu_()
+                h = torch.addmm(hidden.bias, h, hidden.weight.T, out=h2[:k]).relu_()
+                torch.addmm(last.bias, h, last.weight.T, out=result)
+            else:
+                h = first(rows).relu_()
+                h = hidden(h).relu_()
+                result.copy_(last(h))
         return out

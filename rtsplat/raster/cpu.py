@@ -28,13 +28,19 @@ The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
   sums (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); the gradient of one entry is summed over
   the block's pixels, then added to one per-surfel buffer per thread (threads never race), and the
   buffers are summed over threads at the end;
-* all kernels run in parallel (numba ``prange``: the forward over tiles in dynamic chunks of
+* all kernels run in parallel (numba ``prange``: the forward over tiles in chunks of
   ``TILE_CHUNK``, the backward over 4x4 pixel blocks in chunks of ``CHUNK``, over surfels in chunks
   of ``SURFEL_CHUNK``, all in :mod:`rtsplat.raster.numba_runtime`,
   with the compile cache and the kernel-module import: with chunks of 4, scheduling cost the
   per-surfel kernels more than their work), with as many threads as ``torch.get_num_threads()``; all arithmetic is
   float64 (per-surfel inputs of any float dtype are converted; the image gradient is read as
   float32 or float64 as it comes; outputs and gradients are returned in the input dtype).
+  numba's ``workqueue`` threading layer (the one :mod:`rtsplat.raster.numba_runtime` picks) does not
+  hand out chunks on demand: it splits a loop's chunks into one contiguous run per thread. So the
+  forward visits the tiles in a spread order (:func:`~rtsplat.raster.cpu_kernels.spread_order`:
+  with 2 threads one takes the even tiles, the other the odd ones) instead of row by row, where the
+  thread with the lower half of the dome's 320x240 frame had 60-64% of the work; each tile writes only
+  its own pixels, so the outputs do not depend on the order;
 
 Technology choice (measured on the 2-core development machine):
 

@@ -406,6 +406,29 @@ def _entry_reach(pk, j, pxs, pys, lowpass, active, cand):
     return n
 
 
+@njit(**_JIT)
+def spread_order(n):
+    """A permutation of ``range(n)`` in which every run of consecutive positions is spread over the
+    whole range: the bit-reversal order (of the next power of two, values >= n left out). Positions
+    0, 1, 2, 3 ... of it are 0, n'/2, n'/4, 3n'/4 ... (n' = that power of two), so the first half of
+    it holds the even values and the second the odd ones, each quarter one residue modulo 4, and
+    so on. A parallel loop over it hands each thread (or each contiguous run of iterations) work
+    from all over the image."""
+    bits = 0
+    while (1 << bits) < n:
+        bits += 1
+    order = np.empty(n, dtype=np.int64)
+    m = 0
+    for u in range(1 << bits):
+        r = 0
+        for b in range(bits):
+            r |= ((u >> b) & 1) << (bits - 1 - b)
+        if r < n:
+            order[m] = r
+            m += 1
+    return order
+
+
 @njit(parallel=True, **_JIT)
 def forward_kernel(
     M,
@@ -448,7 +471,12 @@ def forward_kernel(
     ndc_scale = far / (far - near)
     nbx = (tile_size + BLOCK - 1) // BLOCK
     nb2 = nbx * nbx
-    for t in prange(n_tiles):
+    # tiles in spread order: numba's workqueue threading layer splits a parallel loop's iterations
+    # into one contiguous run per thread, whatever the chunk size, and tiles of one image region cost
+    # alike (on the dome's 320x240 frame the top half of the tiles took 36% of the work)
+    order = spread_order(n_tiles)
+    for u in prange(n_tiles):
+        t = order[u]
         nk = n_keep[t]
         if nk == 0:
             continue
