@@ -382,6 +382,58 @@ def test_hull_surface_lies_on_the_ball_and_faces_out():
     assert np.median((offset / distance[:, None] * normals).sum(1)) > 0.9
 
 
+def test_propagated_masks_carve_the_hull_without_their_outline():
+    """Masks that hold the ball's silhouette with a pixel to spare (what a propagated mask is: the
+    marked views' hull projected holds the silhouette) carve a hull that stands off the ball all round;
+    carved through :func:`hull_mask` it lies where the drawn masks' hull does. Drawn masks are carved
+    as they are."""
+    from scipy import ndimage
+
+    from rtsplat.prepare import hull_mask, hull_surface, mask_hull
+    from rtsplat.scene import Roi
+
+    center, radius = np.array([0.3, -0.2, 0.5]), 0.4
+    drawn = _ball_views(center, radius, n_views=24, size=(128, 96))
+    assert all(np.array_equal(hull_mask(m, False), m) for _, _, m in drawn)
+    wide = [(K, w2c, ndimage.binary_dilation(m)) for K, w2c, m in drawn]
+    bound = Roi(center.tolist(), 1.0, "masks")
+
+    def surface_distance(views):
+        hull = mask_hull(views, bound, grid=64)
+        points, _ = hull_surface(hull, views)
+        return np.linalg.norm(points - center, axis=1) - radius, hull.step
+
+    true_offset, step = surface_distance(drawn)
+    wide_offset, _ = surface_distance(wide)
+    carved_offset, _ = surface_distance([(K, w2c, hull_mask(m, True)) for K, w2c, m in wide])
+    assert np.median(wide_offset) > np.median(true_offset) + 0.5 * step  # the outline's pixel, carved in
+    assert abs(np.median(carved_offset) - np.median(true_offset)) < 0.5 * step
+    assert carved_offset.min() > true_offset.min() - step  # no deeper into the ball than the drawn hull
+
+
+def test_prepare_carves_with_the_propagated_masks_eroded_and_writes_them_whole(base, tmp_path):
+    """A masks folder whose summary records propagated masks (``mask_sources``): the region of interest is
+    carved from them less their outline, so it is smaller than from the same masks drawn; the prepared
+    masks are the masks as given either way."""
+    import json
+    import shutil
+
+    root, views, sfm, masks = base
+    prepare_scene(root / "scene", sfm, tmp_path / "drawn", PrepareConfig(downsample=1), masks, progress=False)
+    propagated = tmp_path / "masks"
+    shutil.copytree(masks, propagated)
+    summary = json.loads((propagated / "summary.json").read_text())
+    names = sorted(Path(v.name).name for v in views)
+    summary["mask_sources"] = {n: "given" if i % 3 == 0 else "propagated" for i, n in enumerate(names)}
+    (propagated / "summary.json").write_text(json.dumps(summary))
+    prepare_scene(root / "scene", sfm, tmp_path / "prop", PrepareConfig(downsample=1), propagated, progress=False)
+    a, b = PreparedScene.load(tmp_path / "drawn"), PreparedScene.load(tmp_path / "prop")
+    assert a.roi.source == b.roi.source == "masks"
+    assert b.roi.radius < a.roi.radius
+    for cam in a.cameras:
+        assert np.array_equal(a.load_mask(cam.name), b.load_mask(cam.name))
+
+
 @pytest.mark.parametrize("shape", ["ball", "tilted cube"])
 def test_hull_surface_normals_follow_the_true_surface_not_the_grids_staircase(shape):
     """The normals of a voxelised ball and of a tilted cube's faces, from hull_surface, against the
