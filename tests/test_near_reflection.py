@@ -18,7 +18,6 @@ from rtsplat.model.mirror import (
     mirror_points,
     mirror_quats,
     move_planes,
-    on_planes,
     plane_assignment,
     plane_parts,
     rotate_vectors,
@@ -139,32 +138,6 @@ def test_fit_planes_on_a_sphere_explains_too_little_to_switch_near_reflections_o
     box_points, box_normals = _box_points()
     planes, shares = fit_planes(box_points, box_normals, tolerance=0.02)
     assert decide_near_planes("auto", planes.shape[0], float(shares.sum()))[0]
-
-
-def test_on_planes_holds_the_points_within_a_planes_thickness_and_inside_its_rectangle():
-    # the plane z = 0 with a 2 x 1 rectangle (half extents 1, 0.5 along x, y) and thickness 0.1
-    plane = torch.tensor([[0.0, 0, 1, 0, 0, 0, 1, 0, 0, 1.0, 0.5, 0.1]])
-    points = torch.tensor([[0.9, 0.4, 0.05], [0.9, 0.4, -0.09], [0.0, 0.0, 0.11], [1.1, 0.0, 0.0], [0.0, 0.6, 0.0]])
-    assert on_planes(points, plane).tolist() == [True, True, False, False, False]
-    assert not on_planes(points, plane[:0]).any()
-
-
-def test_the_share_that_switches_near_reflections_on_counts_the_points_on_the_planes_whatever_their_normals():
-    # a box's faces whose points carry normals up to 40 degrees off the face (a fit's rendered normals
-    # are that noisy on glass): the fit finds the six faces, though fewer than half of the points have a
-    # normal within its 15 degrees, and every point lies on a face's rectangle
-    points, normals = _box_points(noise=0.003)
-    g = torch.Generator().manual_seed(3)
-    tilt = torch.randn(normals.shape, generator=g, dtype=torch.float64)
-    tilt = torch.nn.functional.normalize(tilt - (tilt * normals).sum(-1, keepdim=True) * normals, dim=-1)
-    angle = torch.rand(normals.shape[0], 1, generator=g, dtype=torch.float64) * math.radians(40)
-    noisy = torch.cos(angle) * normals + torch.sin(angle) * tilt
-    planes, shares = fit_planes(points, noisy, tolerance=0.02)
-    assert planes.shape[0] == 6
-    assert float(shares.sum()) < 0.5
-    share = float(on_planes(points, planes).double().mean())
-    assert share > 0.95
-    assert decide_near_planes("auto", planes.shape[0], share)[0]
 
 
 def test_decide_near_planes_modes():

@@ -43,21 +43,6 @@ def plane_parts(planes: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor,
     return n, c, u, torch.cross(n, u, dim=-1), half, thickness
 
 
-def on_planes(points: Tensor, planes: Tensor) -> Tensor:
-    """Which points [N,3] lie on one of the plane rectangles [K,12] [N] (bool): within a plane's thickness
-    of it and inside its rectangle. Holds [CHUNK, K] values at a time whatever the number of points."""
-    if planes.shape[0] == 0:
-        return torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
-    n, c, u, v, half, thickness = (part.to(points.dtype) for part in plane_parts(planes))
-    found = []
-    for chunk in points.split(CHUNK):
-        local = chunk[:, None, :] - c  # [chunk, K, 3]
-        inside = (((local * n).sum(-1).abs() <= thickness) & ((local * u).sum(-1).abs() <= half[:, 0])
-                  & ((local * v).sum(-1).abs() <= half[:, 1]))
-        found.append(inside.any(-1))
-    return torch.cat(found)
-
-
 def signed_distance(points: Tensor, normal: Tensor, centre: Tensor) -> Tensor:
     """``n . (x - c)`` for points [...,3] and one plane's unit normal and centre [3]."""
     return ((points - centre) * normal).sum(-1)

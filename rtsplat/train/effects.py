@@ -9,11 +9,10 @@ from rtsplat.model.mirror import first_plane_hit
 from rtsplat.model.rtmodel import ActiveEffects
 from rtsplat.train_config import Effects
 
-# near_reflection auto: the share of the see-through points that must lie on the glass planes (within a
-# plane's thickness, inside its rectangle). The points are the surface depth of the masked pixels, which is
-# the glass where the glass is opaque enough to hold it and what lies behind the glass elsewhere: half-way
-# through the demo training 98% of the cabin's points lie on its planes (71-73% on its four panes alone),
-# 57% of the film's and 8% of the dome's (docs/fidelity.md, 23 and 27)
+# near_reflection auto: the share of the see-through points that planes must explain. The points are the
+# surface depth of the masked pixels, which is the glass where the glass is opaque enough to hold it and
+# what lies behind the glass elsewhere (about a third of them on the cabin half-way through its demo
+# training): planar panes explain 40-50% there, curved glass (the dome) 0-5% (docs/fidelity.md, 23)
 PLANAR_SHARE = 0.3
 BEHIND_SHARE = 0.5  # a plane is glass when this share of the rays meeting it first see something behind it
 
@@ -68,13 +67,13 @@ def decide_effects(
 
 
 def decide_near_planes(mode: str, planes: int, planar_share: float | None) -> tuple[bool, str]:
-    """Whether the fitted mirror planes are used: ``auto`` iff at least :data:`PLANAR_SHARE` of the glass's
-    points lie on them (planar glass, whose reflections of the scene a mirrored render places; curved
+    """Whether the fitted mirror planes are used: ``auto`` iff they explain at least :data:`PLANAR_SHARE`
+    of the glass's points (planar glass, whose reflections of the scene a mirrored render places; curved
     glass such as a dome reflects mostly what is far, and the environment lookup stays alone); ``on``
     iff any plane was found."""
     if planar_share is None or planes == 0:
         return False, "no plane found in the see-through surface"
-    share = f"{planar_share:.0%} of the see-through surface lies on {planes} plane(s)"
+    share = f"{planes} plane(s) explain {planar_share:.0%} of the see-through surface"
     if mode == "on":
         return True, f"config: on; {share}"
     if planar_share >= PLANAR_SHARE:

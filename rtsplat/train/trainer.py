@@ -41,7 +41,7 @@ from rtsplat.io.atomic import write_errors, write_text_atomic
 from rtsplat.model.appearance import apply_appearance, fit_appearance, remove_appearance
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
-from rtsplat.model.mirror import empty_planes, fit_planes, on_planes
+from rtsplat.model.mirror import empty_planes, fit_planes
 from rtsplat.model.rtmodel import GBUFFER, RTModel, image_ray_directions
 from rtsplat.model.surfels import (
     PARAMETERS,
@@ -215,10 +215,6 @@ class Trainer:
         The points are the surface depth of every training view's transparent pixels (mask > 0.5,
         surface alpha > 0.5) with the surface normals, at most ``MAX_PLANE_POINTS`` of them; the planes
         are fitted within ``PLANE_TOLERANCE`` of the points' diagonal (:func:`rtsplat.model.mirror.fit_planes`).
-        The planar share that decides is the share of the points on the glass planes (within a plane's
-        thickness, inside its rectangle: :func:`rtsplat.model.mirror.on_planes`), whatever their normals:
-        the fit's inliers must also have a normal within 15 degrees of the plane, and at the fit the glass's
-        rendered normals are too noisy for that count to measure how planar the glass is.
         A plane is glass only if the scene seen through it lies behind it: of the pixels whose ray meets
         the plane first, most must have their volume depth (what the transmission shows) beyond the plane
         by more than its thickness (:data:`BEHIND_SHARE`). A floor seen through a dome, or the floor inside
@@ -250,11 +246,10 @@ class Trainer:
         planes, share, dropped = empty_planes(), None, 0
         if xyz.shape[0] >= 16:
             diagonal = float((xyz.max(0).values - xyz.min(0).values).norm())
-            planes, _ = fit_planes(xyz, normal, tolerance=PLANE_TOLERANCE * diagonal, seed=self.cfg.seed)
+            planes, shares = fit_planes(xyz, normal, tolerance=PLANE_TOLERANCE * diagonal, seed=self.cfg.seed)
             glass = see_through_planes(planes, rays)
             dropped = int((~glass).sum())
-            planes = planes[glass]
-            share = float(on_planes(xyz, planes).double().mean())
+            planes, share = planes[glass], float(shares[glass].sum())
         use, why = decide_near_planes(self.cfg.effects.near_reflection, planes.shape[0], share)
         if dropped:
             why += f" ({dropped} plane(s) with nothing behind them left out)"
