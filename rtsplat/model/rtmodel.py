@@ -195,9 +195,7 @@ class RTModel(nn.Module):
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
         out = rasterize(self.rasterizer_surfels(camera, sh_degree, index), camera, raster_settings, backend=backend)
-        # without autograd the background and the specular pass share one set of pixel rays [H,W,3]; with it
-        # each builds its own, so a camera pose's gradient sums its two parts as it always has
-        rays = None if torch.is_grad_enabled() else image_ray_directions(camera)
+        rays = image_ray_directions(camera)  # [H,W,3], shared by the background and the specular pass
         far = self.background_radiance(camera, rays) if background is None else background.to(out.color)
         c_trans = out.color + (1.0 - out.volume_alpha) * far
         alpha = out.alpha
