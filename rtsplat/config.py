@@ -171,11 +171,12 @@ class MaskPropagationConfig:
     """Masks carried from a few marked views to the others through the SfM cameras (masks.source: propagate)."""
 
     grid: int = _f(128, help="voxels along the longest side of the marked object's box (visual hull)", minimum=16)
-    refine: Literal["auto", "grabcut", "onnx", "none"] = _f(
-        "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; onnx: segmented with "
+    refine: Literal["auto", "grabcut", "watershed", "onnx", "none"] = _f(
+        "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; watershed: its "
+        "outline moved to the image's strongest edges within snap_band (OpenCV watershed); onnx: segmented with "
         "the masks.onnx model, prompted by the projected hull's box; none: kept as projected; auto: onnx when "
-        "masks.onnx.model is set, else whichever of grabcut and none matches the marked masks better when each "
-        "marked view is left out in turn"
+        "masks.onnx.model is set, else whichever of grabcut, watershed and none matches the marked masks best "
+        "when each marked view is left out in turn"
     )
     grabcut_iterations: int = _f(4, help="GrabCut iterations", minimum=1)
     ring: float = _f(
@@ -183,14 +184,18 @@ class MaskPropagationConfig:
         exclusiveMinimum=0.0,
     )
     min_kept: float = _f(
-        0.5, help="a GrabCut result keeping less than this fraction of the projected hull is dropped for the "
-        "projection (glass that looks like what is behind it)", minimum=0.0, maximum=1.0,
+        0.5, help="a GrabCut or watershed result keeping less than this fraction of the projected hull is dropped "
+        "for the projection (glass that looks like what is behind it)", minimum=0.0, maximum=1.0,
+    )
+    snap_band: float = _f(
+        0.02, help="watershed: how far inside the projected hull's outline the edge is looked for, as a fraction "
+        "of its size (at least one pixel)", exclusiveMinimum=0.0, maximum=0.5,
     )
     occlusion: bool = _f(
         True, help="SfM points in front of the marked object hide it: they keep a marked view from carving what "
         "they hide, and leave it out of the propagated masks"
     )
-    work_size: int = _f(1024, help="longest image side the projection and GrabCut work at", minimum=64)
+    work_size: int = _f(1024, help="longest image side the projection and its refinement work at", minimum=64)
     min_part: float = _f(
         0.05, help="hull parts smaller than this fraction of the largest part are dropped", minimum=0.0, maximum=1.0
     )

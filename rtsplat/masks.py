@@ -82,7 +82,7 @@ class MasksSummary:
     mask_sources: dict[str, str] = field(default_factory=dict)  # propagate: per photo given | propagated | empty
     # | unregistered (rtsplat.masks_propagate.PropagatedMask.source)
     refined: list[str] = field(default_factory=list)  # propagate: photos whose propagated mask was refined
-    refinement: str = ""  # propagate: what refined them, grabcut | onnx (<model kind>)
+    refinement: str = ""  # propagate: what refined them, grabcut | watershed | onnx (<model kind>)
     scene_dir: str = ""  # the dataset scene they were made for (for messages)
     images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
     photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
@@ -652,7 +652,7 @@ class Propagation:
     sources: dict[str, str]
     mark_sources: dict[str, str]
     refined: list[str]
-    refinement: str  # what refined them: grabcut | onnx (<model kind>); empty when none was
+    refinement: str  # what refined them: grabcut | watershed | onnx (<model kind>); empty when none was
     polarity: str
     polarity_reason: str
 
@@ -717,7 +717,7 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
         header = read_header(by_name[name])
         return header.width, header.height
 
-    segment, refinement = None, "grabcut"
+    segment, refinement = None, ""
     if cfg.propagate.refine == "onnx" or (cfg.propagate.refine == "auto" and cfg.onnx.model):
         segmenter = OnnxSegmenter(cfg.onnx, boxes_per_image=True)
         threshold = _logit(cfg.threshold)
@@ -736,6 +736,7 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
         sources[result.name] = result.source
         if result.refined:
             refined.append(result.name)
+            refinement = refinement or result.refinement
     return Propagation(coverage, sources, dict(sorted(mark_sources.items())), refined, refinement if refined else "",
                        polarity, reason)
 

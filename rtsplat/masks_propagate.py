@@ -11,14 +11,17 @@ Every other registered view gets the hull's silhouette: the hull's boundary voxe
 view's camera (COLMAP models with distortion through pycolmap), each splatted as a disc of half its
 projected size, holes filled and the outline shrunk by the discs' median radius, so that the discs fill
 the gaps between voxel centres without growing the silhouette past them (:func:`project_hull`). A visual
-hull holds the object, so the silhouette is the object's mask plus the excess of the few marked directions.
-OpenCV's GrabCut on the view's image, seeded with the silhouette as probable foreground, a ring around it
-as probable background and the rest as background, can cut that excess where the image shows an edge
-(:func:`refine_with_grabcut`); when it keeps less than ``min_kept`` of the silhouette the silhouette is
-kept. Whether GrabCut helps depends on how much the glass differs from what it shows: ``refine: auto``
-decides per scene by leaving each marked view out in turn and comparing both with its given mask
+hull holds the object, so the silhouette is the object's mask plus the excess of the few marked directions,
+and its outline errs outwards by a pixel or two. Two refinements on the view's image can cut some of it:
+OpenCV's GrabCut, seeded with the silhouette as probable foreground, a ring around it as probable background
+and the rest as background, where the object's colours differ from the background's
+(:func:`refine_with_grabcut`; when it keeps less than ``min_kept`` of the silhouette the silhouette is kept);
+and OpenCV's watershed, which moves the outline to the image's strongest edges within a narrow band
+(``snap_band``), where the glass has a frame or an edge (:func:`snap_to_edges`). Which helps depends on how
+much the glass differs from what it shows: ``refine: auto`` decides per scene by leaving each marked view
+out in turn and comparing the projection and both refinements with its given mask
 (:func:`choose_refinement`). A prompted segmenter (the ONNX SAM/SAM2 model of ``masks.onnx``) can take
-GrabCut's place: it gets the silhouette's bounding box as its box prompt (:func:`prompted_mask`).
+their place: it gets the silhouette's bounding box as its box prompt (:func:`prompted_mask`).
 
 A marked view is a mask, or boxes and polygons drawn on the photo (their union): a polygon is filled
 (:func:`polygon_mask`), a box is cut out with GrabCut started from the rectangle (:func:`box_mask`).
@@ -48,7 +51,11 @@ class PropagatedMask:
     name: str
     mask: np.ndarray  # bool [H, W] at the photo's size
     source: str  # "given" | "propagated" | "empty" | "unregistered"
-    refined: bool = False  # propagated and GrabCut's result kept
+    refinement: str = ""  # propagated and refined: what refined it (grabcut | watershed | onnx); empty: the projection
+
+    @property
+    def refined(self) -> bool:
+        return bool(self.refinement)
 
 
 @dataclass
@@ -348,6 +355,46 @@ def refine_with_grabcut(image: np.ndarray, silhouette: np.ndarray,
     return cut
 
 
+def snap_to_edges(image: np.ndarray, silhouette: np.ndarray, settings: MaskPropagationConfig) -> np.ndarray | None:
+    """``silhouette``'s outline moved to the strongest edges of ``image`` (float RGB [H, W, 3]) within a narrow
+    band: OpenCV's watershed floods the image's colour gradient from two seeds, the silhouette eroded by
+    ``snap_band`` of its size (the object) and everything beyond it dilated by one pixel (not the object), and
+    each band pixel joins the seed it is reached from first (holes in the silhouette, where SfM points hide
+    the object, seed the outside too). None when the eroded silhouette is empty (a
+    silhouette thinner than the band) or the result keeps less than ``min_kept`` of it."""
+    import cv2
+
+    area = int(silhouette.sum())
+    if area < 16:
+        return None
+    ys, xs = np.nonzero(silhouette)
+    size = max(ys.max() - ys.min(), xs.max() - xs.min()) + 1
+    band = max(1, int(round(settings.snap_band * size)))
+    h, w = silhouette.shape
+    # a crop with room for outside seeds beyond the one-pixel frame that cv2.watershed sets aside as lines
+    y0, y1 = max(0, ys.min() - 4), min(h, ys.max() + 5)
+    x0, x1 = max(0, xs.min() - 4), min(w, xs.max() + 5)
+    crop = silhouette[y0:y1, x0:x1].astype(np.uint8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
+    inside = cv2.erode(crop, kernel) > 0  # beyond the image counts as inside: its edge is no outline
+    outside = ~(cv2.dilate(crop, np.ones((3, 3), np.uint8)) > 0)
+    if not inside.any() or not outside.any():
+        return None
+    seeds = np.zeros(crop.shape, np.int32)
+    seeds[outside] = 1
+    seeds[inside] = 2
+    pixels = np.ascontiguousarray((np.clip(image[y0:y1, x0:x1, :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    cv2.watershed(pixels, seeds)  # labels the band 1 or 2, the lines between basins -1
+    cut = np.zeros_like(silhouette)
+    cut[y0:y1, x0:x1] = seeds == 2
+    if cut.sum() < settings.min_kept * area:
+        return None
+    return cut
+
+
+REFINERS = {"grabcut": refine_with_grabcut, "watershed": snap_to_edges}
+
+
 def polygon_mask(points: np.ndarray, width: int, height: int) -> np.ndarray:
     """The inside of a polygon (corners [N, 2] in pixels with the image's corner at (0, 0), x to the right, y down)
     as a bool [height, width] mask; pixels its outline touches count as inside."""
@@ -441,12 +488,13 @@ def propagate_masks(
             yield PropagatedMask(name, np.zeros((view.height, view.width), bool), "empty")
             continue
         refined = None
-        if refine == "grabcut":
-            refined = refine_with_grabcut(_work_image(read_image, view, silhouette.shape), silhouette, settings)
+        if refine in REFINERS:
+            refined = REFINERS[refine](_work_image(read_image, view, silhouette.shape), silhouette, settings)
         elif refine == "onnx":
             refined = prompted_mask(segment, read_image(name), silhouette, scale)
         mask = silhouette if refined is None else refined
-        yield PropagatedMask(name, _resize_mask(mask, view.width, view.height), "propagated", refined is not None)
+        yield PropagatedMask(name, _resize_mask(mask, view.width, view.height), "propagated",
+                             "" if refined is None else refine)
 
 
 def silhouette_box(silhouette: np.ndarray, scale: float = 1.0) -> tuple[float, float, float, float]:
@@ -486,10 +534,11 @@ def _work_image(read_image: Callable[[str], np.ndarray], view: ColmapView, shape
 
 def choose_refinement(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
                       read_image: Callable[[str], np.ndarray], settings: MaskPropagationConfig) -> str:
-    """``grabcut`` or ``none``, whichever matches the marked masks better when each marked view in turn is
-    left out of the hull and its mask is propagated from the others (mean IoU; ties keep the projection).
-    The hull of one view fewer is looser, which favours GrabCut slightly."""
-    scores = {"grabcut": [], "none": []}
+    """``grabcut``, ``watershed`` or ``none``, whichever matches the marked masks best when each marked view in
+    turn is left out of the hull and its mask is propagated from the others (mean IoU; ties keep the
+    projection, then the order of :data:`REFINERS`). The hull of one view fewer is looser, which favours the
+    refinements slightly."""
+    scores = {"none": [], **{refine: [] for refine in REFINERS}}
     for k, (view, mask) in enumerate(marked):
         others = marked[:k] + marked[k + 1:]
         try:
@@ -501,12 +550,15 @@ def choose_refinement(model: ColmapModel, marked: list[tuple[ColmapView, np.ndar
         if not silhouette.any():
             continue
         truth = _resize_mask(mask, *silhouette.shape[::-1])
-        cut = refine_with_grabcut(_work_image(read_image, view, silhouette.shape), silhouette, settings)
+        image = _work_image(read_image, view, silhouette.shape)
         scores["none"].append(_iou(silhouette, truth))
-        scores["grabcut"].append(_iou(silhouette if cut is None else cut, truth))
+        for refine, refiner in REFINERS.items():
+            cut = refiner(image, silhouette, settings)
+            scores[refine].append(_iou(silhouette if cut is None else cut, truth))
     if not scores["none"]:
         return "none"
-    return "grabcut" if np.mean(scores["grabcut"]) > np.mean(scores["none"]) else "none"
+    means = {refine: float(np.mean(values)) for refine, values in scores.items()}
+    return max(means, key=lambda refine: (means[refine], refine == "none"))
 
 
 def check_marked(model: ColmapModel, marked: dict[str, np.ndarray], source: str = "") -> None:

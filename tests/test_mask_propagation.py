@@ -16,7 +16,14 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.colmap import ColmapImage, ColmapPoints, ColmapView, write_sparse_model
 from rtsplat.io.images import read_mask, write_mask, write_png
 from rtsplat.masks import make_masks
-from rtsplat.masks_propagate import check_marked, project_hull, propagate_masks, suggest_views, visual_hull
+from rtsplat.masks_propagate import (
+    check_marked,
+    project_hull,
+    propagate_masks,
+    snap_to_edges,
+    suggest_views,
+    visual_hull,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from masks_scene import look_at, render, ring_model  # noqa: E402
@@ -41,7 +48,7 @@ def _propagate(model, rendered, marked, refine):
     return list(propagate_masks(model, {n: rendered[n][1] for n in marked}, names, lambda n: rendered[n][0], cfg))
 
 
-@pytest.mark.parametrize("refine", ["none", "auto"])
+@pytest.mark.parametrize("refine", ["none", "auto", "watershed"])
 def test_masks_from_five_marked_views_match_the_true_masks(scene, refine):
     model, rendered = scene
     marked = suggest_views(model, 5)
@@ -52,6 +59,39 @@ def test_masks_from_five_marked_views_match_the_true_masks(scene, refine):
     assert all(r.source == "given" for r in results if r.name in marked)
     assert np.mean(scores) >= 0.85
     assert min(scores) >= 0.7
+
+
+def _pane_on_texture(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A 120x160 photo: a tinted pane over a blotchy background (noise blurred over about 4 pixels), and the
+    pane's mask."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    image = ndimage.gaussian_filter(rng.random((120, 160, 3)), (4, 4, 0))
+    image = 0.2 + 0.6 * (image - image.min()) / (image.max() - image.min())
+    truth = np.zeros((120, 160), bool)
+    truth[30:90, 40:125] = True
+    image[truth] = 0.5 * image[truth] + 0.4 * np.array([0.2, 0.6, 0.9])
+    return image, truth
+
+
+def test_watershed_moves_a_loose_outline_to_the_panes_edge():
+    import cv2
+
+    image, truth = _pane_on_texture()
+    loose = cv2.dilate(truth.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # two pixels too wide all round
+    snapped = snap_to_edges(image, loose, MaskPropagationConfig())
+    assert snapped is not None
+    assert iou(snapped, truth) > 0.97 > iou(loose, truth)
+    assert not (snapped & ~(cv2.dilate(loose.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)).any()
+
+
+def test_watershed_keeps_the_projection_where_it_cannot_snap():
+    image, truth = _pane_on_texture()
+    line = np.zeros_like(truth)
+    line[60:62, 20:140] = True  # thinner than the band: no inside seed
+    assert snap_to_edges(image, line, MaskPropagationConfig()) is None
+    assert snap_to_edges(image, np.ones_like(truth), MaskPropagationConfig()) is None  # no outside seed
 
 
 def test_the_hull_silhouette_holds_the_object(scene):

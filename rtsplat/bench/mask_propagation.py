@@ -8,7 +8,7 @@
 ``--marked`` the views to mark are chosen like the stage suggests them (farthest-point sampling over the
 camera centres, :func:`rtsplat.masks_propagate.suggest_views`); the other views' propagated masks are
 compared with their true masks: mean and worst-view IoU (a view whose two masks are both empty counts 1),
-how many views GrabCut refined, and the seconds taken (wall clock, noisy on a shared machine).
+how many views were refined and by what, and the seconds taken (wall clock, noisy on a shared machine).
 
     python -m rtsplat.bench.mask_propagation --data DATASET_SCENE --marked 5 --mark polygon --figure PNG
 
@@ -24,6 +24,7 @@ channel to keep the file small.
 from __future__ import annotations
 
 import argparse
+import collections
 import time
 from pathlib import Path
 
@@ -126,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, required=True, help="dataset scene with images/ and transparent_masks/")
     parser.add_argument("--model", type=Path, help="COLMAP model (default: the scene's sparse/0)")
     parser.add_argument("--marked", default="3,5,8", help="numbers of marked views, comma-separated")
-    parser.add_argument("--refine", default="auto,grabcut,none", help="refinements to compare, comma-separated")
+    parser.add_argument("--refine", default="auto,grabcut,watershed,none",
+                        help="refinements to compare, comma-separated")
     parser.add_argument("--grid", type=int, default=MaskPropagationConfig.grid)
     parser.add_argument("--no-occlusion", action="store_true", help="SfM points do not hide the object")
     parser.add_argument("--figure", type=Path, help="write a PNG of a view marked with a box and two propagated "
@@ -151,17 +153,18 @@ def main(argv: list[str] | None = None) -> int:
             marked = suggest_views(model, count)
             settings = MaskPropagationConfig(grid=args.grid, refine=refine, occlusion=not args.no_occlusion)
             start = time.perf_counter()
-            scores, refined = {}, 0
+            scores, refined = {}, collections.Counter()
             _, drawn = drawn_marks(marked, masks, by_name, args.mark, settings)
             for out in propagate_masks(model, drawn, names, lambda n: read_image(by_name[n]), settings):
                 if out.source != "given":
                     scores[out.name] = iou(out.mask, masks[out.name])
-                    refined += out.refined
+                    refined[out.refinement or "none"] += 1
             seconds = time.perf_counter() - start
             worst = min(scores, key=scores.get)
             mean = float(np.mean(list(scores.values())))
             print(f"refine={refine:8s} marked={count} ({', '.join(marked)}): mean IoU {mean:.3f}, worst "
-                  f"{scores[worst]:.3f} ({worst}), {refined}/{len(scores)} refined with GrabCut, {seconds:.1f} s")
+                  f"{scores[worst]:.3f} ({worst}), {len(scores) - refined['none']}/{len(scores)} refined "
+                  f"({', '.join(f'{k} {n}' for k, n in sorted(refined.items()) if k != 'none') or 'none'}), {seconds:.1f} s")
     return 0
 
 
