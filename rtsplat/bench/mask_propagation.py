@@ -162,9 +162,10 @@ def main(argv: list[str] | None = None) -> int:
             seconds = time.perf_counter() - start
             worst = min(scores, key=scores.get)
             mean = float(np.mean(list(scores.values())))
+            by = ", ".join(f"{k} {n}" for k, n in sorted(refined.items()) if k != "none") or "none"
             print(f"refine={refine:8s} marked={count} ({', '.join(marked)}): mean IoU {mean:.3f}, worst "
-                  f"{scores[worst]:.3f} ({worst}), {len(scores) - refined['none']}/{len(scores)} refined "
-                  f"({', '.join(f'{k} {n}' for k, n in sorted(refined.items()) if k != 'none') or 'none'}), {seconds:.1f} s")
+                  f"{scores[worst]:.3f} ({worst}), {len(scores) - refined['none']}/{len(scores)} refined ({by}), "
+                  f"{seconds:.1f} s")
     return 0
 
 
