@@ -59,6 +59,13 @@ def _eval_pair(m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge
     (m0 m1 m2 | m3 m4 m5 | m6 m7 m8) and projected centre (cx, cy): reference semantics."""
     hx0, hx1, hx2, hy0, hy1, hy2 = _pixel_rows(m0, m1, m2, m3, m4, m5, m6, m7, m8, px, py)
     p0, p1, p2 = _cross(hx0, hx1, hx2, hy0, hy1, hy2)
+    return _eval_crossed(p0, p1, p2, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio)
+
+
+@njit(inline="always", **_JIT)
+def _eval_crossed(p0, p1, p2, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio):
+    """:func:`_eval_pair` from the cross product p = hx x hy of the pixel's two planes (:func:`_pixel_rows`),
+    for callers that computed it already: z, rho, use_plane, plane_ok, u, v, p2."""
     plane_ok = abs(p2) > edge_on_ratio * max(abs(p0), abs(p1))
     if plane_ok:
         u = p0 / p2
@@ -376,9 +383,11 @@ REACH_MARGIN = 1e-12  # relative margin of :func:`_entry_reach`'s test over the 
 
 
 @njit(inline="always", **_JIT)
-def _entry_reach(pk, j, pxs, pys, lowpass, active, cand):
+def _entry_reach(pk, j, pxs, pys, lowpass, active, cand, c0, c1, c2):
     """``cand[p]``: pixel slot ``p`` of the block is active and may be in reach of packed entry ``j``;
-    returns how many are. A superset of the pixels the exact test (:func:`_eval_pair`, as in
+    returns how many are; ``c0, c1, c2`` [NPIX]: the cross product p of each slot, which the exact test
+    then reads (:func:`_eval_crossed`) instead of computing it again. A superset of the pixels the exact
+    test (:func:`_eval_pair`, as in
     :func:`_entry_geometry`) finds inside the box with rho within the cut-off, tested without division
     in one loop over all NPIX slots that LLVM vectorises: with p = hx x hy of :func:`_eval_pair`,
     rho_3d = (p0^2 + p1^2) / p2^2 <= cut is tested as p0^2 + p1^2 <= cut' p2^2 where cut' exceeds the
@@ -394,6 +403,9 @@ def _entry_reach(pk, j, pxs, pys, lowpass, active, cand):
         py = pys[p]
         hx0, hx1, hx2, hy0, hy1, hy2 = _pixel_rows(m0, m1, m2, m3, m4, m5, m6, m7, m8, px, py)
         p0, p1, p2 = _cross(hx0, hx1, hx2, hy0, hy1, hy2)
+        c0[p] = p0
+        c1[p] = p1
+        c2[p] = p2
         q2 = p2 * p2
         plane_out = (p0 * p0 + p1 * p1 > cut_hi * q2) & (q2 > 1e-200)
         dx = cx - px
@@ -494,6 +506,9 @@ def forward_kernel(
         live = np.empty((2, NPIX), dtype=np.bool_)
         running = np.empty(NPIX, dtype=np.bool_)
         cand = np.empty(NPIX, dtype=np.bool_)
+        c0 = np.empty(NPIX, dtype=np.float64)
+        c1 = np.empty(NPIX, dtype=np.float64)
+        c2 = np.empty(NPIX, dtype=np.float64)
         for b in range(nb2):
             by = b // nbx
             bx = b - by * nbx
@@ -517,7 +532,7 @@ def forward_kernel(
                 if alive == 0:
                     break
                 j = lists[b, jj]
-                if _entry_reach(pk, j, pxs, pys, lowpass, running, cand) == 0:
+                if _entry_reach(pk, j, pxs, pys, lowpass, running, cand, c0, c1, c2) == 0:
                     continue
                 k = keep[start + j]
                 i = ids[start + k]
@@ -530,8 +545,8 @@ def forward_kernel(
                         continue
                     px = pxs[p]
                     py = pys[p]
-                    z, rho, _, _, _, _, _ = _eval_pair(
-                        m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
+                    z, rho, _, _, _, _, _ = _eval_crossed(
+                        c0[p], c1[p], c2[p], m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
                     )
                     if (px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near)):
                         continue
