@@ -323,34 +323,47 @@ def _grabcut(image: np.ndarray, labels: np.ndarray, rect: tuple[int, int, int, i
     return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
 
 
+def _size(silhouette: np.ndarray) -> int | None:
+    """The longest side of the silhouette's bounding box in pixels; None for a silhouette of under 16
+    pixels (too small to refine)."""
+    if int(silhouette.sum()) < 16:
+        return None
+    ys, xs = np.nonzero(silhouette)
+    return int(max(ys.max() - ys.min(), xs.max() - xs.min())) + 1
+
+
+def _frame(silhouette: np.ndarray, margin: int) -> tuple[slice, slice]:
+    """The silhouette's bounding box grown by ``margin`` pixels on each side, within the image."""
+    ys, xs = np.nonzero(silhouette)
+    h, w = silhouette.shape
+    return (slice(max(0, ys.min() - margin), min(h, ys.max() + margin + 1)),
+            slice(max(0, xs.min() - margin), min(w, xs.max() + margin + 1)))
+
+
 def refine_with_grabcut(image: np.ndarray, silhouette: np.ndarray,
                         settings: MaskPropagationConfig) -> np.ndarray | None:
     """GrabCut of ``image`` (float RGB [H, W, 3]) seeded by ``silhouette``: probable foreground inside, probable
     background in a ring around it, background beyond; None when the result keeps less than ``min_kept``."""
     import cv2
 
-    area = int(silhouette.sum())
-    if area < 16:
+    size = _size(silhouette)
+    if size is None:
         return None
-    ys, xs = np.nonzero(silhouette)
-    size = max(ys.max() - ys.min(), xs.max() - xs.min()) + 1
     ring = max(3, int(round(settings.ring * size)))
-    h, w = silhouette.shape
-    y0, y1 = max(0, ys.min() - 2 * ring), min(h, ys.max() + 2 * ring + 1)
-    x0, x1 = max(0, xs.min() - 2 * ring), min(w, xs.max() + 2 * ring + 1)
-    crop = silhouette[y0:y1, x0:x1]
+    frame = _frame(silhouette, 2 * ring)
+    crop = silhouette[frame]
     seeds = np.full(crop.shape, cv2.GC_BGD, np.uint8)
     seeds[_dilate(crop, ring)] = cv2.GC_PR_BGD
     seeds[crop] = cv2.GC_PR_FGD
     if not (seeds == cv2.GC_BGD).any():  # GrabCut needs background samples: the crop's border
         seeds[[0, -1], :] = cv2.GC_BGD
         seeds[:, [0, -1]] = cv2.GC_BGD
-    foreground = _grabcut(image[y0:y1, x0:x1], seeds, None, settings.grabcut_iterations)
+    foreground = _grabcut(image[frame], seeds, None, settings.grabcut_iterations)
     if foreground is None:
         return None
     cut = np.zeros_like(silhouette)
-    cut[y0:y1, x0:x1] = foreground
-    if cut.sum() < settings.min_kept * area:
+    cut[frame] = foreground
+    if cut.sum() < settings.min_kept * silhouette.sum():
         return None
     return cut
 
@@ -364,17 +377,13 @@ def snap_to_edges(image: np.ndarray, silhouette: np.ndarray, settings: MaskPropa
     silhouette thinner than the band) or the result keeps less than ``min_kept`` of it."""
     import cv2
 
-    area = int(silhouette.sum())
-    if area < 16:
+    size = _size(silhouette)
+    if size is None:
         return None
-    ys, xs = np.nonzero(silhouette)
-    size = max(ys.max() - ys.min(), xs.max() - xs.min()) + 1
     band = max(1, int(round(settings.snap_band * size)))
-    h, w = silhouette.shape
     # a crop with room for outside seeds beyond the one-pixel frame that cv2.watershed sets aside as lines
-    y0, y1 = max(0, ys.min() - 4), min(h, ys.max() + 5)
-    x0, x1 = max(0, xs.min() - 4), min(w, xs.max() + 5)
-    crop = silhouette[y0:y1, x0:x1].astype(np.uint8)
+    frame = _frame(silhouette, 4)
+    crop = silhouette[frame].astype(np.uint8)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
     inside = cv2.erode(crop, kernel) > 0  # beyond the image counts as inside: its edge is no outline
     outside = ~(cv2.dilate(crop, np.ones((3, 3), np.uint8)) > 0)
@@ -383,11 +392,11 @@ def snap_to_edges(image: np.ndarray, silhouette: np.ndarray, settings: MaskPropa
     seeds = np.zeros(crop.shape, np.int32)
     seeds[outside] = 1
     seeds[inside] = 2
-    pixels = np.ascontiguousarray((np.clip(image[y0:y1, x0:x1, :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    pixels = np.ascontiguousarray((np.clip(image[frame][..., :3], 0, 1) * 255).astype(np.uint8)[..., ::-1])
     cv2.watershed(pixels, seeds)  # labels the band 1 or 2, the lines between basins -1
     cut = np.zeros_like(silhouette)
-    cut[y0:y1, x0:x1] = seeds == 2
-    if cut.sum() < settings.min_kept * area:
+    cut[frame] = seeds == 2
+    if cut.sum() < settings.min_kept * silhouette.sum():
         return None
     return cut
 
