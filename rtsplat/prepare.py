@@ -452,6 +452,7 @@ def prepare_scene(
     coverage: list[float] = []
     mask_views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # what the hull is carved from
     refined = set(masks.get("refined") or [])
+    marked_names = {Path(n).stem for n in masks.get("marked") or []} if masks.get("source") == "propagate" else set()
     projected = {n for n, src in (masks.get("mask_sources") or {}).items()
                  if src == "propagated" and n not in refined}
     layer_source = scene_dir / "layers" / "linear"
@@ -566,6 +567,7 @@ def prepare_scene(
             versions=versions,
             inputs=made_from,
             exposure=exposure,
+            marked_views=sorted(c.name for c in cameras if c.name in marked_names),
         )
         scene.save(tmp)
         scene.validate(check_files=True, where=tmp / "scene.json")

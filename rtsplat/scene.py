@@ -110,6 +110,9 @@ class PreparedScene:
     # per view: its photo's log gain per channel against the SfM points it observed (prepare); None where too
     # few observations; {} in scenes written before it
     exposure: dict[str, list[float] | None] = field(default_factory=dict)
+    # the views whose masks were marked when the others' were propagated from them (masks.source: propagate);
+    # [] when every mask was given, and in scenes written before it
+    marked_views: list[str] = field(default_factory=list)
     format: int = FORMAT_VERSION
     root: Path | None = field(default=None, compare=False, repr=False)
 
@@ -209,7 +212,7 @@ class PreparedScene:
             cams = [CameraRecord(**c) for c in data["cameras"]]
             roi = Roi(**data["roi"])
             keys = ("downsample", "resolution", "source", "has_transparency", "versions", "inputs", "exposure",
-                    "format")
+                    "marked_views", "format")
             rest = {k: data[k] for k in keys if k in data}
         except (KeyError, TypeError) as exc:
             raise PipelineError(
@@ -297,6 +300,9 @@ class PreparedScene:
             raise bad(f"roi.center {self.roi.center} and roi.radius {self.roi.radius} must be finite")
         if self.roi.source not in ("config", "masks", "estimated"):
             raise bad(f"roi.source must be 'config', 'masks' or 'estimated', got {self.roi.source!r}")
+        unknown = sorted(set(self.marked_views) - set(names))
+        if unknown:
+            raise bad(f"marked_views names no camera: {', '.join(unknown)}")
         for name, gain in (self.exposure or {}).items():
             if gain is not None and not (len(gain) == 3 and np.all(np.isfinite(np.asarray(gain, dtype=float)))):
                 raise bad(f"exposure of view {name!r} must be 3 finite numbers or null, got {gain!r}")

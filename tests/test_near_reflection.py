@@ -27,7 +27,7 @@ from rtsplat.model.settings import ModelSettings
 from rtsplat.model.surfels import init_from_points
 from rtsplat.raster import RasterSettings, Surfels, rasterize
 from rtsplat.raster.projection import quat_to_rotmat
-from rtsplat.train.effects import PLANAR_SHARE, decide_near_planes, see_through_planes
+from rtsplat.train.effects import PLANAR_SHARE, decide_near_planes, planes_seen_edge_on, see_through_planes
 from rtsplat.train.planes import PlaneRefinement
 
 
@@ -327,6 +327,30 @@ def test_a_plane_is_glass_only_if_what_its_rays_show_lies_behind_it():
     ])
     assert see_through_planes(planes, rays).tolist() == [True, False]
     assert see_through_planes(planes[:0], rays).shape == (0,)
+
+
+def test_a_plane_fitted_to_a_silhouette_cone_is_seen_edge_on_from_its_apex():
+    # a strip of a cone (apex: a marked camera at y = -4, looking at the origin, half-angle 15 degrees), as
+    # the faces of a visual hull are, against a pane at y = 0 seen from in front of it
+    f64 = dict(dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    apex = torch.tensor([0.0, -4.0, 0.0], **f64)
+    azimuth = math.radians(20.0) * (2 * torch.rand(3000, generator=g, **f64) - 1)
+    along = 3.5 + torch.rand(3000, generator=g, **f64)
+    half = math.radians(15.0)
+    ring = torch.stack([torch.cos(azimuth), torch.zeros_like(azimuth), torch.sin(azimuth)], -1)
+    axis = torch.tensor([0.0, 1.0, 0.0], **f64)
+    points = apex + along[:, None] * (math.cos(half) * axis + math.sin(half) * ring)
+    normals = math.cos(half) * ring - math.sin(half) * axis
+    planes, shares = fit_planes(points, normals, tolerance=0.02)
+    assert planes.shape[0] >= 1 and float(shares.sum()) > 0.5
+    assert planes_seen_edge_on(planes, apex[None]).all()
+    assert not planes_seen_edge_on(planes, torch.tensor([[0.0, 4.0, 0.0], [3.0, -3.0, 2.0]], **f64)).any()
+    pane = plane_row((0, -1, 0), (0, 0, 0), (1, 0, 0), half=(1.0, 1.0), thickness=0.02, **f64)
+    in_front = torch.tensor([[0.0, -3.0, 0.0], [2.0, -3.0, 1.0]], **f64)
+    assert not planes_seen_edge_on(pane, in_front).any()
+    assert planes_seen_edge_on(pane, torch.cat([in_front, torch.tensor([[3.0, 0.1, 0.0]], **f64)])).all()
+    assert planes_seen_edge_on(pane, in_front[:0]).tolist() == [False]
 
 
 def test_near_reflection_on_surface_keeps_the_pixels_whose_surface_is_the_pane():

@@ -425,9 +425,11 @@ def test_prepare_carves_with_the_propagated_masks_eroded_and_writes_them_whole(b
     summary = json.loads((propagated / "summary.json").read_text())
     names = sorted(Path(v.name).name for v in views)
     summary["mask_sources"] = {n: "given" if i % 3 == 0 else "propagated" for i, n in enumerate(names)}
+    summary["source"], summary["marked"] = "propagate", [n for i, n in enumerate(names) if i % 3 == 0]
     (propagated / "summary.json").write_text(json.dumps(summary))
     prepare_scene(root / "scene", sfm, tmp_path / "prop", PrepareConfig(downsample=1), propagated, progress=False)
     a, b = PreparedScene.load(tmp_path / "drawn"), PreparedScene.load(tmp_path / "prop")
+    assert a.marked_views == [] and b.marked_views == sorted(Path(n).stem for n in summary["marked"])
     assert a.roi.source == b.roi.source == "masks"
     assert b.roi.radius < a.roi.radius
     for cam in a.cameras:

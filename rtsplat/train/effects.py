@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -15,6 +17,7 @@ from rtsplat.train_config import Effects
 # training): planar panes explain 40-50% there, curved glass (the dome) 0-5% (docs/fidelity.md, 23)
 PLANAR_SHARE = 0.3
 BEHIND_SHARE = 0.5  # a plane is glass when this share of the rays meeting it first see something behind it
+EDGE_ON_DEGREES = 3.0  # a plane a marked view sees within this angle of edge-on is a face of the marked views' hull
 
 
 def decide_effects(
@@ -79,6 +82,24 @@ def decide_near_planes(mode: str, planes: int, planar_share: float | None) -> tu
     if planar_share >= PLANAR_SHARE:
         return True, f"auto: planar glass; {share}"
     return False, f"auto: the glass is not planar; {share}, needs {PLANAR_SHARE:.0%}"
+
+
+def planes_seen_edge_on(planes: Tensor, centres: Tensor, degrees: float = EDGE_ON_DEGREES) -> Tensor:
+    """Which planes [K,12] (:func:`rtsplat.model.mirror.fit_planes` rows) one of the camera centres [C,3] sees
+    within ``degrees`` of edge-on, from the plane's centre [K] (bool): the camera's distance from the plane
+    at most sin(degrees) times its distance from the plane's centre.
+
+    With masks propagated from a few marked views the glass is seeded on the marked views' visual hull,
+    whose faces are pieces of their silhouette cones; every plane tangent to a cone holds its apex, so a
+    plane fitted to such a face passes through a marked camera, where glass seen in that view would be a
+    line, not a surface."""
+    if planes.shape[0] == 0 or centres.shape[0] == 0:
+        return torch.zeros(planes.shape[0], dtype=torch.bool)
+    normal, centre = planes[:, 0:3], planes[:, 3:6]
+    centres = centres.to(planes.dtype)
+    off_plane = ((centres[None] - centre[:, None]) * normal[:, None]).sum(-1).abs()  # [K, C]
+    reach = (centres[None] - centre[:, None]).norm(dim=-1)
+    return (off_plane <= math.sin(math.radians(degrees)) * reach).any(1)
 
 
 def see_through_planes(planes: Tensor, rays: Tensor) -> Tensor:

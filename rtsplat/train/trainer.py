@@ -67,7 +67,7 @@ from rtsplat.train.cameras import PoseCorrections, fit_corrections
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
-from rtsplat.train.effects import decide_effects, decide_near_planes, see_through_planes
+from rtsplat.train.effects import decide_effects, decide_near_planes, planes_seen_edge_on, see_through_planes
 from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train.planes import PlaneRefinement
@@ -218,7 +218,9 @@ class Trainer:
         A plane is glass only if the scene seen through it lies behind it: of the pixels whose ray meets
         the plane first, most must have their volume depth (what the transmission shows) beyond the plane
         by more than its thickness (:data:`BEHIND_SHARE`). A floor seen through a dome, or the floor inside
-        a cabin, is a plane the see-through pixels hit, but what they show lies on it, not behind it."""
+        a cabin, is a plane the see-through pixels hit, but what they show lies on it, not behind it. With
+        propagated masks, a plane a marked view sees edge-on is a face of the hull the glass was seeded on,
+        not a pane (:func:`rtsplat.train.effects.planes_seen_edge_on`), and is left out too."""
         start = time.perf_counter()
         points, normals, rays = [], [], []
         for index, camera in enumerate(self.train_views.cameras):
@@ -243,16 +245,20 @@ class Trainer:
             keep = torch.randperm(xyz.shape[0], generator=self.rng)[:MAX_PLANE_POINTS]
             xyz, normal, rays = xyz[keep], normal[keep], rays[keep]
         xyz, normal, rays = xyz.double(), normal.double(), rays.double()
-        planes, share, dropped = empty_planes(), None, 0
+        planes, share, dropped, hull_faces = empty_planes(), None, 0, 0
         if xyz.shape[0] >= 16:
             diagonal = float((xyz.max(0).values - xyz.min(0).values).norm())
             planes, shares = fit_planes(xyz, normal, tolerance=PLANE_TOLERANCE * diagonal, seed=self.cfg.seed)
             glass = see_through_planes(planes, rays)
-            dropped = int((~glass).sum())
-            planes, share = planes[glass], float(shares[glass].sum())
+            faces = planes_seen_edge_on(planes, self._marked_centres()) & glass
+            dropped, hull_faces = int((~glass).sum()), int(faces.sum())
+            keep = glass & ~faces
+            planes, share = planes[keep], float(shares[keep].sum())
         use, why = decide_near_planes(self.cfg.effects.near_reflection, planes.shape[0], share)
         if dropped:
             why += f" ({dropped} plane(s) with nothing behind them left out)"
+        if hull_faces:
+            why += f" ({hull_faces} plane(s) seen edge-on by a marked view left out: faces of the marked views' hull)"
         self.model.set_mirror_planes(planes if use else empty_planes())
         self._start_plane_refinement()
         self.near_fit = {"iteration": self.iteration, "points": int(xyz.shape[0]), "planes": int(planes.shape[0]),
@@ -262,6 +268,14 @@ class Trainer:
                  f"fitted in {self.near_fit['seconds']:.1f} s)")
         self._write_effects()
         return self.near_fit
+
+    def _marked_centres(self) -> Tensor:
+        """The camera centres [C,3] of the views whose masks were marked, when the others' were propagated
+        from them (``PreparedScene.marked_views``); none otherwise."""
+        records = [c for c in self.scene.cameras if c.name in set(self.scene.marked_views)]
+        if not records:
+            return torch.zeros(0, 3, dtype=torch.float64)
+        return torch.stack([c.to_camera(dtype=torch.float64).center for c in records])
 
     def _start_plane_refinement(self) -> None:
         """Learn the mirror planes from the images from here on (:mod:`rtsplat.train.planes`) when near
