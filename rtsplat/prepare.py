@@ -13,7 +13,7 @@ Steps (function API :func:`prepare_scene`):
    sphere around the masks' visual hull (:func:`roi_from_masks`, the see-through object and what it
    encloses); otherwise estimated from the SfM points and the point the cameras look at
    (:func:`estimate_roi`); saved with its source. The hull is carved with each propagated mask
-   that was not refined on its photo (``masks.source: propagate``) less its outline pixels (:func:`hull_mask`);
+   (``masks.source: propagate``) less its outline pixels (:func:`hull_mask`);
 5. split train/test: every ``test_every``-th image of the name-sorted list is a test view;
 6. on a scene with masks, the points of the masks' visual hull that face the cameras, with their
    normals (:func:`hull_surface`, ``transparent_surface.npz``): where the see-through surface is,
@@ -185,17 +185,18 @@ def _mask_votes(views, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return in_frame, inside_mask
 
 
-def hull_mask(mask: np.ndarray, projected: bool) -> np.ndarray:
+def hull_mask(mask: np.ndarray, propagated: bool) -> np.ndarray:
     """The mask a view carves the visual hull with (:func:`mask_hull`, the region of interest and the
-    seeded see-through surface): a propagated mask kept as the marked views' hull projected it
-    (``masks.source: propagate``, not refined on its photo) less its outline pixels, any other as it is.
+    seeded see-through surface): a propagated mask (``masks.source: propagate``, the marked views' hull
+    projected) less its outline pixels, a drawn one as it is.
 
-    A visual hull holds the object, so its projection holds the object's silhouette: a projected outline
+    A visual hull holds the object, so its projection holds the object's silhouette: a propagated outline
     errs outwards, about a pixel of the prepared image where the marked views' cones are tangent to the
     object and more between them (docs/benchmarks.md, "Training on propagated masks"). Carved with those
-    outlines the hull, and the glass seeded on it, would stand that far off the glass all round. A refined
-    mask's outline lies on the photo's edges, as a drawn one does."""
-    if not projected:
+    outlines the hull, and the glass seeded on it, would stand that far off the glass all round. A mask
+    refined on its photo loses its outline too: glass seeded a little inside the true surface trains
+    better than glass seeded a little outside it (the same benchmark)."""
+    if not propagated:
         return mask
     from scipy import ndimage
 
@@ -451,10 +452,8 @@ def prepare_scene(
     cameras: list[CameraRecord] = []
     coverage: list[float] = []
     mask_views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # what the hull is carved from
-    refined = set(masks.get("refined") or [])
     marked_names = {Path(n).stem for n in masks.get("marked") or []} if masks.get("source") == "propagate" else set()
-    projected = {n for n, src in (masks.get("mask_sources") or {}).items()
-                 if src == "propagated" and n not in refined}
+    propagated = {n for n, src in (masks.get("mask_sources") or {}).items() if src == "propagated"}
     layer_source = scene_dir / "layers" / "linear"
     exposure: dict[str, list[float] | None] = {}
     gt_layer_views = 0
@@ -526,7 +525,7 @@ def prepare_scene(
                     small = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
                 write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
                 coverage.append(float(small.mean()))
-                mask_views.append((K, view.world_to_camera, hull_mask(small, view.name in projected)))
+                mask_views.append((K, view.world_to_camera, hull_mask(small, view.name in propagated)))
             exposure[stem] = _exposure(full, model.observations.get(view.name), (view.width, view.height),
                                        mask if has_masks else None)
             cameras.append(

@@ -414,7 +414,7 @@ def test_propagated_masks_carve_the_hull_without_their_outline():
 def test_prepare_carves_with_the_propagated_masks_eroded_and_writes_them_whole(base, tmp_path):
     """A masks folder whose summary records propagated masks (``mask_sources``): the region of interest is
     carved from them less their outline, so it is smaller than from the same masks drawn; the prepared
-    masks are the masks as given either way. Propagated masks refined on their photos carve as drawn."""
+    masks are the masks as given either way."""
     import json
     import shutil
 
@@ -434,11 +434,6 @@ def test_prepare_carves_with_the_propagated_masks_eroded_and_writes_them_whole(b
     assert b.roi.radius < a.roi.radius
     for cam in a.cameras:
         assert np.array_equal(a.load_mask(cam.name), b.load_mask(cam.name))
-    # refined on their photos (the summary's ``refined``), their outlines are the photos' edges: as drawn
-    summary["refined"] = [n for n, src in summary["mask_sources"].items() if src == "propagated"]
-    (propagated / "summary.json").write_text(json.dumps(summary))
-    prepare_scene(root / "scene", sfm, tmp_path / "refined", PrepareConfig(downsample=1), propagated, progress=False)
-    assert PreparedScene.load(tmp_path / "refined").roi.radius == a.roi.radius
 
 
 @pytest.mark.parametrize("shape", ["ball", "tilted cube"])
