@@ -86,8 +86,8 @@ def decide_near_planes(mode: str, planes: int, planar_share: float | None) -> tu
 
 def planes_seen_edge_on(planes: Tensor, centres: Tensor, degrees: float = EDGE_ON_DEGREES) -> Tensor:
     """Which planes [K,12] (:func:`rtsplat.model.mirror.fit_planes` rows) one of the camera centres [C,3] sees
-    within ``degrees`` of edge-on, from the plane's centre [K] (bool): the camera's distance from the plane
-    at most sin(degrees) times its distance from the plane's centre.
+    within ``degrees`` of edge-on when it looks at the plane's centre: [K] bool, true where a camera's
+    distance from the plane is at most sin(degrees) times its distance from the plane's centre.
 
     With masks propagated from a few marked views the glass is seeded on the marked views' visual hull,
     whose faces are pieces of their silhouette cones; every plane tangent to a cone holds its apex, so a
