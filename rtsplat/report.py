@@ -9,6 +9,7 @@ It reads what the other stages wrote under ``--results`` (the layout of ``docs/a
     <scene>/videos/<method>.{mp4,png}                                      rtsplat video (and its poster)
     <scene>/metrics/<method>.json                                          rtsplat metrics
     <scene>/sfm/summary.json                                               rtsplat sfm
+    <scene>/masks/summary.json                                             rtsplat masks
 
 Each method's role comes from the pipeline config (``methods.<name>.role``, see
 :func:`rtsplat.config.method_roles`), handed over as ``--roles-json``; without it every method is a
@@ -17,7 +18,9 @@ baseline and there is no main method. The report opens with a summary across sce
 ``2dgs_<suffix>``, PSNR on the transparent region and the entire image, beside the seed noise that
 repeats with another seed measured), then the machine and the package versions. Per scene: the SfM
 table (registered/total views, reprojection error and time of every attempt, and for scenes whose
-dataset ships reference cameras the rotation and centre errors after a similarity fit), the quality table (entire
+dataset ships reference cameras the rotation and centre errors after a similarity fit), where the transparent
+masks came from (:func:`masks_paragraph`: given, segmented, or propagated from how many marked views), the
+quality table (entire
 image / transparent region), the time table (FPS timed alone, training CPU and wall seconds and how busy the
 other cores were meanwhile), the ablation table (the ablations against the main
 method), decomposition scores when the scene has ground-truth layers, the accuracy-against-time
@@ -40,6 +43,7 @@ commands and the config.
 from __future__ import annotations
 
 import argparse
+import collections
 import html
 import json
 from dataclasses import dataclass, field
@@ -570,6 +574,37 @@ def _per_iteration(seconds, iterations) -> float | None:
     return seconds / iterations if isinstance(seconds, (int, float)) and iterations else None
 
 
+MARK_KINDS = {"file": ("mask file", "mask files"), "polygon": ("polygon", "polygons"), "box": ("box", "boxes"),
+              "filled box": ("filled box", "filled boxes")}  # how a view was marked: singular, plural
+
+
+def masks_paragraph(summary: dict) -> str:
+    """Where a scene's transparent masks came from, from the masks stage's summary.json: given, segmented,
+    none, or propagated from marked views (how each was marked, how many were propagated, refined, left
+    empty or had no pose)."""
+    source, total = summary.get("source"), summary.get("num_images", "?")
+    if not summary.get("has_masks"):
+        return f"Transparent masks: none for the {total} photos (trained without the transmission's masks)."
+    if source != "propagate":
+        how = {"ingest": "given", "onnx": f"segmented by the ONNX model {summary.get('model_kind') or ''}".strip()}
+        return (f"Transparent masks: {how.get(source, source)} for the {total} photos, mean coverage "
+                f"{100 * float(summary.get('mean_coverage', 0.0)):.1f}%.")
+    kinds = collections.Counter((summary.get("mark_sources") or {}).values())
+    sources = collections.Counter((summary.get("mask_sources") or {}).values())
+    marked = summary.get("marked") or []
+    refined = summary.get("refined") or []
+    how = ", ".join(f"{n} {MARK_KINDS.get(kind, (kind, kind))[n != 1]}" for kind, n in sorted(kinds.items()))
+    text = (f"Transparent masks: propagated from {len(marked)} marked views ({how}: {', '.join(marked)}) to "
+            f"{sources.get('propagated', 0)} of the {total} photos")
+    if refined:
+        text += f", {len(refined)} of them refined ({summary.get('refinement') or '?'})"
+    for key, what in (("empty", "left empty (the marked region is not in view)"),
+                      ("unregistered", "without an SfM pose (empty)")):
+        if sources.get(key):
+            text += f"; {sources[key]} {what}"
+    return text + f"; mean coverage {100 * float(summary.get('mean_coverage', 0.0)):.1f}%."
+
+
 def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
     """(paragraph, header, rows) of a scene's SfM table from the sfm stage's summary.json."""
     total = summary.get("total", "?")
@@ -755,6 +790,9 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             doc.paragraph(text)
             if sfm_rows:
                 doc.table(sfm_header, sfm_rows)
+        masks_summary = results / scene / "masks" / "summary.json"
+        if masks_summary.is_file():
+            doc.paragraph(masks_paragraph(_read_json(masks_summary)))
         doc.heading("Quality", 3)
         other_splits = {m: r.metrics.get("split") for m, r in runs.items() if r.metrics.get("split", "test") != "test"}
         if other_splits:

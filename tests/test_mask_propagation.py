@@ -24,6 +24,7 @@ from rtsplat.masks_propagate import (
     suggest_views,
     visual_hull,
 )
+from rtsplat.report import masks_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from masks_scene import look_at, render, ring_model  # noqa: E402
@@ -227,6 +228,11 @@ def test_stage_propagates_and_records_each_masks_source(scene, tmp_path):
     scores = [iou(read_mask(tmp_path / "masks" / n), rendered[n][1])
               for n, s in summary.mask_sources.items() if s == "propagated"]
     assert np.mean(scores) >= 0.85
+    # the report says where the masks came from
+    text = masks_paragraph(written)
+    assert f"propagated from 5 marked views (5 mask files: {', '.join(sorted(marked))})" in text
+    assert f"to {VIEWS - 5} of the {VIEWS + 2} photos" in text
+    assert "1 left empty" in text and "1 without an SfM pose" in text
 
 
 def test_stage_refuses_marked_masks_of_another_size(scene, tmp_path):

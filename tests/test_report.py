@@ -98,8 +98,12 @@ def results(tmp_path_factory):
 
 
 def test_report_has_tables_plots_and_images(results, tmp_path):
+    (results / "toy" / "masks").mkdir(exist_ok=True)
+    write_json_atomic(results / "toy" / "masks" / "summary.json",
+                      {"has_masks": True, "source": "ingest", "num_images": 12, "mean_coverage": 0.25})
     index = build_report(results, tmp_path / "report", roles=Roles.from_dict(ROLES), commands=["make demo"])
     html, md = index.read_text(), (tmp_path / "report" / "index.md").read_text()
+    assert "Transparent masks: given for the 12 photos, mean coverage 25.0%." in md
     for method in METHODS:
         assert f"<td>{method}</td>" in html and f"| {method} |" in md
     assert "Ablations (transparent-region PSNR)" in md and "Pareto front" in md
