@@ -452,7 +452,7 @@ def prepare_scene(
     cameras: list[CameraRecord] = []
     coverage: list[float] = []
     mask_views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # what the hull is carved from
-    marked_names = {Path(n).stem for n in masks.get("marked") or []} if masks.get("source") == "propagate" else set()
+    marked_names = {Path(n).stem for n in masks.get("marked") or []}  # set only by masks.source: propagate
     propagated = {n for n, src in (masks.get("mask_sources") or {}).items() if src == "propagated"}
     layer_source = scene_dir / "layers" / "linear"
     exposure: dict[str, list[float] | None] = {}

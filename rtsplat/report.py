@@ -585,10 +585,10 @@ def masks_paragraph(summary: dict) -> str:
     source, total = summary.get("source"), summary.get("num_images", "?")
     if not summary.get("has_masks"):
         return f"Transparent masks: none for the {total} photos (trained without the transmission's masks)."
+    coverage = f"mean coverage {100 * float(summary.get('mean_coverage', 0.0)):.1f}%."
     if source != "propagate":
         how = {"ingest": "given", "onnx": f"segmented by the ONNX model {summary.get('model_kind') or ''}".strip()}
-        return (f"Transparent masks: {how.get(source, source)} for the {total} photos, mean coverage "
-                f"{100 * float(summary.get('mean_coverage', 0.0)):.1f}%.")
+        return f"Transparent masks: {how.get(source, source)} for the {total} photos, {coverage}"
     kinds = collections.Counter((summary.get("mark_sources") or {}).values())
     sources = collections.Counter((summary.get("mask_sources") or {}).values())
     marked = summary.get("marked") or []
@@ -602,7 +602,7 @@ def masks_paragraph(summary: dict) -> str:
                       ("unregistered", "without an SfM pose (empty)")):
         if sources.get(key):
             text += f"; {sources[key]} {what}"
-    return text + f"; mean coverage {100 * float(summary.get('mean_coverage', 0.0)):.1f}%."
+    return f"{text}; {coverage}"
 
 
 def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
