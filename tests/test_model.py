@@ -261,6 +261,30 @@ def test_specular_network_shapes_and_ranges():
     assert (spec >= 0).all() and ((beta >= 0) & (beta <= 1)).all()
 
 
+def test_attenuation_from_the_material_ignores_what_the_surface_reflects_and_follows_the_angle():
+    torch.manual_seed(0)
+    net = SpecularNetwork(16, 4, 32, attenuation="material", mirror=True)
+    assert net.mlp[-1].out_features == 4  # C_spec and the mirror weight: no beta column
+    material = torch.nn.functional.normalize(torch.randn(6, 4), dim=-1).requires_grad_()
+    reflectance, mirror = torch.rand(6, 1), torch.rand(6, 3)
+    cos_incidence = torch.linspace(0.05, 1.0, 6)[:, None]
+    env_a, env_b = torch.randn(6, 16), 5.0 * torch.randn(6, 16)
+    spec_a, beta_a = net(env_a, material, reflectance, mirror, cos_incidence=cos_incidence)
+    spec_b, beta_b = net(env_b, material, reflectance, mirror, cos_incidence=cos_incidence)
+    assert not torch.allclose(spec_a, spec_b)  # the reflection follows the environment
+    torch.testing.assert_close(beta_a, beta_b, rtol=0, atol=0)  # what passes through does not
+    assert ((beta_a > 0) & (beta_a < 1)).all()
+    _, beta_turned = net(env_a, material, reflectance, mirror, cos_incidence=cos_incidence.flip(0))
+    assert not torch.allclose(beta_turned, beta_a)  # but it follows the angle of incidence
+    beta_a.sum().backward()
+    assert material.grad is not None and torch.isfinite(material.grad).all() and material.grad.abs().sum() > 0
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.attenuation_head.parameters())
+    with pytest.raises(ValueError, match="cos_incidence"):
+        net(env_a, material, reflectance, mirror)
+    with pytest.raises(ValueError, match="attenuation"):
+        SpecularNetwork(16, 4, 32, attenuation="environment")
+
+
 def test_specular_network_in_bfloat16_follows_float32_and_keeps_float32_outputs_and_gradients():
     torch.manual_seed(0)
     exact = SpecularNetwork(20, 4, 64, "float32")
@@ -538,6 +562,29 @@ def test_checkpoint_of_a_model_without_the_extra_specular_inputs_rebuilds_its_ne
         torch.testing.assert_close(_render(rebuilt).color, _render(model).color, rtol=0, atol=0)
 
 
+def test_a_model_with_beta_from_the_material_round_trips_and_one_written_before_reads_as_network(tmp_path):
+    """A model whose beta comes from its attenuation head renders the same after a checkpoint round trip; a
+    file that names no ``attenuation_from`` (written before the setting) is read with beta from the network."""
+    model = _model_with(attenuation_from="material")
+    assert model.specular_net.attenuation_head is not None
+    write_checkpoint(tmp_path / "material.pt", model, RasterSettings())
+    rebuilt = read_checkpoint(tmp_path / "material.pt").build_model()
+    with torch.no_grad():
+        expected, again = _render(model), _render(rebuilt)
+        torch.testing.assert_close(again.color, expected.color, rtol=0, atol=0)
+    beta = expected.layers["beta"][expected.layers["shade"] > 0]
+    assert beta.numel() > 10 and float(beta.min()) > 0 and float(beta.max()) < 1
+    plain = _model_with(attenuation_from="network")
+    write_checkpoint(tmp_path / "old.pt", plain, RasterSettings())
+    state = torch.load(tmp_path / "old.pt", weights_only=False)
+    del state["model"]["settings"]["attenuation_from"]
+    torch.save(state, tmp_path / "old.pt")
+    old = read_checkpoint(tmp_path / "old.pt").build_model()
+    assert old.settings.attenuation_from == "network" and old.specular_net.attenuation_head is None
+    with torch.no_grad():
+        torch.testing.assert_close(_render(old).color, _render(plain).color, rtol=0, atol=0)
+
+
 def _plain_model(background: str, seed: int = 0) -> RTModel:
     g = torch.Generator().manual_seed(seed)
     xyz = torch.rand(40, 3, generator=g) * 0.4 - 0.2  # a small cluster: most pixels see past it
@@ -628,9 +675,9 @@ def _inputs_of_the_specular_network(model, monkeypatch):
     seen = []
     forward = SpecularNetwork.forward
 
-    def spy(net, env_features, material, reflectance, mirror=None, near=None):
+    def spy(net, env_features, material, reflectance, mirror=None, near=None, cos_incidence=None):
         seen.append((env_features, reflectance, mirror))
-        return forward(net, env_features, material, reflectance, mirror, near)
+        return forward(net, env_features, material, reflectance, mirror, near, cos_incidence)
 
     with monkeypatch.context() as patch:
         patch.setattr(SpecularNetwork, "forward", spy)
@@ -687,7 +734,8 @@ def test_specular_background_sees_the_background_at_the_reflected_direction_with
 def test_specular_mirror_blends_the_background_at_the_reflected_direction_into_c_spec_by_the_fifth_output(
         monkeypatch):
     model = _model_with(specular_view_angle=False, specular_background=False, specular_mirror=True)
-    assert model.uses_mirror and model.specular_net.mlp[-1].out_features == 5
+    net = model.specular_net
+    assert model.uses_mirror and net.mlp[-1].out_features == net.mirror_column + 1  # C_spec, (beta), m
     assert model.specular_net.mlp[0].in_features == SMALL.env_channels * 5  # B(w_r) is not an input here
     with torch.no_grad():
         for level in model.background_map.maps:
@@ -696,7 +744,7 @@ def test_specular_mirror_blends_the_background_at_the_reflected_direction_into_c
     spec = {}
     for name, bias in (("mirror", 30.0), ("network", -30.0)):
         with torch.no_grad():
-            head.bias[4] = bias
+            head.bias[net.mirror_column] = bias
         result, _, reflectance, mirror = _inputs_of_the_specular_network(model, monkeypatch)
         spec[name] = result.layers["spec"][(result.layers["shade"] > 0)[..., 0] & (result.layers["roi"] > 0)[..., 0]]
     rays, n = _rays_and_normals_of_the_shaded_region(result)
@@ -716,11 +764,11 @@ def test_specular_mirror_blends_the_background_at_the_reflected_direction_into_c
     assert (spec["mirror"] - spec["network"]).abs().max() > 1e-2
     # the mirror reads B without a gradient; the network's blend weight learns from C_spec
     with torch.no_grad():
-        head.bias[4] = 0.0
+        head.bias[net.mirror_column] = 0.0
     blended = _render(model)
     blended.layers["spec"].sum().backward()
     assert all(level.grad is None for level in model.background_map.maps)
-    assert float(head.bias.grad[4].abs()) > 0 and torch.isfinite(head.bias.grad).all()
+    assert float(head.bias.grad[net.mirror_column].abs()) > 0 and torch.isfinite(head.bias.grad).all()
 
 
 def test_schlick_fresnel_runs_from_the_normal_reflectance_head_on_to_one_at_grazing_with_finite_gradients():

@@ -161,10 +161,12 @@ def _settings_of_older_models(settings: dict) -> dict:
       inputs): off, which is the network shape such a model was trained with;
     * no ``view_independent_roi``, ``near_reflection_on_surface`` or ``near_reflection_trains_surfels``: the
       colour and the near reflections such a model was trained with (no degree-0 region, the near term on every
-      pixel whose ray meets a pane, trained through the mirrored pass)."""
+      pixel whose ray meets a pane, trained through the mirrored pass);
+    * no ``attenuation_from``: beta from the specular network, the only source such a model had."""
     for name in (*OPTIONAL_SPECULAR_INPUTS, "view_independent_roi", "near_reflection_on_surface"):
         settings.setdefault(name, False)
     settings.setdefault("near_reflection_trains_surfels", True)
+    settings.setdefault("attenuation_from", "network")
     colour = settings.get("background")
     if isinstance(colour, (list, tuple)) and len(colour) == 3 and len(set(map(float, colour))) == 1:
         mode = {0.0: "black", 1.0: "white"}.get(float(colour[0]))

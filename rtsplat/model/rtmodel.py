@@ -100,7 +100,8 @@ class RTModel(nn.Module):
                                if s.background == "learned" else None)
         self.specular_net = (SpecularNetwork(s.env_channels + self._extra_specular_channels(), 4, s.mlp_width,
                                              s.specular_precision, mirror=self.uses_mirror,
-                                             near_weight=effects.near_reflection and s.near_reflection_weight)
+                                             near_weight=effects.near_reflection and s.near_reflection_weight,
+                                             attenuation=s.attenuation_from)
                              if effects.specular else None)
 
     def _extra_specular_channels(self) -> int:
@@ -360,7 +361,7 @@ class RTModel(nn.Module):
             env = torch.cat([env, *extra], -1)
         near_rows = None if near is None else (rows(near[0].reshape(-1, 3)), rows(near[1].reshape(-1, 1)))
         s, b = self.specular_net(env, material, reflectance, reflected_background if self.uses_mirror else None,
-                                 near=near_rows)
+                                 near=near_rows, cos_incidence=cos_incidence)
         if idx is None:
             spec = torch.where(flat[:, None], s, spec)
             beta = torch.where(flat[:, None], b, beta)

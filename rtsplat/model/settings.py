@@ -3,7 +3,8 @@ and the gradient gating. With the active effects and the rasterizer settings the
 needed to rebuild a trained model (:mod:`rtsplat.model.checkpoint`); the trainer's config
 (:mod:`rtsplat.train_config`) holds them as sections. Every ablation changes only the computation it
 names. Defaults follow METHOD.md sections 1-6, except the two extra inputs of the specular network
-(``specular_view_angle``, ``specular_background``; docs/fidelity.md, finding 10).
+(``specular_view_angle``, ``specular_background``; docs/fidelity.md, finding 10) and beta's own head
+(``attenuation_from``; finding 28).
 """
 
 from __future__ import annotations
@@ -77,6 +78,14 @@ class ModelSettings:
         False, help="the reflectance is the reflectance at normal incidence F0, raised towards 1 at grazing angles by "
         "Schlick's approximation F0 + (1 - F0)(1 - |cos|)^5, as on a dielectric such as glass: C_spec is weak "
         "where the view meets the surface head-on and strong at grazing angles (docs/fidelity.md, finding 14)"
+    )
+    attenuation_from: Literal["network", "material"] = setting(
+        "material", help="where beta, the attenuation of the light the surface lets through, comes from. material: a "
+        "small head of its own on the blended material feature and |cos| of the angle of incidence alone, what "
+        "decides how much light a thin surface lets through, starting at 0.9; network: a fourth output of the "
+        "specular network, as in the paper, so beta also sees what the surface reflects (the environment feature, "
+        "the background at the reflected direction) and the transmission can dim itself wherever the reflection "
+        "is too bright, which lets the two layers drift apart as training goes on (docs/fidelity.md, finding 28)"
     )
     specular_precision: Literal["float32", "bfloat16", "auto"] = setting(
         "float32", help="dtype of the specular network's matrix products: float32; bfloat16 (float32 weights and "

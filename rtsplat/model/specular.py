@@ -12,6 +12,9 @@ LOG_HALF = math.log(0.5)
 NEAR_WEIGHT_START_LOGIT = 2.0  # sigmoid(2) = 0.88
 MAX_LOG_SPECULAR = 8.0  # exp() argument cap: keeps C_spec finite under any learning rate
 INFERENCE_ROWS = 4096  # rows per slice of the MLP without autograd: its [rows, width] activations stay in cache
+ATTENUATION_WIDTH = 16  # hidden units of the attenuation head (attenuation="material")
+ATTENUATION_START = 0.9  # the head's beta at the start: a clear thin surface lets about 90% of the light through
+ATTENUATION_SOURCES = ("network", "material")
 
 
 @functools.cache
@@ -32,6 +35,12 @@ class SpecularNetwork(nn.Module):
     The model may append channels to the env feature (:class:`rtsplat.model.settings.ModelSettings`:
     the angle of incidence, the background at the reflected direction); C counts them.
 
+    ``attenuation``: where beta comes from. ``network``: a fourth output of the MLP, as in the paper, so beta
+    sees every input of the network (the environment feature, the background at the reflected direction);
+    ``material``: a small head of its own (:data:`ATTENUATION_WIDTH` hidden units) on the blended material
+    feature and |cos| of the angle of incidence alone, the two things that decide how much light a thin
+    surface lets through, starting near :data:`ATTENUATION_START`. The MLP then has no beta output.
+
     ``precision``: the dtype of the MLP's matrix products. float32, or bfloat16 (autocast: float32
     weights and outputs, bfloat16 products; forward and backward), or auto: bfloat16 on a CPU with
     native bfloat16 products (:func:`cpu_has_bfloat16_matmul`), float32 elsewhere.
@@ -41,18 +50,33 @@ class SpecularNetwork(nn.Module):
     in about half the time on a CPU."""
 
     def __init__(self, env_channels: int = 16, material_channels: int = 4, width: int = 256,
-                 precision: str = "float32", mirror: bool = False, near_weight: bool = False):
+                 precision: str = "float32", mirror: bool = False, near_weight: bool = False,
+                 attenuation: str = "network"):
         super().__init__()
         if precision not in ("float32", "bfloat16", "auto"):
             raise ValueError(f"precision must be float32, bfloat16 or auto, got {precision!r}")
+        if attenuation not in ATTENUATION_SOURCES:
+            raise ValueError(f"attenuation must be one of {ATTENUATION_SOURCES}, got {attenuation!r}")
         in_dim = env_channels * material_channels + env_channels
         self.precision = precision
         self.mirror = mirror
         self.near_weight = near_weight
-        outputs = 4 + int(mirror) + int(near_weight)
+        self.attenuation = attenuation
+        # output columns: C_spec (3), then beta (attenuation="network"), the mirror weight, the near weight
+        self.beta_column = 3 if attenuation == "network" else None
+        self.mirror_column = 3 + int(attenuation == "network")
+        outputs = self.mirror_column + int(mirror) + int(near_weight)
         self.mlp = nn.Sequential(
             nn.Linear(in_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, outputs)
         )
+        self.attenuation_head = (
+            nn.Sequential(nn.Linear(material_channels + 1, ATTENUATION_WIDTH), nn.ReLU(),
+                          nn.Linear(ATTENUATION_WIDTH, 1))
+            if attenuation == "material" else None
+        )
+        if self.attenuation_head is not None:
+            with torch.no_grad():
+                self.attenuation_head[-1].bias.fill_(math.log(ATTENUATION_START / (1.0 - ATTENUATION_START)))
         if near_weight:  # the near reflection's weight starts near 1: the mirrored render is trusted first
             with torch.no_grad():
                 self.mlp[-1].bias[-1] = NEAR_WEIGHT_START_LOGIT
@@ -63,12 +87,17 @@ class SpecularNetwork(nn.Module):
         return self.precision == "bfloat16"
 
     def forward(self, env_features: Tensor, material: Tensor, reflectance: Tensor,
-                mirror: Tensor | None = None, near: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+                mirror: Tensor | None = None, near: tuple[Tensor, Tensor] | None = None,
+                cos_incidence: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """[M,C], [M,4] (unit), [M,1], [M,3] (a network with ``mirror`` only) -> (C_spec [M,3], beta [M,1]).
         ``near``: the near reflection's premultiplied colour [M,3] and coverage [M,1], composited over the
-        network's (far) light before the reflectance scales it: ``reflectance (C_near + (1 - A_near) L)``."""
+        network's (far) light before the reflectance scales it: ``reflectance (C_near + (1 - A_near) L)``.
+        ``cos_incidence``: |cos| of the angle of incidence [M,1], which the attenuation head needs
+        (``attenuation="material"``)."""
         if (mirror is None) == self.mirror:
             raise ValueError("a network with mirror needs the mirror radiance, one without takes none")
+        if self.attenuation_head is not None and cos_incidence is None:
+            raise ValueError("a network with attenuation='material' needs cos_incidence")
         outer = (env_features[:, :, None] * material[:, None, :]).flatten(1)
         x = torch.cat([outer, env_features], -1)
         if self.uses_bfloat16(x.device):
@@ -79,13 +108,17 @@ class SpecularNetwork(nn.Module):
             out = self._run_mlp(x)
         specular = torch.exp((out[:, :3] + LOG_HALF).clamp_max(MAX_LOG_SPECULAR))
         if mirror is not None:
-            weight = torch.sigmoid(out[:, 4:5])
+            weight = torch.sigmoid(out[:, self.mirror_column:self.mirror_column + 1])
             specular = weight * mirror + (1.0 - weight) * specular
         if near is not None:
             weight = torch.sigmoid(out[:, -1:]) if self.near_weight else 1.0
             specular = weight * near[0] + (1.0 - weight * near[1]) * specular
         specular = specular * reflectance
-        beta = torch.sigmoid(out[:, 3:4])
+        if self.attenuation_head is None:
+            beta = torch.sigmoid(out[:, self.beta_column:self.beta_column + 1])
+        else:
+            head_input = torch.cat([material, cos_incidence.to(material.dtype)], -1)
+            beta = torch.sigmoid(self.attenuation_head(head_input)).to(specular.dtype)
         return specular, beta
 
     def _run_mlp(self, x: Tensor) -> Tensor:
