@@ -61,9 +61,7 @@ class SpecularNetwork(nn.Module):
         self.precision = precision
         self.mirror = mirror
         self.near_weight = near_weight
-        self.attenuation = attenuation
         # output columns: C_spec (3), then beta (attenuation="network"), the mirror weight, the near weight
-        self.beta_column = 3 if attenuation == "network" else None
         self.mirror_column = 3 + int(attenuation == "network")
         outputs = self.mirror_column + int(mirror) + int(near_weight)
         self.mlp = nn.Sequential(
@@ -115,7 +113,7 @@ class SpecularNetwork(nn.Module):
             specular = weight * near[0] + (1.0 - weight * near[1]) * specular
         specular = specular * reflectance
         if self.attenuation_head is None:
-            beta = torch.sigmoid(out[:, self.beta_column:self.beta_column + 1])
+            beta = torch.sigmoid(out[:, 3:4])
         else:
             head_input = torch.cat([material, cos_incidence.to(material.dtype)], -1)
             beta = torch.sigmoid(self.attenuation_head(head_input)).to(specular.dtype)
