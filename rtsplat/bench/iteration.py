@@ -54,6 +54,8 @@ METHODS = {
     # near reflections whose mirror planes are learnt from the images (rtsplat.train.planes)
     "rtsplat_near_planes": {"effects": {"near_reflection": "on"},
                             "lr": {"mirror_plane_rotation": 3e-4, "mirror_plane_shift": 1e-4}},
+    # the attenuation beta as the specular network's fourth output (the paper's) instead of the material's head
+    "rtsplat_paper_beta": {"model": {**DEMO_OPTIONS["model"], "attenuation_from": "network"}},
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
 }
 PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",
