@@ -126,10 +126,18 @@ class SfmConfig:
         "this (px), about what the refinement reaches from attempts at 0.3-0.6 px; 0: always refine",
         minimum=0.0,
     )
-    refine_features: Literal["attempt", "denser"] = _f(
-        "attempt",
+    refine_features: Literal["auto", "attempt", "denser"] = _f(
+        "auto",
         help="refinement tracks: attempt = the chosen attempt's features and matches (no extraction or matching); "
-        "denser = more, weaker SIFT features matched (guided) on the pairs that share points or are neighbours by pose",
+        "denser = more, weaker SIFT features matched (guided) on the pairs that share points or are neighbours by "
+        "pose; auto = denser where the attempt found few features per image (refine_denser_max_features), "
+        "which small or plain photos give and which make cheap, sparse tracks, else attempt",
+    )
+    refine_denser_max_features: int = _f(
+        1000,
+        help="refine_features auto: denser when the chosen attempt's images hold at most this many SIFT features on "
+        "average (guided matching of the denser features costs about the square of their number per pair)",
+        minimum=0,
     )
     refine_pose_neighbours: int = _f(
         8, help="refine_features denser: each view is matched with this many nearest views by camera centre", minimum=0

@@ -393,6 +393,48 @@ def test_refinement_keeps_every_view_and_lowers_the_reprojection_error(tmp_path,
         assert off.pose_errors == chosen_off["pose_errors"]
 
 
+def test_auto_refinement_features_follow_the_features_per_image(tmp_path):
+    """sfm.refine_features auto counts the chosen attempt's SIFT keypoints per image in its database (the
+    count checked here against every image's keypoints read one by one) and refines with denser features
+    up to sfm.refine_denser_max_features, with the attempt's own tracks above it; the summary says which
+    and why."""
+    import pycolmap
+
+    from rtsplat.sfm.refine import mean_features_per_image, refinement_features
+
+    make_corner_scene(tmp_path / "s", n_views=8, width=160, height=120)
+    images = sorted(p.name for p in (tmp_path / "s" / "images").iterdir())
+    db = tmp_path / "features.db"
+    pycolmap.extract_features(db, tmp_path / "s" / "images", image_names=images, device=pycolmap.Device.cpu)
+    database = pycolmap.Database.open(str(db))
+    try:
+        counts = [database.read_keypoints(im.image_id).shape[0] for im in database.read_all_images()]
+    finally:
+        database.close()
+    assert len(counts) == 8 and min(counts) > 0
+    mean = mean_features_per_image(db)
+    assert mean == pytest.approx(sum(counts) / 8)
+
+    base = SfmConfig(use_dataset_model=False, camera_model="SIMPLE_PINHOLE", num_threads=1, matcher="exhaustive",
+                     refine_skip_reprojection_error=0.0)
+    assert base.refine_features == "auto"
+    assert refinement_features(replace(base, refine_denser_max_features=int(mean)), mean + 1)[0] == "attempt"
+    assert refinement_features(replace(base, refine_denser_max_features=int(mean)), mean - 1)[0] == "denser"
+    assert refinement_features(replace(base, refine_features="attempt"), 0.0)[0] == "attempt"
+    assert refinement_features(replace(base, refine_features="denser"), 1e9)[0] == "denser"
+    runs = {}
+    for name, limit in (("few", 10**9), ("many", 0)):
+        lines: list[str] = []
+        runs[name] = run_sfm(tmp_path / "s", tmp_path / name, replace(base, refine_denser_max_features=limit),
+                             progress=False, log=lines.append).refinement
+        assert any("tracks from" in line for line in lines if line.startswith("sfm refinement:")), lines
+    assert runs["few"]["features"] == "denser" and runs["few"]["settings"]["guided_matching"]
+    assert runs["few"]["features_reason"].startswith("auto: the attempt found")
+    assert runs["few"]["step_seconds"]["refinement_matching"] > 0
+    assert runs["many"]["features"] == "attempt" and runs["many"]["matched_pairs"] is None
+    assert "more than sfm.refine_denser_max_features 0" in runs["many"]["features_reason"]
+
+
 def test_refinement_is_skipped_when_the_chosen_model_is_accurate(tmp_path):
     """A chosen attempt that registers every view at a mean reprojection error at most
     sfm.refine_skip_reprojection_error is written as it is, and the summary says why; the same scene

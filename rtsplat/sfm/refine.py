@@ -10,7 +10,10 @@ rebuilds the structure:
    features (:func:`rtsplat.sfm.attempts.denser_features`) and matches them, guided by the two-view
    geometry, only on the pairs the model needs (:func:`refinement_pairs`: pairs that share 3D points
    in the chosen model, and each view's nearest views by camera centre); a ladder step that already
-   matched those features is reused;
+   matched those features is reused; ``auto`` (:func:`refinement_features`) takes ``denser`` where the
+   attempt found few features per image (small or plain photos: sparse tracks, and denser features
+   that are cheap to match) and ``attempt`` where it found many (guided matching costs about the
+   square of the features per pair: on 8192-feature photos it did not finish in 10 minutes);
 2. tracks triangulated with the model's poses fixed (``pycolmap.triangulate_points``, then every
    view's untriangulated matches again and the pairs that should share tracks); the model is first
    renumbered to the database's image, camera, rig and frame ids, matched by image name
@@ -58,7 +61,8 @@ class RefinementResult:
     rounds: int
     max_reprojection_error: float
     skipped: bool = False  # the chosen model was accurate enough (refinement_needed)
-    features: str = ""  # sfm.refine_features: "attempt" or "denser"
+    features: str = ""  # the tracks' features: "attempt" or "denser" (sfm.refine_features, auto resolved)
+    features_reason: str = ""  # why those features
     matched_pairs: int | None = None  # pairs matched for the refinement (None: matches reused)
     registered: int = 0  # views of the refined model
     num_points_before: int = 0
@@ -145,6 +149,31 @@ def refinement_needed(chosen: AttemptResult, total: int, cfg: SfmConfig) -> tupl
     return True, why
 
 
+def mean_features_per_image(database: Path) -> float:
+    """The mean number of SIFT keypoints per image of a COLMAP database."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database))
+    try:
+        images = db.num_images()
+        return db.num_keypoints() / images if images else 0.0
+    finally:
+        db.close()
+
+
+def refinement_features(cfg: SfmConfig, mean_features: float | None) -> tuple[str, str]:
+    """("attempt" or "denser", why) for ``sfm.refine_features``; ``auto`` decides from the chosen attempt's
+    ``mean_features`` per image against ``sfm.refine_denser_max_features``."""
+    if cfg.refine_features != "auto":
+        return cfg.refine_features, f"sfm.refine_features is {cfg.refine_features}"
+    limit = cfg.refine_denser_max_features
+    if mean_features is not None and mean_features <= limit:
+        return "denser", (f"auto: the attempt found {mean_features:.0f} features per image, at most "
+                          f"sfm.refine_denser_max_features {limit}: denser features")
+    return "attempt", (f"auto: the attempt found {mean_features:.0f} features per image, more than "
+                       f"sfm.refine_denser_max_features {limit}: the attempt's own tracks")
+
+
 def refinement_pairs(rec, neighbours: int) -> list[tuple[str, str]]:
     """Image-name pairs to match for the refinement: registered views that share at least
     ``_MIN_SHARED_POINTS`` 3D points of ``rec``, and each registered view with its ``neighbours``
@@ -180,24 +209,24 @@ def refine_model(
 
     ``chosen``: the settings of the attempt that gave ``rec`` (its database is reused with
     ``sfm.refine_features: attempt``); ``first``: the first attempt's settings, made denser with
-    ``sfm.refine_features: denser``. The refined model is returned whether or not it is kept
-    (``result.kept``; ``rec`` itself when the triangulation failed); ``work`` is an empty folder
-    for the triangulation's output.
+    ``sfm.refine_features: denser`` (``auto`` chooses between them: :func:`refinement_features`). The
+    refined model is returned whether or not it is kept (``result.kept``; ``rec`` itself when the
+    triangulation failed); ``work`` is an empty folder for the triangulation's output.
     """
     import pycolmap
 
     t0 = time.perf_counter()
     steps_before = store.times.as_dict()
     before = model_stats(rec, store.names)
-    if cfg.refine_features == "attempt":
-        settings = chosen
-    else:
-        settings = denser_features(first)
+    mean_features = mean_features_per_image(store.features(chosen)) if cfg.refine_features == "auto" else None
+    features, features_reason = refinement_features(cfg, mean_features)
+    settings = chosen if features == "attempt" else denser_features(first)
     result = RefinementResult(
         settings=asdict(settings),
         rounds=cfg.refine_rounds,
         max_reprojection_error=cfg.refine_max_reprojection_error,
-        features=cfg.refine_features,
+        features=features,
+        features_reason=features_reason,
         num_points_before=before.num_points,
         mean_reprojection_error_before=before.mean_reprojection_error,
         mean_track_length_before=before.mean_track_length,
@@ -208,7 +237,7 @@ def refine_model(
         result.seconds = time.perf_counter() - t0
         result.step_seconds = store.times.since(steps_before)
 
-    if cfg.refine_features == "attempt":
+    if features == "attempt":
         db_path = store.matches(chosen, chosen.matcher)  # the chosen attempt's own: no extraction, no matching
     else:
         db_path = store.existing_matches(settings)  # a ladder step already matched these features
@@ -299,13 +328,16 @@ def describe_refinement(r: RefinementResult) -> str:
         f"{px(r.mean_reprojection_error_before)} -> {px(r.mean_reprojection_error)}{focal}, "
         f"{r.seconds:.1f} s{pose}; {r.verdict}"
         + ("" if r.matched_pairs is None else f" ({r.matched_pairs} pairs matched)")
+        + (f"; tracks from {r.features} features ({r.features_reason})" if r.features_reason else "")
     )
 
 
 __all__ = [
     "RefinementResult",
     "describe_refinement",
+    "mean_features_per_image",
     "refine_model",
+    "refinement_features",
     "refinement_needed",
     "refinement_pairs",
     "with_database_ids",
