@@ -61,7 +61,7 @@ class RefinementResult:
     rounds: int
     max_reprojection_error: float
     skipped: bool = False  # the chosen model was accurate enough (refinement_needed)
-    features: str = ""  # the tracks' features: "attempt" or "denser" (sfm.refine_features, auto resolved)
+    features: str = ""  # the tracks' features, "attempt" or "denser" (auto resolved); skipped: the config's value
     features_reason: str = ""  # why those features
     matched_pairs: int | None = None  # pairs matched for the refinement (None: matches reused)
     registered: int = 0  # views of the refined model
@@ -163,11 +163,12 @@ def mean_features_per_image(database: Path) -> float:
 
 def refinement_features(cfg: SfmConfig, mean_features: float | None) -> tuple[str, str]:
     """("attempt" or "denser", why) for ``sfm.refine_features``; ``auto`` decides from the chosen attempt's
-    ``mean_features`` per image against ``sfm.refine_denser_max_features``."""
+    ``mean_features`` per image against ``sfm.refine_denser_max_features`` (only ``auto`` reads it: None
+    otherwise)."""
     if cfg.refine_features != "auto":
         return cfg.refine_features, f"sfm.refine_features is {cfg.refine_features}"
     limit = cfg.refine_denser_max_features
-    if mean_features is not None and mean_features <= limit:
+    if mean_features <= limit:
         return "denser", (f"auto: the attempt found {mean_features:.0f} features per image, at most "
                           f"sfm.refine_denser_max_features {limit}: denser features")
     return "attempt", (f"auto: the attempt found {mean_features:.0f} features per image, more than "
