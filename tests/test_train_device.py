@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -210,7 +211,13 @@ def _train_both_backends(scene_dir: str, out_dir: str) -> None:
 
 @pytest.fixture(scope="module")
 def triton_training(tmp_path_factory):
-    pytest.importorskip("triton")
+    triton = pytest.importorskip("triton")
+    pinned = re.search(r'"triton==([^"]+)"', (ROOT / "pyproject.toml").read_text()).group(1)
+    if triton.__version__ != pinned:
+        # seen on a GPU image with triton 3.6.0: its interpreter reduces to a 1-element array where 3.9
+        # gives a scalar, so a loop bound fails there; the compiled kernels are checked on such a machine
+        # by tests/test_raster_triton.py instead
+        pytest.skip(f"Triton's interpreter is tested with the pinned triton=={pinned}, not {triton.__version__}")
     from rtsplat.bench.toy_scene import write_scene
     from rtsplat.scene import Roi
 
