@@ -85,6 +85,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def stage_parser(stage: Stage, module) -> argparse.ArgumentParser:
+    """The argument parser of one stage (``module``: the stage's loaded module)."""
+    parser = argparse.ArgumentParser(prog=f"rtsplat {stage.name}", description=stage.help)
+    module.add_arguments(parser)
+    return parser
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -100,9 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return NOT_IMPLEMENTED_EXIT
-    stage_parser = argparse.ArgumentParser(prog=f"rtsplat {stage.name}", description=stage.help)
-    module.add_arguments(stage_parser)
-    args = stage_parser.parse_args(argv[1:])
+    args = stage_parser(stage, module).parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)
     except PipelineError as exc:
