@@ -25,9 +25,10 @@ TRAINER_OPTIONS = "defaults.train.options"  # the trainer's config tree inside t
 INTRO = f"""# Configuration reference
 
 Written by `{COMMAND}`
-from the config dataclasses (`rtsplat/config.py`, `rtsplat/train_config.py`, `rtsplat/model/settings.py`): do not edit by hand. `config.yaml` is checked against the same schema
-(`workflow/schemas/config.schema.json`) when the workflow starts; an unknown key or a wrong type is an
-error that names the key. How the sections fit together: [the guide](guide.md#configuration).
+from the config dataclasses (`rtsplat/config.py`, `rtsplat/train_config.py`, `rtsplat/model/settings.py`):
+do not edit by hand. `config.yaml` is checked against the same schema (`workflow/schemas/config.schema.json`)
+when the workflow starts; an unknown key or a wrong type is an error that names the key.
+How the sections fit together: [the guide](guide/configuration.md).
 
 - `methods.<name>` takes `role` and `of` (below) and any key of the trainer's tree
   (`{TRAINER_OPTIONS}`, the same keys), as overrides of that method.

@@ -125,7 +125,26 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def source_commit() -> str | None:
+    """The git commit of the rtsplat source tree that is running (``abc123def456``, with ``+changes`` when
+    files differ from it); None outside a git checkout."""
+    import subprocess
+
+    root = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"], capture_output=True,
+                              text=True, timeout=10)
+        if head.returncode != 0:
+            return None
+        changes = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                 capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head.stdout.strip() + ("+changes" if changes.stdout.strip() else "")
+
+
 def environment() -> dict:
+    """Package versions, the machine and the source commit that a metrics file records."""
     from importlib import metadata
 
     versions = {}
@@ -134,8 +153,9 @@ def environment() -> dict:
             versions[package] = metadata.version(package)
         except metadata.PackageNotFoundError:
             continue
-    return {"versions": versions, "machine": {"platform": platform.platform(), "processor": cpu_model(),
-                                              "cpus": os.cpu_count(), "python": platform.python_version()}}
+    machine = {"platform": platform.platform(), "processor": cpu_model(), "cpus": os.cpu_count(),
+               "python": platform.python_version()}
+    return {"versions": versions, "commit": source_commit(), "machine": machine}
 
 
 def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str | Path | None = None,

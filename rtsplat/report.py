@@ -1,4 +1,6 @@
-"""``rtsplat report``: the benchmark report, ``index.html`` plus a Markdown twin ``index.md``.
+"""``rtsplat report``: the benchmark report, ``index.html`` plus a Markdown twin ``index.md``, and its
+tables as data in ``report.json`` with the commit and the machine they were measured with (from which
+``python -m rtsplat.results_page`` writes ``docs/results.md``).
 
 It reads what the other stages wrote under ``--results`` (the layout of ``docs/architecture.md``)::
 
@@ -44,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import datetime
 import html
 import json
 from dataclasses import dataclass, field
@@ -60,6 +63,7 @@ from rtsplat.model.composite import transmission_with_scatter
 from rtsplat.scene import GT_LAYERS_DIR, REFLECTION_REACH_FILE
 
 ROLES = ("main", "baseline", "ablation", "repeat")
+REPORT_JSON = "report.json"  # the report's tables as data, with the commit and the machine (rtsplat.results_page)
 PLAIN_2DGS = "2dgs"  # the plain-2DGS baseline the summary compares the main method with
 
 
@@ -197,6 +201,9 @@ class Document:
     """Builds the HTML and the Markdown twin side by side."""
 
     def __init__(self, title: str):
+        self.title = title
+        self.headings: list[str] = []  # the headings above the current point, one per level from 2
+        self.tables: list[dict] = []  # every table with the headings it is under (report.json)
         self.html = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
                      "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:"
                      "collapse}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
@@ -205,6 +212,7 @@ class Document:
         self.md = [f"# {title}", ""]
 
     def heading(self, text: str, level: int = 2) -> None:
+        self.headings = self.headings[:max(level - 2, 0)] + [text]
         self.html.append(f"<h{level}>{html.escape(text)}</h{level}>")
         self.md += ["#" * level + " " + text, ""]
 
@@ -217,6 +225,7 @@ class Document:
         self.md += ["```", text, "```", ""]
 
     def table(self, header: list[str], rows: list[list[str]]) -> None:
+        self.tables.append({"headings": list(self.headings), "header": list(header), "rows": [list(r) for r in rows]})
         self.html.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
         for row in rows:
             self.html.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>")
@@ -779,6 +788,7 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
     machine = any_metrics.get("machine", {})
     doc.paragraph(f"Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
                   f"{machine.get('platform', '?')}; rendering device: {any_metrics.get('render_device', '?')}. "
+                  f"Commit: {any_metrics.get('commit') or 'not recorded'}. "
                   f"Packages: {', '.join(f'{k} {v}' for k, v in any_metrics.get('versions', {}).items())}.")
     doc.paragraph("LPIPS: " + str(any_metrics.get("lpips", "not computed")))
     for scene, runs in scenes.items():
@@ -921,6 +931,11 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
     page, markdown = doc.finish()
     (out / "index.html").write_text(page)
     (out / "index.md").write_text(markdown)
+    record = {"title": doc.title, "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+              "commit": any_metrics.get("commit"), "machine": machine,
+              "render_device": any_metrics.get("render_device"), "versions": any_metrics.get("versions", {}),
+              "scenes": list(scenes), "tables": doc.tables}
+    (out / REPORT_JSON).write_text(json.dumps(record, indent=1) + "\n")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

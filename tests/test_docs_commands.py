@@ -30,7 +30,8 @@ SHELL_LANGUAGES = ("", "bash", "sh", "shell", "console")
 
 
 def doc_files() -> list[Path]:
-    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("guide*.md")), *sorted((ROOT / "docs" / "guide").glob("*.md"))]
+    docs = ROOT / "docs"
+    return [ROOT / "README.md", *sorted(docs.glob("guide*.md")), *sorted((docs / "guide").glob("*.md"))]
 
 
 @dataclass(frozen=True)
@@ -363,7 +364,8 @@ def test_the_checker_finds_a_bad_config_fragment():
 def test_extract_reads_fenced_and_inline_commands(tmp_path):
     page = tmp_path / "page.md"
     page.write_text("Run `rtsplat train --data P --bogus 1` first.\n\n```bash\nmake demo   # the demo\n"
-                    "rtsplat render --run R \\\n    --nope\n```\n\n```yaml\ndata: x\n```\n\n```python\nrtsplat x\n```\n")
+                    "rtsplat render --run R \\\n    --nope\n```\n\n```yaml\ndata: x\n```\n\n"
+                    "```python\nrtsplat x\n```\n")
     commands, blocks = extract(page)
     texts = [c.text for c in commands]
     assert any("--bogus" in t for t in texts) and any(t.startswith("make demo") for t in texts)

@@ -366,3 +366,45 @@ def test_the_near_reflection_section_says_what_share_of_the_true_reflection_is_n
     assert "median distance" not in scene_reflection_reach(prepared)
     (prepared / "gt_layers" / "reflection_reach.json").write_text("{not json")
     assert scene_reflection_reach(prepared) == ""
+
+
+def _git_head() -> str | None:
+    from pathlib import Path
+
+    done = subprocess.run(["git", "-C", str(Path(__file__).resolve().parent.parent), "rev-parse", "--short=12",
+                           "HEAD"], capture_output=True, text=True)
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def test_results_page_carries_the_reports_tables_commit_and_machine(results, tmp_path):
+    from rtsplat.results_page import main as results_page
+
+    build_report(results, tmp_path / "report", roles=Roles.from_dict(ROLES))
+    md = (tmp_path / "report" / "index.md").read_text()
+    record = json.loads((tmp_path / "report" / "report.json").read_text())
+    head = _git_head()
+    if head is None:
+        assert record["commit"] is None
+    else:
+        assert record["commit"].removesuffix("+changes") == head
+    assert record["machine"]["cpus"] >= 1 and record["scenes"] == ["toy"]
+
+    assert results_page(["--report", str(tmp_path / "report"), "--out", str(tmp_path / "results.md")]) == 0
+    page = (tmp_path / "results.md").read_text()
+    assert f"- Commit: `{record['commit'] or 'not recorded'}`" in page
+    assert f"({record['machine']['cpus']} CPUs)" in page and record["machine"]["processor"] in page
+    # the kept tables are the report's own rows, under the scene's heading
+    for header_start in ("| method | PSNR | SSIM |", "| method | FPS alone |"):
+        assert _table_rows(page, header_start) == _table_rows(md, header_start)
+        assert _table_rows(page, header_start)
+    assert "## Scene toy" in page and "### Ablations (transparent-region PSNR)" in page
+    assert "Summary: RT-Splatting against plain 2DGS" in page
+    assert "Noise" not in page.split("## Scene toy", 1)[1]  # the noise section is left to the report
+
+
+def test_results_page_of_a_folder_without_report_json_is_a_clear_error(tmp_path, capsys):
+    from rtsplat.results_page import main as results_page
+
+    assert results_page(["--report", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "no report.json" in err and str(tmp_path) in err and "rtsplat report" in err

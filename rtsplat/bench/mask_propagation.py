@@ -54,7 +54,8 @@ def _outlined(image: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int])
     return tint
 
 
-def _label(panel: np.ndarray, text: str) -> None:
+def label_panel(panel: np.ndarray, text: str) -> None:
+    """Write ``text`` in the top-left corner of a uint8 RGB panel, white on a black outline."""
     import cv2
 
     for colour, width in (((0, 0, 0), 3), ((255, 255, 255), 1)):
@@ -108,11 +109,11 @@ def draw_figure(model, by_name: dict[str, Path], masks: dict[str, np.ndarray], n
     panel = _outlined(read_image(by_name[first.name]), drawn[first.name], (255, 0, 255))
     corners = [np.round(o - 0.5).astype(np.int32).reshape(-1, 1, 2) for o in outlines[first.name]]
     cv2.polylines(panel, corners, True, (255, 220, 0), 1)
-    _label(panel, f"{first.name}: marked ({mark})")
+    label_panel(panel, f"{first.name}: marked ({mark})")
     panels = [panel]
     for name in others:
         panel = _outlined(read_image(by_name[name]), results[name].mask, (0, 255, 0))
-        _label(panel, f"{name}: IoU {iou(results[name].mask, masks[name]):.2f}")
+        label_panel(panel, f"{name}: IoU {iou(results[name].mask, masks[name]):.2f}")
         panels.append(panel)
     gap = np.full((panels[0].shape[0], 4, 3), 255, np.uint8)
     row = np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1) & 0xF8
