@@ -30,7 +30,8 @@ do not edit by hand. `config.yaml` is checked against the same schema (`workflow
 when the workflow starts; an unknown key or a wrong type is an error that names the key.
 How the sections fit together: [the guide](guide/configuration.md).
 
-- `methods.<name>` takes `role` and `of` (below) and any key of the trainer's tree
+- `methods.<name>` takes `role` and `of` (below), `budget` (a number > 0 that multiplies every iteration
+  count of the method's schedule, e.g. `rtsplat_x4: {{budget: 4}}`) and any key of the trainer's tree
   (`{TRAINER_OPTIONS}`, the same keys), as overrides of that method.
 - `overrides.<scene>` takes every key of `defaults`; a scene's settings are the defaults with its
   overrides merged over them.

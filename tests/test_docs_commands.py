@@ -12,8 +12,11 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import os
 import re
 import shlex
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +24,7 @@ import pytest
 import yaml
 
 from rtsplat import cli
-from rtsplat.config import validate_config
+from rtsplat.config import check_methods, load_config_dict, validate_config
 from rtsplat.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -192,8 +195,10 @@ def check_make(words: list[str]) -> list[str]:
 
 
 def _config_problem(data: dict, source: str) -> str | None:
+    """What the workflow would refuse in a config (fragment): the schema, and each method's trainer tree."""
     try:
         validate_config(data, source=source)
+        check_methods(load_config_dict(data, source))
     except ConfigError as exc:
         return str(exc)
     return None
@@ -236,7 +241,33 @@ def check_snakemake(words: list[str]) -> list[str]:
             if not (ROOT / words[i + 1]).is_dir():
                 problems.append(f"--profile {words[i + 1]}: no such folder")
         i += 1
+    if not problems:
+        problems += [f"the workflow has no rule '{t}'" for t in snakemake_targets(words)
+                     if re.fullmatch(r"\w+", t) and t not in workflow_rules()]
     return problems
+
+
+def snakemake_targets(words: list[str]) -> list[str]:
+    """The targets snakemake reads from its arguments (its own parser: ``--config`` and ``--set-threads``
+    take every word after them)."""
+    from snakemake.cli import get_argument_parser
+
+    args, _ = get_argument_parser().parse_known_args(words)
+    return list(args.targets or [])
+
+
+@functools.cache
+def workflow_rules() -> frozenset[str]:
+    files = [ROOT / "Snakefile", *sorted((ROOT / "workflow" / "rules").glob("*.smk"))]
+    return frozenset(name for f in files for name in re.findall(r"^rule (\w+)\s*:", f.read_text(), re.M))
+
+
+@functools.cache
+def module_help(module: str) -> str:
+    """What ``python -m module --help`` prints (its options)."""
+    done = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, cwd=ROOT,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+    return done.stdout + done.stderr
 
 
 def check_python(words: list[str]) -> list[str]:
@@ -245,7 +276,13 @@ def check_python(words: list[str]) -> list[str]:
     module = words[1]
     if not module.startswith("rtsplat"):
         return []
-    return [] if importlib.util.find_spec(module) is not None else [f"no module {module}"]
+    if importlib.util.find_spec(module) is None:
+        return [f"no module {module}"]
+    flags = [f for f in map(_flag, words[2:]) if f is not None]
+    if not flags:
+        return []
+    text = module_help(module)
+    return [f"python -m {module} has no option {f}" for f in flags if not re.search(rf"{re.escape(f)}\b", text)]
 
 
 def check_command(command: str) -> list[str]:
@@ -336,6 +373,8 @@ def test_readme_keeps_the_commands_that_ci_runs():
     ("snakemake --configfile benchmarks/nothing.yaml", "--configfile benchmarks/nothing.yaml does not exist"),
     ("snakemake --profile profiles/pbs", "--profile profiles/pbs: no such folder"),
     ("python -m rtsplat.bench.rastr", "no module rtsplat.bench.rastr"),
+    (".venv/bin/snakemake --cores all prepare_all", "the workflow has no rule 'prepare_all'"),
+    ("python -m rtsplat.config --chek config.yaml", "python -m rtsplat.config has no option --chek"),
     ("cd x && rtsplat render --run R --edits roughness=2", "rtsplat render has no option --edits"),
 ])
 def test_the_checker_finds_made_up_commands(command, problem):
@@ -349,8 +388,10 @@ def test_the_checker_finds_made_up_commands(command, problem):
     "rtsplat video --run R --data P --out V.mp4 [--path orbit\\|spiral\\|interpolate] [--panels]",
     "make test PYTEST_ARGS=\"-k raster\"",
     ".venv/bin/snakemake --cores all --config data=/path/to/scenes   # every <scene>/images/",
+    ".venv/bin/snakemake --cores all prepared_all",
     "snakemake -s Snakefile -d real --configfile benchmarks/real.yaml --cores 2",
     "python -m rtsplat.bench.raster",
+    "python -m rtsplat.config --check config.yaml",
 ])
 def test_the_checker_passes_real_commands(command):
     assert check_command(command) == []
@@ -358,6 +399,7 @@ def test_the_checker_passes_real_commands(command):
 
 def test_the_checker_finds_a_bad_config_fragment():
     assert check_yaml("defaults:\n  prepare:\n    downsampel: 4\n", "x") != []
+    assert check_yaml("methods:\n  fast: {model: {mlp_widht: 64}}\n", "x") != []  # a trainer key
     assert check_yaml("defaults:\n  prepare:\n    downsample: 4\n", "x") == []
 
 
@@ -373,3 +415,20 @@ def test_extract_reads_fenced_and_inline_commands(tmp_path):
     assert check_command(joined.text) == ["rtsplat render has no option --nope"]
     assert [b.text for b in blocks] == ["data: x"]
     assert not any(t.startswith("rtsplat x") for t in texts)  # python blocks are not shell
+
+
+def test_troubleshooting_names_every_error_class():
+    import rtsplat.io.atomic  # noqa: F401  (the modules that define the subclasses)
+    import rtsplat.model.checkpoint  # noqa: F401
+    import rtsplat.train.divergence  # noqa: F401
+    from rtsplat.errors import PipelineError
+
+    def subclasses(cls):
+        for sub in cls.__subclasses__():
+            yield sub
+            yield from subclasses(sub)
+
+    page = (ROOT / "docs" / "guide" / "troubleshooting.md").read_text()
+    names = {"PipelineError", *(c.__name__ for c in subclasses(PipelineError) if c.__module__.startswith("rtsplat"))}
+    assert {"ConfigError", "CheckpointError", "TrainingDiverged", "WriteFailed"} <= names
+    assert not [n for n in names if f"`{n}`" not in page], "docs/guide/troubleshooting.md misses an error class"
