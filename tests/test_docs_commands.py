@@ -432,3 +432,31 @@ def test_troubleshooting_names_every_error_class():
     names = {"PipelineError", *(c.__name__ for c in subclasses(PipelineError) if c.__module__.startswith("rtsplat"))}
     assert {"ConfigError", "CheckpointError", "TrainingDiverged", "WriteFailed"} <= names
     assert not [n for n in names if f"`{n}`" not in page], "docs/guide/troubleshooting.md misses an error class"
+
+
+def _slug(heading: str) -> str:
+    """A heading's anchor as GitHub makes it: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def test_links_between_the_docs_reach_their_files_and_headings():
+    problems = []
+    for page in [*doc_files(), ROOT / "docs" / "results.md", ROOT / "docs" / "configuration.md"]:
+        for n, line in enumerate(page.read_text().splitlines(), 1):
+            for target in re.findall(r"\]\(([^)\s]+)\)", line):
+                if re.match(r"\w+://", target):
+                    continue
+                path, _, anchor = target.partition("#")
+                file = (page.parent / path).resolve() if path else page
+                if not file.exists():
+                    problems.append(f"{page.relative_to(ROOT)}:{n}: {target}: no such file")
+                elif anchor and file.suffix == ".md":
+                    slugs = {_slug(h) for h in re.findall(r"^#+ (.+)$", file.read_text(), re.M)}
+                    if anchor not in slugs:
+                        problems.append(f"{page.relative_to(ROOT)}:{n}: {target}: no such heading")
+    assert not problems, "\n".join(problems)
+
+
+def test_the_link_checker_knows_githubs_anchors():
+    assert _slug("The tests: `make test`, `make test-fast`") == "the-tests-make-test-make-test-fast"
+    assert _slug("`defaults.train.options`") == "defaultstrainoptions"
