@@ -460,3 +460,59 @@ def test_links_between_the_docs_reach_their_files_and_headings():
 def test_the_link_checker_knows_githubs_anchors():
     assert _slug("The tests: `make test`, `make test-fast`") == "the-tests-make-test-make-test-fast"
     assert _slug("`defaults.train.options`") == "defaultstrainoptions"
+
+
+SECTIONS = ("sfm", "masks", "prepare", "train", "render", "video", "metrics", "slurm", "schedule", "lr", "losses",
+            "densify", "model", "ablations", "effects", "gating", "cameras", "appearance", "raster", "defaults",
+            "overrides", "methods")
+FILE_SUFFIXES = ("pt", "json", "jsonl", "yaml", "md", "png", "ply", "mp4", "py", "html", "txt", "npz")
+
+
+@functools.cache
+def config_keys() -> frozenset[str]:
+    """Every dotted key of the pipeline schema, from the top, from ``defaults`` and from the trainer's tree."""
+    from rtsplat.config import json_schema
+
+    keys = set()
+
+    def walk(schema, path):
+        obj = schema if "properties" in schema else next(
+            (o for o in schema.get("anyOf", []) if "properties" in o), None)
+        if obj is None:
+            return
+        for key, prop in obj["properties"].items():
+            child = f"{path}.{key}" if path else key
+            keys.add(child)
+            walk(prop, child)
+
+    walk(json_schema(), "")
+    out = set(keys)
+    for prefix in ("defaults.", "defaults.train.options."):
+        out |= {k[len(prefix):] for k in keys if k.startswith(prefix)}
+    out |= {"train." + k[len("defaults.train.options."):] for k in keys if k.startswith("defaults.train.options.")}
+    return frozenset(out)
+
+
+def check_config_key(span: str) -> list[str]:
+    """A dotted config key named in prose (``sfm.matcher``, ``model.mlp_width``) exists in the schema."""
+    if not re.fullmatch(r"[a-z_]+(\.[a-z_0-9]+)+", span) or span.split(".")[0] not in SECTIONS:
+        return []
+    if span.rsplit(".", 1)[1] in FILE_SUFFIXES:  # model.pt, render.json: files, not keys
+        return []
+    return [] if span in config_keys() else [f"config key {span} is not in the schema"]
+
+
+def test_every_config_key_named_in_the_docs_exists():
+    problems = []
+    for page in doc_files():
+        for n, line in enumerate(page.read_text().splitlines(), 1):
+            for span in re.findall(r"`([^`\n]+)`", line):
+                problems += [f"{page.relative_to(ROOT)}:{n}: {p}" for p in check_config_key(span)]
+    assert not problems, "\n".join(problems)
+
+
+def test_the_key_checker_finds_a_made_up_key():
+    assert check_config_key("sfm.matcher") == [] and check_config_key("model.mlp_width") == []
+    assert check_config_key("train.device") == [] and check_config_key("defaults.train.device") == []
+    assert check_config_key("sfm.matchr") == ["config key sfm.matchr is not in the schema"]
+    assert check_config_key("rtsplat.bench.raster") == [] and check_config_key("model.pt") == []  # not keys
