@@ -5,7 +5,9 @@ Three ways (function API :func:`make_masks`; :func:`resolve_source` decides ``ma
 * **ingest** ``<scene>/transparent_masks/``: one mask per photo, named like the photo (``IMG_0001.JPG``),
   after its stem with any image extension (``IMG_0001.png``) or COLMAP's way (``IMG_0001.JPG.png``)
   (:func:`match_masks`); names and sizes are validated against the images, masks are binarised (JPEG
-  masks with a tolerance for compression noise, :func:`interpret_mask`), coverage is reported;
+  masks with a tolerance for compression noise, :func:`interpret_mask`), coverage is reported; masks are
+  read as given (white = see-through) unless ``masks.polarity: black``, and white covering most of the
+  photos is flagged, never inverted (:func:`decide_polarity`);
 * **propagate** the masks of a few marked photos (at least 3: mask files that fewer than half the photos
   have, and boxes and polygons drawn in ``masks.marks``, several per photo unioned, :func:`check_marks`,
   :func:`marks_to_masks`) to every photo through the SfM cameras of ``--sfm`` (:mod:`rtsplat.masks_propagate`);
@@ -71,8 +73,9 @@ class MasksSummary:
     mean_coverage: float = 0.0
     coverage: dict[str, float] = field(default_factory=dict)
     model_kind: str = ""
-    polarity: str = "white"  # ingest: the mask colour read as see-through
+    polarity: str = "white"  # ingest, propagate: the mask files' colour read as see-through (decide_polarity)
     polarity_reason: str = ""
+    polarity_warning: str = ""  # the masks look unusual (white covers most of the photos): check them; "" if not
     mask_kinds: dict[str, int] = field(default_factory=dict)  # ingest: how many masks of each kind
     without_mask: list[str] = field(default_factory=list)  # ingest with allow_missing: photos given empty masks
     marked: list[str] = field(default_factory=list)  # propagate: the photos whose masks were given
@@ -487,16 +490,43 @@ def ingest_masks(
     return coverage, kinds, missing
 
 
-def decide_polarity(coverage: dict[str, float], cfg: MasksConfig) -> tuple[str, str]:
-    """(the mask colour of the see-through surface, why) for ingested masks of these coverages."""
+@dataclass(frozen=True)
+class PolarityDecision:
+    """Which mask colour is read as see-through (``white`` or ``black``), why, and a warning (empty when
+    there is none) for masks that look unusual: under ``masks.polarity: auto`` the masks are kept as given
+    whatever they cover, and white covering more than ``masks.max_coverage`` of the photos on average is
+    flagged, naming the photos it covers most of and the fix."""
+
+    polarity: str
+    reason: str
+    warning: str = ""
+
+
+HIGH_COVERAGE_EXAMPLES = 3  # photos a high-coverage warning names
+
+
+def decide_polarity(coverage: dict[str, float], cfg: MasksConfig, what: str = "the masks") -> PolarityDecision:
+    """The polarity of mask files of these coverages (by photo stem or name): ``masks.polarity`` when set;
+    ``auto`` keeps them as given (white = see-through) and never inverts on coverage, since glass that fills
+    the view (a shop window, an aquarium, a windshield from the driver's seat) covers most of each photo just
+    as an inverted mask of a small pane does; it warns when white covers more than ``masks.max_coverage`` on
+    average. ``what`` names the masks in the messages."""
     mean = float(np.mean(list(coverage.values()))) if coverage else 0.0
     if cfg.polarity != "auto":
-        return cfg.polarity, f"masks.polarity: {cfg.polarity}"
-    if mean > cfg.max_coverage:
-        return "black", (f"white covers {100 * mean:.1f}% of the images on average (more than masks.max_coverage "
-                         f"{100 * cfg.max_coverage:g}%): read as inverted masks (black = see-through); "
-                         "set masks.polarity: white to keep them as they are")
-    return "white", f"white covers {100 * mean:.1f}% of the images on average: white = see-through"
+        see_through = "white" if cfg.polarity == "white" else "black (inverted)"
+        return PolarityDecision(cfg.polarity, f"masks.polarity: {cfg.polarity}: {see_through} = see-through, "
+                                f"{what} cover {100 * mean:.1f}% of the photos on average as given")
+    reason = (f"masks.polarity: auto: kept as given, white = see-through ({what} cover {100 * mean:.1f}% of "
+              "the photos on average)")
+    if mean <= cfg.max_coverage:
+        return PolarityDecision("white", reason)
+    most = sorted(coverage.items(), key=lambda item: (-item[1], item[0]))[:HIGH_COVERAGE_EXAMPLES]
+    examples = ", ".join(f"{name} {100 * value:.0f}%" for name, value in most)
+    warning = (f"white covers {100 * mean:.1f}% of the photos on average in {what} (more than masks.max_coverage "
+               f"{100 * cfg.max_coverage:g}%; most: {examples}): kept as given, white = see-through. Right for "
+               "glass that fills the view (a shop window, an aquarium, a windshield); if white marks what is "
+               "not see-through instead, set masks.polarity: black (masks.polarity: white silences this)")
+    return PolarityDecision("white", reason, warning)
 
 
 def _logit(threshold: float) -> float:
@@ -646,15 +676,14 @@ def marks_to_masks(marks: dict[str, MaskMark], images: list[Path],
 class Propagation:
     """What :func:`propagate_from_marked` wrote: per-image coverage, each photo's mask source, each marked
     photo's mark source, the photos whose propagated mask was refined and by what, and the polarity of the
-    mask files."""
+    mask files (:func:`decide_polarity`)."""
 
     coverage: dict[str, float]
     sources: dict[str, str]
     mark_sources: dict[str, str]
     refined: list[str]
     refinement: str  # what refined them: grabcut | watershed | onnx (<model kind>); empty when none was
-    polarity: str
-    polarity_reason: str
+    polarity: PolarityDecision
 
 
 def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | None, out: Path, cfg: MasksConfig,
@@ -703,10 +732,10 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
                 fix="export the mask at the image's resolution (masks of images_N folders do not fit images/)",
             )
         marked[img.name] = mask
-    polarity, reason = "white", "masks.marks: drawn marks are the see-through surface"
+    polarity = PolarityDecision("white", "masks.marks: drawn marks are the see-through surface")
     if marked:
-        polarity, reason = decide_polarity({n: float(m.mean()) for n, m in marked.items()}, cfg)
-    if polarity == "black":
+        polarity = decide_polarity({n: float(m.mean()) for n, m in marked.items()}, cfg, "the marked views' masks")
+    if polarity.polarity == "black":
         marked = {n: ~m for n, m in marked.items()}
     mark_sources = dict.fromkeys(marked, "file")
     drawn, drawn_sources = marks_to_masks(marks, images, cfg)
@@ -738,7 +767,7 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
             refined.append(result.name)
             refinement = refinement or result.refinement
     return Propagation(coverage, sources, dict(sorted(mark_sources.items())), refined, refinement if refined else "",
-                       polarity, reason)
+                       polarity)
 
 
 def make_masks(
@@ -769,13 +798,14 @@ def make_masks(
         check_unique_stems(images)
     photos = photo_fingerprints(scene_dir / "images")
     with output_dir(out_dir, "masks", inputs=[scene_dir, sfm_dir]) as tmp:
-        kind, polarity, reason, kinds, missing, sources, refined, mark_sources = "", "white", "", {}, [], {}, [], {}
-        refinement = ""
+        kind, kinds, missing, sources, refined, mark_sources = "", {}, [], {}, [], {}
+        polarity, refinement = PolarityDecision("white", ""), ""
         if source == "ingest":
             coverage, kinds, missing = ingest_masks(images, mask_dir, tmp, cfg, progress)
             without = {Path(name).stem for name in missing}
-            polarity, reason = decide_polarity({k: v for k, v in coverage.items() if k not in without}, cfg)
-            if polarity == "black":  # photos without a mask stay empty (no see-through surface)
+            polarity = decide_polarity({img.name: coverage[img.stem] for img in images if img.stem not in without},
+                                       cfg)
+            if polarity.polarity == "black":  # photos without a mask stay empty (no see-through surface)
                 for stem in set(coverage) - without:
                     write_mask(tmp / f"{stem}.png", ~read_mask(tmp / f"{stem}.png"))
                     coverage[stem] = 1.0 - coverage[stem]
@@ -784,7 +814,7 @@ def make_masks(
                 images, mask_dir, None if sfm_dir is None else Path(sfm_dir), tmp, cfg, progress)
             coverage, sources, refined = propagation.coverage, propagation.sources, propagation.refined
             refinement = propagation.refinement
-            polarity, reason, mark_sources = propagation.polarity, propagation.polarity_reason, propagation.mark_sources
+            polarity, mark_sources = propagation.polarity, propagation.mark_sources
         elif source == "onnx":
             coverage, kind = segment_masks(images, tmp, cfg, progress)
         else:
@@ -796,8 +826,9 @@ def make_masks(
             mean_coverage=float(np.mean(list(coverage.values()))) if coverage else 0.0,
             coverage=coverage,
             model_kind=kind,
-            polarity=polarity,
-            polarity_reason=reason,
+            polarity=polarity.polarity,
+            polarity_reason=polarity.reason,
+            polarity_warning=polarity.warning,
             mask_kinds=kinds,
             without_mask=missing,
             marked=sorted(n for n, s in sources.items() if s == "given"),
@@ -810,6 +841,8 @@ def make_masks(
             photos=photos,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
+    if summary.polarity_warning:
+        _log(f"masks {scene_dir}: WARNING: {summary.polarity_warning}")
     return summary
 
 
