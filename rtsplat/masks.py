@@ -505,19 +505,21 @@ class PolarityDecision:
 HIGH_COVERAGE_EXAMPLES = 3  # photos a high-coverage warning names
 
 
-def decide_polarity(coverage: dict[str, float], cfg: MasksConfig, what: str = "the masks") -> PolarityDecision:
+def decide_polarity(coverage: dict[str, float], cfg: MasksConfig, what: str = "the mask files") -> PolarityDecision:
     """The polarity of mask files of these coverages (by photo stem or name): ``masks.polarity`` when set;
     ``auto`` keeps them as given (white = see-through) and never inverts on coverage, since glass that fills
     the view (a shop window, an aquarium, a windshield from the driver's seat) covers most of each photo just
     as an inverted mask of a small pane does; it warns when white covers more than ``masks.max_coverage`` on
     average. ``what`` names the masks in the messages."""
     mean = float(np.mean(list(coverage.values()))) if coverage else 0.0
-    if cfg.polarity != "auto":
-        see_through = "white" if cfg.polarity == "white" else "black (inverted)"
-        return PolarityDecision(cfg.polarity, f"masks.polarity: {cfg.polarity}: {see_through} = see-through, "
-                                f"{what} cover {100 * mean:.1f}% of the photos on average as given")
-    reason = (f"masks.polarity: auto: kept as given, white = see-through ({what} cover {100 * mean:.1f}% of "
-              "the photos on average)")
+    if cfg.polarity == "white":
+        return PolarityDecision("white", f"masks.polarity: white: white = see-through (white covers "
+                                f"{100 * mean:.1f}% of the photos on average in {what})")
+    if cfg.polarity == "black":
+        return PolarityDecision("black", f"masks.polarity: black: {what} inverted, black = see-through (black "
+                                f"covers {100 * (1 - mean):.1f}% of the photos on average)")
+    reason = (f"masks.polarity: auto: white = see-through, kept as given (white covers {100 * mean:.1f}% of the "
+              f"photos on average in {what})")
     if mean <= cfg.max_coverage:
         return PolarityDecision("white", reason)
     most = sorted(coverage.items(), key=lambda item: (-item[1], item[0]))[:HIGH_COVERAGE_EXAMPLES]
