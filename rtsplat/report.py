@@ -559,14 +559,16 @@ def scene_reflection_reach(prepared: Path) -> str:
 
 
 def appearance_rows(runs: dict[str, Run]) -> list[list[str]]:
-    """One row per run that measured its photos' exposure spread: on/off, spread, why, and the mean
-    absolute log gain its training and test views' corrections took."""
+    """One row per run that measured its photos' exposure spread: on/off, spread, how confident the decision
+    is (high, low, unknown; '-' for runs that did not record it), why, and the mean absolute log gain its
+    training and test views' corrections took."""
     rows = []
     for m, r in sorted(runs.items()):
         a = r.summary.get("appearance")
         if not isinstance(a, dict):
             continue
-        rows.append([m, "on" if a.get("on") else "off", _fmt(a.get("spread"), 3), str(a.get("reason", "")),
+        rows.append([m, "on" if a.get("on") else "off", _fmt(a.get("spread"), 3), str(a.get("confidence") or "-"),
+                     str(a.get("reason", "")),
                      _fmt(a.get("train_mean_abs_log_gain"), 3), _fmt(a.get("test_mean_abs_log_gain"), 3)])
     return rows
 
@@ -952,10 +954,12 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
         if any(row[1] == "on" for row in exposure_rows):
             doc.heading("Per-view appearance (exposure and white balance)", 3)
             doc.paragraph("Whether each run learnt a colour correction per photo (effects.appearance; auto turns it "
-                          "on where the photos' colours of the SfM points spread by exposure), and how far the "
+                          "on where the photos' colours of the SfM points spread by exposure beyond what the "
+                          "measurement's own noise explains, and keeps it off where too few observations lie off "
+                          "the see-through surface to tell), how confident that decision is, and how far the "
                           "corrections moved (mean |log gain|; 0.1 is a 10% exposure change).")
-            doc.table(["method", "appearance", "exposure spread", "why", "train |log gain|", "test |log gain|"],
-                      exposure_rows)
+            doc.table(["method", "appearance", "exposure spread", "confidence", "why", "train |log gain|",
+                       "test |log gain|"], exposure_rows)
 
         doc.heading("Accuracy against training time", 3)
         measure = time_measure(runs)

@@ -383,13 +383,13 @@ def test_appearance_rows_show_the_spread_and_the_corrections_size():
     from rtsplat.report import Run, appearance_rows
 
     on = {"on": True, "spread": 0.047, "reason": "auto: the photos' exposure spread is 0.047 (>= 0.03)",
-          "train_mean_abs_log_gain": 0.052, "test_mean_abs_log_gain": 0.071}
+          "confidence": "high", "train_mean_abs_log_gain": 0.052, "test_mean_abs_log_gain": 0.071}
     runs = {"rtsplat": Run("glass", "rtsplat", summary={"appearance": on}),
             "2dgs": Run("glass", "2dgs", summary={"appearance": {"on": False, "spread": 0.01, "reason": "auto"}}),
             "old": Run("glass", "old", summary={})}
     rows = appearance_rows(runs)
-    assert rows == [["2dgs", "off", "0.010", "auto", "-", "-"],
-                    ["rtsplat", "on", "0.047", on["reason"], "0.052", "0.071"]]
+    assert rows == [["2dgs", "off", "0.010", "-", "auto", "-", "-"],  # written before the confidence
+                    ["rtsplat", "on", "0.047", "high", on["reason"], "0.052", "0.071"]]
 
 
 def test_the_near_reflection_section_says_what_share_of_the_true_reflection_is_near(tmp_path):
