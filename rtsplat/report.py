@@ -609,7 +609,7 @@ def masks_paragraph(summary: dict) -> str:
 
 
 def polarity_text(summary: dict) -> str:
-    """The masks stage's polarity decision and why (:func:`rtsplat.masks.decide_polarity`), for masks read from
+    """The masks stage's polarity decision and why (:func:`rtsplat.masks.polarity.decide_polarity`), for masks read from
     mask files; empty for segmented masks, marks drawn in the config only, and summaries without it."""
     reason = summary.get("polarity_reason") or ""
     if not reason or summary.get("source") not in ("ingest", "propagate") or not summary.get("has_masks"):

@@ -551,7 +551,7 @@ def test_propagation_prompts_the_onnx_model_with_the_projected_box(onnx_models, 
 
     from rtsplat.config import MaskPropagationConfig
     from rtsplat.io.colmap import ColmapImage, ColmapPoints, write_sparse_model
-    from rtsplat.masks_propagate import suggest_views
+    from rtsplat.masks.propagation import suggest_views
 
     model = ring_model(12)
     truth = {v.name: render(v)[1] for v in model.views}
