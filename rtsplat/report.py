@@ -18,8 +18,9 @@ baseline and there is no main method. The report opens with a summary across sce
 ``2dgs_<suffix>``, PSNR on the transparent region and the entire image, beside the seed noise that
 repeats with another seed measured), then the machine and the package versions. Per scene: the SfM
 table (registered/total views, reprojection error and time of every attempt, and for scenes whose
-dataset ships reference cameras the rotation and centre errors after a similarity fit), where the transparent
-masks came from (:func:`masks_paragraph`: given, segmented, or propagated from how many marked views), the
+dataset ships reference cameras the rotation and centre errors after a similarity fit), the transparent masks
+(:func:`_masks_section`: where they came from, given, segmented, or propagated from how many marked views, the
+polarity decision and its warning, and the masks of three photos tinted over them), the
 quality table (entire
 image / transparent region), the time table (FPS timed alone, training CPU and wall seconds and how busy the
 other cores were meanwhile), the ablation table (the ablations against the main
@@ -558,14 +559,16 @@ def scene_reflection_reach(prepared: Path) -> str:
 
 
 def appearance_rows(runs: dict[str, Run]) -> list[list[str]]:
-    """One row per run that measured its photos' exposure spread: on/off, spread, why, and the mean
-    absolute log gain its training and test views' corrections took."""
+    """One row per run that measured its photos' exposure spread: on/off, spread, how confident the decision
+    is (high, low, unknown; '-' for runs that did not record it), why, and the mean absolute log gain its
+    training and test views' corrections took."""
     rows = []
     for m, r in sorted(runs.items()):
         a = r.summary.get("appearance")
         if not isinstance(a, dict):
             continue
-        rows.append([m, "on" if a.get("on") else "off", _fmt(a.get("spread"), 3), str(a.get("reason", "")),
+        rows.append([m, "on" if a.get("on") else "off", _fmt(a.get("spread"), 3), str(a.get("confidence") or "-"),
+                     str(a.get("reason", "")),
                      _fmt(a.get("train_mean_abs_log_gain"), 3), _fmt(a.get("test_mean_abs_log_gain"), 3)])
     return rows
 
@@ -603,6 +606,110 @@ def masks_paragraph(summary: dict) -> str:
         if sources.get(key):
             text += f"; {sources[key]} {what}"
     return f"{text}; {coverage}"
+
+
+def polarity_text(summary: dict) -> str:
+    """The masks stage's polarity decision and why (:func:`rtsplat.masks.polarity.decide_polarity`), for masks read from
+    mask files; empty for segmented masks, marks drawn in the config only, and summaries without it."""
+    reason = summary.get("polarity_reason") or ""
+    if not reason or summary.get("source") not in ("ingest", "propagate") or not summary.get("has_masks"):
+        return ""
+    return f"Polarity: {reason}."
+
+
+MASK_OVERLAYS = 3  # photos per scene shown with their mask tinted over them
+OVERLAY_MAX_SIDE = 960  # px: larger photos are area-downsampled by an integer factor for the overlays
+OVERLAY_TINT = np.array([1.0, 0.0, 1.0], np.float32)  # magenta over the see-through surface
+OVERLAY_TINT_NEAR = np.array([0.0, 1.0, 0.0], np.float32)  # green where the photo is near magenta itself
+OVERLAY_ALPHA = 0.5
+
+
+def overlay_photos(summary: dict, count: int = MASK_OVERLAYS) -> list[str]:
+    """The photos (names) whose masks the report shows: spread evenly over the photos by name; for propagated
+    masks one marked view first, the others spread over the propagated ones."""
+    names = sorted(summary.get("photos") or {})
+    sources = summary.get("mask_sources") or {}
+    marked = [n for n in names if sources.get(n) == "given"]
+    pool = [n for n in names if sources.get(n) == "propagated"] if marked else names
+    chosen = marked[:1]
+    wanted = min(count - len(chosen), len(pool))
+    if wanted > 0:
+        chosen += [pool[int(i)] for i in np.unique(np.round(np.linspace(0, len(pool) - 1, wanted)).astype(int))]
+    return chosen
+
+
+def mask_source(summary: dict, name: str) -> str:
+    """Where the mask of photo ``name`` came from, for a caption: given, given empty (no mask file), marked
+    (how), propagated, empty, no SfM pose, segmented (model kind)."""
+    source = summary.get("source")
+    if source == "ingest":
+        return "no mask file: empty" if name in (summary.get("without_mask") or []) else "given"
+    if source == "onnx":
+        return f"segmented ({summary.get('model_kind') or 'ONNX'})"
+    kind = (summary.get("mask_sources") or {}).get(name, "?")
+    if kind == "given":
+        return f"marked ({(summary.get('mark_sources') or {}).get(name, 'file')})"
+    return {"unregistered": "no SfM pose: empty", "empty": "empty (the marked region is not in view)"}.get(kind, kind)
+
+
+def mask_overlay(photo: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``photo`` (float RGB [H, W, 3]) with ``mask`` (bool or the covered fraction of each pixel, [H, W]) tinted
+    over it: :data:`OVERLAY_TINT` at :data:`OVERLAY_ALPHA`, :data:`OVERLAY_TINT_NEAR` where the photo is close to
+    that colour itself, so that every covered pixel changes and every other pixel stays as it is."""
+    near = np.abs(photo - OVERLAY_TINT).max(-1, keepdims=True) < 0.25
+    tint = np.where(near, OVERLAY_TINT_NEAR, OVERLAY_TINT)
+    weight = OVERLAY_ALPHA * np.asarray(mask, np.float32)[..., None]
+    return (photo * (1 - weight) + tint * weight).astype(np.float32)
+
+
+def _mask_overlay_image(photo_path: Path, mask_path: Path) -> np.ndarray:
+    """The overlay of one photo and its mask at the photo's size, or area-downsampled by the smallest integer
+    factor that brings its longer side to :data:`OVERLAY_MAX_SIDE` at most."""
+    from rtsplat.io.images import area_downsample, read_mask
+
+    photo, mask = read_image(photo_path), read_mask(mask_path)
+    if mask.shape != photo.shape[:2]:
+        raise PipelineError(f"mask is {mask.shape[1]}x{mask.shape[0]}, its photo {photo.shape[1]}x{photo.shape[0]}",
+                            path=mask_path, fix="rerun 'rtsplat masks' on the scene's photos")
+    factor = -(-max(photo.shape[:2]) // OVERLAY_MAX_SIDE)
+    return mask_overlay(area_downsample(photo, factor), area_downsample(mask.astype(np.float32), factor))
+
+
+def _masks_section(doc: Document, scene_dir: Path, out: Path) -> None:
+    """The scene's transparent masks: where they came from, the polarity decision and its warning, and the masks
+    of :func:`overlay_photos` tinted over the photos (the photos from the dataset scene the masks stage recorded,
+    the masks from its output), written into the report's images/."""
+    masks_dir = scene_dir / "masks"
+    summary = _read_json(masks_dir / "summary.json")
+    doc.heading("Transparent masks", 3)
+    doc.paragraph(" ".join(t for t in (masks_paragraph(summary), polarity_text(summary)) if t))
+    if summary.get("polarity_warning"):
+        doc.paragraph(f"Warning: {summary['polarity_warning']}.")
+    if not summary.get("has_masks"):
+        return
+    images = Path(summary.get("scene_dir") or "") / "images"
+    coverage = summary.get("coverage") or {}
+    items, missing = [], []
+    for name in overlay_photos(summary):
+        stem = Path(name).stem
+        if not (images / name).is_file() or not (masks_dir / f"{stem}.png").is_file():
+            missing.append(name)
+            continue
+        overlay = _mask_overlay_image(images / name, masks_dir / f"{stem}.png")
+        (out / "images").mkdir(exist_ok=True)
+        file = f"images/{scene_dir.name}_mask_{stem}.png"
+        write_png(out / file, overlay)
+        cover = coverage.get(stem)
+        items.append((file, f"{name}: {mask_source(summary, name)}"
+                      + (f", {100 * float(cover):.1f}% covered" if cover is not None else "")))
+    if items:
+        doc.paragraph("The masks tinted magenta (green over magenta-like pixels) on the photos: the tint should lie "
+                      "on the see-through surface and nowhere else. If it lies on everything but the glass, the "
+                      "mask files are inverted: set masks.polarity: black.")
+        doc.images(items)
+    if missing:
+        doc.paragraph(f"No overlay for {', '.join(missing)}: the photo is not in {images} or its mask not in "
+                      f"{masks_dir}.")
 
 
 def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
@@ -790,9 +897,8 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             doc.paragraph(text)
             if sfm_rows:
                 doc.table(sfm_header, sfm_rows)
-        masks_summary = results / scene / "masks" / "summary.json"
-        if masks_summary.is_file():
-            doc.paragraph(masks_paragraph(_read_json(masks_summary)))
+        if (results / scene / "masks" / "summary.json").is_file():
+            _masks_section(doc, results / scene, out)
         doc.heading("Quality", 3)
         other_splits = {m: r.metrics.get("split") for m, r in runs.items() if r.metrics.get("split", "test") != "test"}
         if other_splits:
@@ -848,10 +954,12 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
         if any(row[1] == "on" for row in exposure_rows):
             doc.heading("Per-view appearance (exposure and white balance)", 3)
             doc.paragraph("Whether each run learnt a colour correction per photo (effects.appearance; auto turns it "
-                          "on where the photos' colours of the SfM points spread by exposure), and how far the "
+                          "on where the photos' colours of the SfM points spread by exposure beyond what the "
+                          "measurement's own noise explains, and keeps it off where too few observations lie off "
+                          "the see-through surface to tell), how confident that decision is, and how far the "
                           "corrections moved (mean |log gain|; 0.1 is a 10% exposure change).")
-            doc.table(["method", "appearance", "exposure spread", "why", "train |log gain|", "test |log gain|"],
-                      exposure_rows)
+            doc.table(["method", "appearance", "exposure spread", "confidence", "why", "train |log gain|",
+                       "test |log gain|"], exposure_rows)
 
         doc.heading("Accuracy against training time", 3)
         measure = time_measure(runs)
