@@ -146,15 +146,18 @@ def draw_params(member: Member) -> dict:
                  room_depth=_u(rng, 2.5, 4.0), street=_u(rng, 1.0, 2.5), arc_deg=_u(rng, 30.0, 50.0),
                  walk_half=_u(rng, 0.6, 1.2), n_objects=int(rng.integers(4, 7)))
     elif k == "curved":
-        p.update(section=("cylinder", "sphere")[(member.seed + member.seed // 2) % 2], tilt_deg=_u(rng, 0.0, 35.0),
-                 width=_u(rng, 1.6, 2.4), face_height=_u(rng, 0.8, 1.2), base=_u(rng, 0.5, 0.8),
-                 depth=_u(rng, 1.2, 1.8), curvature=_u(rng, 0.4, 1.4), cap_deg=_u(rng, 25.0, 60.0),
-                 distance=_u(rng, 1.9, 2.5), arc_deg=_u(rng, 60.0, 100.0), walk_half=_u(rng, 0.8, 1.4),
-                 n_objects=int(rng.integers(2, 4)))
-        # the glass's radius: the arc's chord (face_height) over `curvature`, or the cap's over its half angle
-        chord = p["face_height"] if p["section"] == "cylinder" else 2 * _hole_radius(p)
-        p["radius"] = round(chord / p["curvature"] if p["section"] == "cylinder"
-                            else chord / 2 / math.sin(math.radians(p["cap_deg"])), 4)
+        section = ("cylinder", "sphere")[(member.seed + member.seed // 2) % 2]
+        h = _u(rng, 0.8, 1.2)
+        p.update(section=section, tilt_deg=_u(rng, 0.0, 35.0), face_height=h,
+                 width=round(h * _u(rng, 1.6, 2.2) if section == "cylinder" else h * _u(rng, 1.0, 1.3), 4),
+                 base=_u(rng, 0.5, 0.8), depth=_u(rng, 1.2, 1.8), fill=_u(rng, 0.6, 0.8),
+                 arc_deg=_u(rng, 60.0, 100.0), walk_half=_u(rng, 0.6, 1.0), n_objects=int(rng.integers(2, 4)))
+        if section == "cylinder":  # curvature: the arc's chord (the face's height) over its radius
+            p["curvature"] = _u(rng, 0.4, 1.4)
+            p["radius"] = round(h / p["curvature"], 4)
+        else:  # the cap's half angle seen from the sphere's centre
+            p["cap_deg"] = _u(rng, 25.0, 60.0)
+            p["radius"] = round(_hole_radius(p) / math.sin(math.radians(p["cap_deg"])), 4)
     elif k == "case":
         p.update(panes=int(rng.integers(4, 6)), half_x=_u(rng, 0.35, 0.6), half_y=_u(rng, 0.35, 0.6),
                  pedestal=_u(rng, 0.5, 0.9), case_height=_u(rng, 0.5, 0.8), room_half=_u(rng, 4.5, 6.0),
@@ -313,7 +316,7 @@ def _curved(p: dict, rng: np.random.Generator, workdir: Path, ts: float) -> Scen
     ex = np.array([1.0, 0.0, 0.0])
     B = np.array([0.0, 0.0, z0])
     T = B + h * u
-    content = _content(p["n_objects"], (0.1, 0.17))
+    content = _content(p["n_objects"], (0.08, 0.15))
     elements = {"env": _environment(content, ts), "floor": _floor(content, rng, ts)}
     photos = _photo_order(rng)
     tb = _px(128, ts)
@@ -384,12 +387,20 @@ def _curved(p: dict, rng: np.random.Generator, workdir: Path, ts: float) -> Scen
     elements["roof"] = _box((0, (T[1] - 0.05 + back) / 2, top + 0.03), (W / 2 + 0.03, (back - T[1] + 0.05) / 2, 0.03),
                             shell)
     elements["back"] = _rect((0, D, (z0 + top) / 2), 0, 90, W / 2 + 0.01, (top - z0) / 2 + 0.01, inside)
+    # a light panel under the roof (facing down): the environment alone, through one window, leaves the
+    # interior dark and noisy
+    elements["interior_light"] = {
+        **_rect((0, (T[1] + D) / 2, top - 0.005), 0, 180, 0.6 * W / 2, 0.6 * (D - T[1]) / 2,
+                {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.8, 0.8]}}),
+        "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [2.5, 2.4, 2.2]}},
+    }
     margin = 0.08
-    elements.update(_objects(content, rng, ts, base_z=z0, center=(0.0, D / 2 + max(T[1], 0.0) / 2),
-                             box=(W / 2 - margin, (D - max(T[1], 0.0)) / 2 - margin)))
+    front_clear = 0.3  # objects (at most 0.3 m tall) stay clear of a front tilted by up to 35 degrees
+    elements.update(_objects(content, rng, ts, base_z=z0, center=(0.0, (D + front_clear) / 2),
+                             box=(W / 2 - margin, (D - front_clear) / 2 - margin)))
     target = tuple((B + (h / 2) * u).tolist())
-    # a spherical cap fills less of the front than a cylindrical section: its cameras come closer
-    r, eye_z = p["distance"] * (0.75 if p["section"] == "sphere" else 1.0), target[2] + 0.3
+    # the front's height fills `fill` of a facing view's height
+    r, eye_z = h / (2 * math.tan(math.radians(FOV_X_DEG / 2)) * ASPECT * p["fill"]), target[2] + 0.3
     if p["capture"] == "orbit":
         path = OrbitPath(target=target, radius=r, height_mid=eye_z, height_amplitude=0.25,
                          azimuth_start=-90.0 - p["arc_deg"] / 2, azimuth_span=p["arc_deg"], fov_x_deg=FOV_X_DEG)
