@@ -32,14 +32,18 @@ COVERAGE = {"shop_window": (0.6, 0.95), "curved": (0.1, 0.8), "case": (0.1, 0.8)
             "grazing": (0.2, 0.9)}
 
 
+# one member of each kind, orbits and walks, both halves, every glass, both curved sections
+TINY_SEEDS = {"shop_window": 1, "curved": 2, "case": 3, "car": 0, "grazing": 3}
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> dict[str, Path]:
-    """Seed 1 of every kind rendered tiny through the CLI."""
+    """A member of every kind (TINY_SEEDS) rendered tiny through the CLI."""
     root = tmp_path_factory.mktemp("family")
     outs = {}
-    for kind in KINDS:
+    for kind, seed in TINY_SEEDS.items():
         out = root / kind
-        assert cli_main(["synth", "--scene", f"family/{kind}-1", "--out", str(out), "--no-progress", *TINY]) == 0
+        assert cli_main(["synth", "--scene", f"family/{kind}-{seed}", "--out", str(out), "--no-progress", *TINY]) == 0
         outs[kind] = out
     return outs
 
@@ -145,12 +149,15 @@ def test_interior_is_seen_only_through_the_glass(tmp_path, name):
 
 
 def test_tiny_renders_have_masks_layers_and_family_records(tiny):
+    captures = set()
     for kind, out in tiny.items():
+        seed = TINY_SEEDS[kind]
         description = json.loads((out / "scene.json").read_text())
-        assert description["scene"] == f"family/{kind}-1"
+        assert description["scene"] == f"family/{kind}-{seed}"
         family = description["family"]
-        assert (family["kind"], family["seed"], family["half"]) == (kind, 1, "held_out")
-        assert family["params"] == json.loads(json.dumps(draw_params(Member(kind, 1))))
+        assert (family["kind"], family["seed"], family["half"]) == (kind, seed, ("tuning", "held_out")[seed % 2])
+        assert family["params"] == json.loads(json.dumps(draw_params(Member(kind, seed))))
+        captures.add(description["camera_path"]["type"])
         assert description["camera_path"]["type"] == family["params"]["capture"]
         masks = _masks(out)
         assert len(masks) == 6 and all(m.any() for m in masks), kind
@@ -168,6 +175,7 @@ def test_tiny_renders_have_masks_layers_and_family_records(tiny):
         check = description["layer_check"]
         assert abs(check["relative_residual"]) < 0.05, (kind, check)  # R + T adds up to the full render
         assert description["reflection_reach"]["glass_pixels"] > 0
+    assert captures == {"orbit", "walk"}
 
 
 def _grow(mask: np.ndarray) -> np.ndarray:

@@ -142,7 +142,7 @@ def draw_params(member: Member) -> dict:
     p: dict = {"glass": member.glass, "tint": _tint(member.glass, rng), "capture": member.capture, "eta": 1.5}
     k = member.kind
     if k == "shop_window":
-        p.update(pane_height=_u(rng, 1.6, 2.4), sill=_u(rng, 0.2, 0.5), fill=_u(rng, 0.78, 0.92),
+        p.update(pane_height=_u(rng, 1.6, 2.4), sill=_u(rng, 0.2, 0.5), fill=_u(rng, 0.65, 0.93),
                  room_depth=_u(rng, 2.5, 4.0), street=_u(rng, 1.0, 2.5), arc_deg=_u(rng, 30.0, 50.0),
                  walk_half=_u(rng, 0.6, 1.2), n_objects=int(rng.integers(4, 7)))
     elif k == "curved":
