@@ -180,3 +180,44 @@ def test_tiny_renders_have_masks_layers_and_family_records(tiny):
 
 def _grow(mask: np.ndarray) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+
+
+def test_walk_path_views_look_from_the_segment_at_the_looked_at_points():
+    from rtsplat.synth.cameras import WalkPath, camera_to_world_np
+
+    path = WalkPath(start=(-1.0, -3.0, 1.2), end=(1.0, -3.0, 1.2), look_start=(-0.5, 0.0, 1.0),
+                    look_end=(0.5, 0.0, 1.0), height_amplitude=0.1)
+    eyes, targets = path.eyes(5), path.targets(5)
+    assert np.allclose(eyes[[0, -1], :2], [[-1.0, -3.0], [1.0, -3.0]]) and np.ptp(eyes[:, 2]) > 0.05
+    for cam, eye, target in zip(path.cameras(5, 40, 30), eyes, targets, strict=True):
+        c2w = camera_to_world_np(cam)
+        axis = (target - eye) / np.linalg.norm(target - eye)
+        assert np.allclose(c2w[:3, 3], eye) and np.allclose(c2w[:3, 2], axis, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_grazing_views_meet_the_pane_at_grazing_angles(tmp_path, seed):
+    """Every camera's optical axis meets the pane's plane (y = 0) at 10-36 degrees (0 would be in the plane)."""
+    from rtsplat.synth.cameras import camera_to_world_np
+
+    set_variant()
+    spec = build_member(f"family/grazing-{seed}", tmp_path)
+    for cam in spec.orbit.cameras(12, 40, 30):
+        axis = camera_to_world_np(cam)[:3, 2]
+        angle = np.degrees(np.arcsin(abs(axis[1])))
+        assert 10.0 <= angle <= 36.0, (seed, angle)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_shop_window_pane_fills_most_of_each_view(tmp_path, seed):
+    """Ray-cast masks of 6 views at 40 x 30: the pane covers 60-95% of each."""
+    from rtsplat.synth.render import first_hit_mask
+
+    set_variant()
+    spec = build_member(f"family/shop_window-{seed}", tmp_path)
+    cams = spec.orbit.cameras(6, 40, 30)
+    scene = load_scene(spec.elements, cams, spp=1)
+    coverage = [float(first_hit_mask(scene, cam).mean()) for cam in cams]
+    print(f"shop_window-{seed} ({spec.family['params']['capture']}) pane coverage:",
+          " ".join(f"{c:.2f}" for c in coverage))
+    assert all(0.6 <= c <= 0.95 for c in coverage), coverage
