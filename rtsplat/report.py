@@ -452,9 +452,13 @@ def _difference(a, b) -> float | None:
     return a - b if isinstance(a, float) and isinstance(b, float) else None
 
 
+REPEAT_KEYS = ("psnr", "psnr_transparent", "psnr_reflection_layer", "psnr_transmission_layer")
+
+
 def _repeat_differences(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[dict]:
     """For every repeat of the scene whose method ran: what it reruns, whether with the same seed, and
-    |difference| of PSNR (entire, transparent) and relative training time to that method."""
+    |difference| of PSNR (:data:`REPEAT_KEYS`: entire, transparent, each layer against the ground truth) and
+    relative training time to that method."""
     found = []
     for method in roles.of_role(runs, "repeat"):
         r, base_name = runs[method], roles.of[method]
@@ -462,7 +466,7 @@ def _repeat_differences(scene: str, runs: dict[str, Run], roles: Roles, results:
             continue
         base = runs[base_name]
         seed, base_seed = (_run_seed(results / scene / "runs" / m) for m in (method, base_name))
-        diffs = {key: _difference(base.mean.get(key), r.mean.get(key)) for key in ("psnr", "psnr_transparent")}
+        diffs = {key: _difference(base.mean.get(key), r.mean.get(key)) for key in REPEAT_KEYS}
         measure = time_measure({base_name: base, method: r})
         ta, tb = base.seconds(measure), r.seconds(measure)
         found.append({"method": method, "of": base_name, "seed": seed, "same_seed": seed == base_seed,
@@ -488,6 +492,153 @@ def summary_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) 
         row.append(", ".join(d["method"] for d in noise) or "-")
         rows.append(row)
     return rows
+
+
+FAMILY_KEYS = (("psnr_transparent", "transparent"), ("psnr", "entire"),
+               ("psnr_reflection_layer", "reflection layer"), ("psnr_transmission_layer", "transmission layer"))
+FAMILY_SIGNIFICANCE = 2.0  # a gap is significant beyond this many times its seed noise
+FAMILY_HALVES = (("tuning", "tuning (even seeds)"), ("held_out", "held out (odd seeds)"))
+
+
+@dataclass
+class FamilyScene:
+    """The main method minus plain 2DGS on one scene of the generated family, with the seed noise."""
+
+    scene: str
+    kind: str
+    seed: int
+    half: str
+    gap: dict  # FAMILY_KEYS key -> dPSNR (None where a run lacks it)
+    noise: dict  # key -> largest |dPSNR| of a repeat of either run with another seed (None: not measured)
+
+    def verdict(self, key: str) -> str:
+        """``better``, ``worse`` (beyond :data:`FAMILY_SIGNIFICANCE` x the seed noise), ``within noise``,
+        ``noise not measured`` or ``-`` (no gap)."""
+        gap, noise = self.gap.get(key), self.noise.get(key)
+        if gap is None:
+            return "-"
+        if noise is None:
+            return "noise not measured"
+        if abs(gap) > FAMILY_SIGNIFICANCE * noise:
+            return "better" if gap > 0 else "worse"
+        return "within noise"
+
+
+def family_scenes(scenes: dict[str, dict[str, Run]], roles: Roles, results: Path) -> list[FamilyScene]:
+    """The scenes of the generated family (:mod:`rtsplat.synth.family`; dataset folders named
+    ``<kind>-<seed>``) on which the main method and plain 2DGS both ran, in name order."""
+    from rtsplat.synth.family import parse_name
+
+    main, found = roles.main, []
+    for scene in sorted(scenes):
+        runs = scenes[scene]
+        try:
+            member = parse_name(scene)
+        except ValueError:
+            continue
+        if main not in runs or PLAIN_2DGS not in runs:
+            continue
+        repeats = [d for d in _repeat_differences(scene, runs, roles, results)
+                   if not d["same_seed"] and d["of"] in (main, PLAIN_2DGS)]
+        gap, noise = {}, {}
+        for key, _ in FAMILY_KEYS:
+            gap[key] = _difference(runs[main].mean.get(key), runs[PLAIN_2DGS].mean.get(key))
+            measured = [d[key] for d in repeats if d.get(key) is not None]
+            noise[key] = max(measured) if measured else None
+        found.append(FamilyScene(scene, member.kind, member.seed, member.half, gap, noise))
+    return found
+
+
+def family_scene_rows(family: list[FamilyScene]) -> list[list[str]]:
+    """One row per scene: kind, seed, half, then per key the gap, its seed noise and the verdict."""
+    rows = []
+    for f in family:
+        row = [f.scene, f.kind, str(f.seed), f.half.replace("_", " ")]
+        for key, _ in FAMILY_KEYS:
+            gap = f.gap.get(key)
+            row += ["-" if gap is None else f"{gap:+.2f}", _fmt(f.noise.get(key), 3), f.verdict(key)]
+        rows.append(row)
+    return rows
+
+
+def family_half_rows(family: list[FamilyScene]) -> list[list[str]]:
+    """Per half and key: how many scenes, the median and the worst gap, and how many are significantly
+    better or worse, within noise, or without measured noise."""
+    rows = []
+    for half, label in FAMILY_HALVES:
+        mine = [f for f in family if f.half == half]
+        for key, name in FAMILY_KEYS:
+            scored = [f for f in mine if f.gap.get(key) is not None]
+            if not scored:
+                continue
+            gaps = [f.gap[key] for f in scored]
+            worst = min(scored, key=lambda f: f.gap[key])
+            verdicts = collections.Counter(f.verdict(key) for f in scored)
+            rows.append([label, name, str(len(scored)), f"{float(np.median(gaps)):+.2f}",
+                         f"{worst.gap[key]:+.2f} ({worst.scene})", str(verdicts["better"]), str(verdicts["worse"]),
+                         str(verdicts["within noise"]), str(verdicts["noise not measured"])])
+    return rows
+
+
+def plot_family(family: list[FamilyScene], out: Path, key: str = "psnr_transparent") -> str | None:
+    """The distribution of the per-scene gaps on ``key``: one column of points per half (colour = kind), each
+    with a bar of +-:data:`FAMILY_SIGNIFICANCE` x its seed noise, and the halves' medians. Returns the PNG's name."""
+    scored = [f for f in family if f.gap.get(key) is not None]
+    if not scored:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rtsplat.synth.family import KINDS
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    colours = dict(zip(KINDS, plt.get_cmap("tab10").colors, strict=False))
+    offsets = np.linspace(-0.25, 0.25, len(KINDS))
+    for x, (half, _) in enumerate(FAMILY_HALVES):
+        mine = [f for f in scored if f.half == half]
+        for f in mine:
+            xi = x + offsets[KINDS.index(f.kind)] + 0.02 * (f.seed % 5)
+            bar = None if f.noise.get(key) is None else FAMILY_SIGNIFICANCE * f.noise[key]
+            ax.errorbar(xi, f.gap[key], yerr=bar, fmt="o", color=colours.get(f.kind, "k"), ms=5, capsize=2)
+        if mine:
+            ax.hlines(float(np.median([f.gap[key] for f in mine])), x - 0.35, x + 0.35, color="k", lw=1.5)
+    for kind in KINDS:
+        ax.plot([], [], "o", color=colours[kind], label=kind)
+    ax.plot([], [], "-", color="k", label="median of the half")
+    ax.axhline(0.0, color="grey", lw=0.8, ls="--")
+    ax.set_xticks(range(len(FAMILY_HALVES)), [label for _, label in FAMILY_HALVES])
+    ax.set_xlim(-0.6, len(FAMILY_HALVES) - 0.4)
+    ax.set_ylabel(f"dPSNR {dict(FAMILY_KEYS)[key]} (dB), RT-Splatting - 2DGS")
+    ax.set_title(f"Scene family: per-scene gap (bars: +-{FAMILY_SIGNIFICANCE:g} x seed noise)")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    name = f"family_{key}.png"
+    fig.savefig(out / name, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return name
+
+
+def _family_section(doc: Document, family: list[FamilyScene], out: Path) -> None:
+    doc.heading("Scene family: RT-Splatting minus plain 2DGS per scene")
+    doc.paragraph(
+        "The generated glass scenes (`rtsplat synth --scene family/<kind>-<seed>`, docs/synth.md): a scene "
+        "whose dataset folder is named `<kind>-<seed>`. Even seeds are the tuning half (defaults and automatic "
+        "rules are chosen on them), odd seeds the held-out half, reported apart. Per scene, PSNR of the main "
+        f"method minus PSNR of `{PLAIN_2DGS}` on the test views: the transparent region, the entire image, and "
+        "each layer against the ground-truth layers (transparent region). Beside each gap its seed noise: the "
+        "largest |dPSNR| between either run and its repeat with another seed. A gap is significant when it is "
+        f"larger than {FAMILY_SIGNIFICANCE:g} x that noise: 'better' or 'worse'; otherwise 'within noise'.")
+    doc.table(["half", "metric", "scenes", "median gap", "worst gap (scene)", "better", "worse", "within noise",
+               "noise not measured"], family_half_rows(family))
+    name = plot_family(family, out)
+    if name:
+        doc.images([(name, "per-scene dPSNR on the transparent region, by half")])
+    header = ["scene", "kind", "seed", "half"]
+    for _, label in FAMILY_KEYS:
+        header += [f"d {label}", "noise", "verdict"]
+    doc.table(header, family_scene_rows(family))
 
 
 def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[list[str]]:
@@ -882,6 +1033,9 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                    "noise from"], summary)
     else:
         doc.paragraph(f"No scene has both the main method and the baseline {PLAIN_2DGS!r}, so there is no summary.")
+    family = family_scenes(scenes, roles, results)
+    if family:
+        _family_section(doc, family, out)
     any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
     machine = any_metrics.get("machine", {})
     doc.paragraph(f"Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "

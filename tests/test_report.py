@@ -407,3 +407,49 @@ def test_the_near_reflection_section_says_what_share_of_the_true_reflection_is_n
     assert "median distance" not in scene_reflection_reach(prepared)
     (prepared / "gt_layers" / "reflection_reach.json").write_text("{not json")
     assert scene_reflection_reach(prepared) == ""
+
+
+def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_half_its_summary(results, tmp_path):
+    """Copies of the toy run named as family scenes, with the main method's transparent PSNR set to a known
+    gap over 2dgs and a repeat of rtsplat with another seed at a known distance (the seed noise)."""
+    copy = tmp_path / "results"
+    # scene: (gap on the transparent region, seed noise or None for no repeat)
+    built = {"shop_window-0": (2.0, 0.3), "curved-2": (-1.0, 0.2), "shop_window-1": (0.1, 0.3), "car-3": (0.5, None)}
+    shutil.copytree(results / "toy", copy / "toy")  # not a family name: not in the section
+    for scene, (gap, noise) in built.items():
+        shutil.copytree(results / "toy", copy / scene)
+        base = json.loads((copy / scene / "metrics" / "2dgs.json").read_text())
+        ours = json.loads((copy / scene / "metrics" / "rtsplat.json").read_text())
+        ours["mean"]["psnr_transparent"] = base["mean"]["psnr_transparent"] + gap
+        ours["mean"]["psnr_reflection_layer"] = 20.0 + gap
+        base["mean"]["psnr_reflection_layer"] = 20.0
+        (copy / scene / "metrics" / "rtsplat.json").write_text(json.dumps(ours))
+        (copy / scene / "metrics" / "2dgs.json").write_text(json.dumps(base))
+        if noise is not None:
+            shutil.copytree(copy / scene / "runs" / "rtsplat", copy / scene / "runs" / "rtsplat_seed1")
+            config = json.loads((copy / scene / "runs" / "rtsplat_seed1" / "config.json").read_text())
+            (copy / scene / "runs" / "rtsplat_seed1" / "config.json").write_text(json.dumps({**config, "seed": 1}))
+            ours["mean"]["psnr_transparent"] += noise
+            (copy / scene / "metrics" / "rtsplat_seed1.json").write_text(json.dumps(ours))
+    roles = Roles.from_dict({**ROLES, "rtsplat_seed1": {"role": "repeat", "of": "rtsplat"}})
+    report = build_report(copy, tmp_path / "report", roles=roles)
+    md = report.with_suffix(".md").read_text()
+    assert "Scene family: RT-Splatting minus plain 2DGS per scene" in md and "larger than 2 x that noise" in md
+    section = md.split("Scene family")[1].split("Machine:")[0]
+    assert "| toy |" not in section
+    verdicts = {"shop_window-0": "better", "curved-2": "worse", "shop_window-1": "within noise",
+                "car-3": "noise not measured"}
+    for scene, (gap, noise) in built.items():
+        row = _md_row(section, f"| {scene} | ")
+        kind, seed = scene.rsplit("-", 1)
+        assert row[1:4] == [kind, seed, "tuning" if int(seed) % 2 == 0 else "held out"]
+        assert float(row[4]) == pytest.approx(gap, abs=0.005)
+        assert row[5] == ("-" if noise is None else f"{noise:.3f}") and row[6] == verdicts[scene]
+        assert float(row[10]) == pytest.approx(gap, abs=0.005)  # the reflection layer's gap
+    tuning = _md_row(section, "| tuning (even seeds) | transparent |")
+    assert tuning[2:] == ["2", "+0.50", "-1.00 (curved-2)", "1", "1", "0", "0"]
+    held = _md_row(section, "| held out (odd seeds) | transparent |")
+    assert held[2:] == ["2", "+0.30", "+0.10 (shop_window-1)", "0", "0", "1", "1"]
+    assert (report.parent / "family_psnr_transparent.png").is_file()
+    plain = build_report(copy, tmp_path / "plain").with_suffix(".md").read_text()
+    assert "Scene family" not in plain  # no main method: nothing to compare
