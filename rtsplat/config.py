@@ -256,10 +256,13 @@ class MasksConfig:
         False, help="ingest: a photo without a mask gets an empty mask (no see-through surface) instead of an error"
     )
     polarity: Literal["auto", "white", "black"] = _f(
-        "auto", help="ingest: the mask colour of the see-through surface; auto: white, unless the masks cover more "
-        "than max_coverage of the images on average (then they are read as inverted)"
+        "auto", help="the mask files' colour of the see-through surface (ingest, and the marked views' masks of "
+        "propagate); black reads inverted masks; auto: white, the masks as given (never inverted on coverage: "
+        "glass that fills the view covers most of each photo), with a warning when white covers more than "
+        "max_coverage of the photos on average"
     )
-    max_coverage: float = _f(0.5, help="ingest with polarity auto: a larger mean coverage means inverted masks",
+    max_coverage: float = _f(0.5, help="polarity auto: a larger mean coverage of the mask files is flagged (log, "
+                             "masks/summary.json's polarity_warning, the report); the masks are kept as given",
                              exclusiveMinimum=0.0, maximum=1.0)
     marks: dict[str, MaskMark] = _f(
         help="marked views drawn in the config, by photo name (e.g. IMG_0001.jpg: {box: [x0, y0, x1, y1]}, "

@@ -33,6 +33,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -64,6 +65,9 @@ from rtsplat.scene import (
     PreparedScene,
     Roi,
 )
+
+if TYPE_CHECKING:
+    from rtsplat.model.appearance import GainEstimate
 
 
 @dataclass
@@ -337,18 +341,18 @@ def downsample_factor(sizes: set[tuple[int, int]], cfg: PrepareConfig, images: P
 
 
 def _exposure(image: np.ndarray, observed: tuple[np.ndarray, np.ndarray] | None, size: tuple[int, int],
-              mask: np.ndarray | None) -> list[float] | None:
+              mask: np.ndarray | None) -> GainEstimate:
     """The photo's log gain per channel against the SfM points it observed (the colour at each of its
     keypoints that SfM tied to a 3D point, against that point's colour: its mean over every photo that saw
-    it), off the transparent mask; None with too few observations
-    (:func:`rtsplat.model.appearance.observed_log_gain`). ``image`` may be smaller than the camera's
-    ``size`` (pre-scaled): the keypoints are scaled to it."""
+    it), off the transparent mask, with how many observations it used and its standard error; no gain with
+    too few observations (:func:`rtsplat.model.appearance.observed_log_gain`). ``image`` may be smaller than
+    the camera's ``size`` (pre-scaled): the keypoints are scaled to it."""
     import torch
 
-    from rtsplat.model.appearance import observed_log_gain
+    from rtsplat.model.appearance import GainEstimate, observed_log_gain
 
     if observed is None or len(observed[0]) == 0:
-        return None
+        return GainEstimate(None, 0)
     xy, rgb = observed
     h, w = image.shape[:2]
     u = np.clip((xy[:, 0] * w / size[0]).astype(np.int64), 0, w - 1)
@@ -357,9 +361,8 @@ def _exposure(image: np.ndarray, observed: tuple[np.ndarray, np.ndarray] | None,
     if mask is not None:  # the mask has the camera's size
         row = np.clip(xy[:, 1].astype(np.int64), 0, mask.shape[0] - 1)
         keep = ~mask[row, np.clip(xy[:, 0].astype(np.int64), 0, mask.shape[1] - 1)].astype(bool)
-    gain = observed_log_gain(torch.as_tensor(image[v[keep], u[keep]], dtype=torch.float32),
+    return observed_log_gain(torch.as_tensor(image[v[keep], u[keep]], dtype=torch.float32),
                              torch.as_tensor(rgb[keep], dtype=torch.float32) / 255)
-    return None if gain is None else [round(float(g), 5) for g in gain]
 
 
 def _dataset_reflection_reach(scene_dir: Path) -> dict | None:
@@ -456,6 +459,8 @@ def prepare_scene(
     propagated = {n for n, src in (masks.get("mask_sources") or {}).items() if src == "propagated"}
     layer_source = scene_dir / "layers" / "linear"
     exposure: dict[str, list[float] | None] = {}
+    exposure_points: dict[str, int] = {}
+    exposure_error: dict[str, float | None] = {}
     gt_layer_views = 0
     out_dir = Path(out_dir)
     with output_dir(out_dir, "prepare", inputs=inputs) as tmp:
@@ -526,8 +531,11 @@ def prepare_scene(
                 write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
                 coverage.append(float(small.mean()))
                 mask_views.append((K, view.world_to_camera, hull_mask(small, view.name in propagated)))
-            exposure[stem] = _exposure(full, model.observations.get(view.name), (view.width, view.height),
-                                       mask if has_masks else None)
+            gain = _exposure(full, model.observations.get(view.name), (view.width, view.height),
+                             mask if has_masks else None)
+            exposure[stem] = None if gain.log_gain is None else [round(float(g), 5) for g in gain.log_gain]
+            exposure_points[stem] = gain.points
+            exposure_error[stem] = None if gain.error is None else round(gain.error, 6)
             cameras.append(
                 CameraRecord(
                     name=stem,
@@ -566,6 +574,8 @@ def prepare_scene(
             versions=versions,
             inputs=made_from,
             exposure=exposure,
+            exposure_points=exposure_points,
+            exposure_error=exposure_error,
             marked_views=sorted(c.name for c in cameras if c.name in marked_names),
         )
         scene.save(tmp)

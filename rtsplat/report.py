@@ -20,8 +20,9 @@ baseline and there is no main method. The report opens with a summary across sce
 ``2dgs_<suffix>``, PSNR on the transparent region and the entire image, beside the seed noise that
 repeats with another seed measured), then the machine and the package versions. Per scene: the SfM
 table (registered/total views, reprojection error and time of every attempt, and for scenes whose
-dataset ships reference cameras the rotation and centre errors after a similarity fit), where the transparent
-masks came from (:func:`masks_paragraph`: given, segmented, or propagated from how many marked views), the
+dataset ships reference cameras the rotation and centre errors after a similarity fit), the transparent masks
+(:func:`_masks_section`: where they came from, given, segmented, or propagated from how many marked views, the
+polarity decision and its warning, and the masks of three photos tinted over them), the
 quality table (entire
 image / transparent region), the time table (FPS timed alone, training CPU and wall seconds and how busy the
 other cores were meanwhile), the ablation table (the ablations against the main
@@ -460,9 +461,13 @@ def _difference(a, b) -> float | None:
     return a - b if isinstance(a, float) and isinstance(b, float) else None
 
 
+REPEAT_KEYS = ("psnr", "psnr_transparent", "psnr_reflection_layer", "psnr_transmission_layer")
+
+
 def _repeat_differences(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[dict]:
     """For every repeat of the scene whose method ran: what it reruns, whether with the same seed, and
-    |difference| of PSNR (entire, transparent) and relative training time to that method."""
+    |difference| of PSNR (:data:`REPEAT_KEYS`: entire, transparent, each layer against the ground truth) and
+    relative training time to that method."""
     found = []
     for method in roles.of_role(runs, "repeat"):
         r, base_name = runs[method], roles.of[method]
@@ -470,7 +475,7 @@ def _repeat_differences(scene: str, runs: dict[str, Run], roles: Roles, results:
             continue
         base = runs[base_name]
         seed, base_seed = (_run_seed(results / scene / "runs" / m) for m in (method, base_name))
-        diffs = {key: _difference(base.mean.get(key), r.mean.get(key)) for key in ("psnr", "psnr_transparent")}
+        diffs = {key: _difference(base.mean.get(key), r.mean.get(key)) for key in REPEAT_KEYS}
         measure = time_measure({base_name: base, method: r})
         ta, tb = base.seconds(measure), r.seconds(measure)
         found.append({"method": method, "of": base_name, "seed": seed, "same_seed": seed == base_seed,
@@ -496,6 +501,153 @@ def summary_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) 
         row.append(", ".join(d["method"] for d in noise) or "-")
         rows.append(row)
     return rows
+
+
+FAMILY_KEYS = (("psnr_transparent", "transparent"), ("psnr", "entire"),
+               ("psnr_reflection_layer", "reflection layer"), ("psnr_transmission_layer", "transmission layer"))
+FAMILY_SIGNIFICANCE = 2.0  # a gap is significant beyond this many times its seed noise
+FAMILY_HALVES = (("tuning", "tuning (even seeds)"), ("held_out", "held out (odd seeds)"))
+
+
+@dataclass
+class FamilyScene:
+    """The main method minus plain 2DGS on one scene of the generated family, with the seed noise."""
+
+    scene: str
+    kind: str
+    seed: int
+    half: str
+    gap: dict  # FAMILY_KEYS key -> dPSNR (None where a run lacks it)
+    noise: dict  # key -> largest |dPSNR| of a repeat of either run with another seed (None: not measured)
+
+    def verdict(self, key: str) -> str:
+        """``better``, ``worse`` (beyond :data:`FAMILY_SIGNIFICANCE` x the seed noise), ``within noise``,
+        ``noise not measured`` or ``-`` (no gap)."""
+        gap, noise = self.gap.get(key), self.noise.get(key)
+        if gap is None:
+            return "-"
+        if noise is None:
+            return "noise not measured"
+        if abs(gap) > FAMILY_SIGNIFICANCE * noise:
+            return "better" if gap > 0 else "worse"
+        return "within noise"
+
+
+def family_scenes(scenes: dict[str, dict[str, Run]], roles: Roles, results: Path) -> list[FamilyScene]:
+    """The scenes of the generated family (:mod:`rtsplat.synth.family`; dataset folders named
+    ``<kind>-<seed>``) on which the main method and plain 2DGS both ran, in name order."""
+    from rtsplat.synth.family import parse_name
+
+    main, found = roles.main, []
+    for scene in sorted(scenes):
+        runs = scenes[scene]
+        try:
+            member = parse_name(scene)
+        except ValueError:
+            continue
+        if main not in runs or PLAIN_2DGS not in runs:
+            continue
+        repeats = [d for d in _repeat_differences(scene, runs, roles, results)
+                   if not d["same_seed"] and d["of"] in (main, PLAIN_2DGS)]
+        gap, noise = {}, {}
+        for key, _ in FAMILY_KEYS:
+            gap[key] = _difference(runs[main].mean.get(key), runs[PLAIN_2DGS].mean.get(key))
+            measured = [d[key] for d in repeats if d.get(key) is not None]
+            noise[key] = max(measured) if measured else None
+        found.append(FamilyScene(scene, member.kind, member.seed, member.half, gap, noise))
+    return found
+
+
+def family_scene_rows(family: list[FamilyScene]) -> list[list[str]]:
+    """One row per scene: kind, seed, half, then per key the gap, its seed noise and the verdict."""
+    rows = []
+    for f in family:
+        row = [f.scene, f.kind, str(f.seed), f.half.replace("_", " ")]
+        for key, _ in FAMILY_KEYS:
+            gap = f.gap.get(key)
+            row += ["-" if gap is None else f"{gap:+.2f}", _fmt(f.noise.get(key), 3), f.verdict(key)]
+        rows.append(row)
+    return rows
+
+
+def family_half_rows(family: list[FamilyScene]) -> list[list[str]]:
+    """Per half and key: how many scenes, the median and the worst gap, and how many are significantly
+    better or worse, within noise, or without measured noise."""
+    rows = []
+    for half, label in FAMILY_HALVES:
+        mine = [f for f in family if f.half == half]
+        for key, name in FAMILY_KEYS:
+            scored = [f for f in mine if f.gap.get(key) is not None]
+            if not scored:
+                continue
+            gaps = [f.gap[key] for f in scored]
+            worst = min(scored, key=lambda f: f.gap[key])
+            verdicts = collections.Counter(f.verdict(key) for f in scored)
+            rows.append([label, name, str(len(scored)), f"{float(np.median(gaps)):+.2f}",
+                         f"{worst.gap[key]:+.2f} ({worst.scene})", str(verdicts["better"]), str(verdicts["worse"]),
+                         str(verdicts["within noise"]), str(verdicts["noise not measured"])])
+    return rows
+
+
+def plot_family(family: list[FamilyScene], out: Path, key: str = "psnr_transparent") -> str | None:
+    """The distribution of the per-scene gaps on ``key``: one column of points per half (colour = kind), each
+    with a bar of +-:data:`FAMILY_SIGNIFICANCE` x its seed noise, and the halves' medians. Returns the PNG's name."""
+    scored = [f for f in family if f.gap.get(key) is not None]
+    if not scored:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rtsplat.synth.family import KINDS
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    colours = dict(zip(KINDS, plt.get_cmap("tab10").colors, strict=False))
+    offsets = np.linspace(-0.25, 0.25, len(KINDS))
+    for x, (half, _) in enumerate(FAMILY_HALVES):
+        mine = [f for f in scored if f.half == half]
+        for f in mine:
+            xi = x + offsets[KINDS.index(f.kind)] + 0.02 * (f.seed % 5)
+            bar = None if f.noise.get(key) is None else FAMILY_SIGNIFICANCE * f.noise[key]
+            ax.errorbar(xi, f.gap[key], yerr=bar, fmt="o", color=colours.get(f.kind, "k"), ms=5, capsize=2)
+        if mine:
+            ax.hlines(float(np.median([f.gap[key] for f in mine])), x - 0.35, x + 0.35, color="k", lw=1.5)
+    for kind in KINDS:
+        ax.plot([], [], "o", color=colours[kind], label=kind)
+    ax.plot([], [], "-", color="k", label="median of the half")
+    ax.axhline(0.0, color="grey", lw=0.8, ls="--")
+    ax.set_xticks(range(len(FAMILY_HALVES)), [label for _, label in FAMILY_HALVES])
+    ax.set_xlim(-0.6, len(FAMILY_HALVES) - 0.4)
+    ax.set_ylabel(f"dPSNR {dict(FAMILY_KEYS)[key]} (dB), RT-Splatting - 2DGS")
+    ax.set_title(f"Scene family: per-scene gap (bars: +-{FAMILY_SIGNIFICANCE:g} x seed noise)")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    name = f"family_{key}.png"
+    fig.savefig(out / name, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return name
+
+
+def _family_section(doc: Document, family: list[FamilyScene], out: Path) -> None:
+    doc.heading("Scene family: RT-Splatting minus plain 2DGS per scene")
+    doc.paragraph(
+        "The generated glass scenes (`rtsplat synth --scene family/<kind>-<seed>`, docs/synth.md): a scene "
+        "whose dataset folder is named `<kind>-<seed>`. Even seeds are the tuning half (defaults and automatic "
+        "rules are chosen on them), odd seeds the held-out half, reported apart. Per scene, PSNR of the main "
+        f"method minus PSNR of `{PLAIN_2DGS}` on the test views: the transparent region, the entire image, and "
+        "each layer against the ground-truth layers (transparent region). Beside each gap its seed noise: the "
+        "largest |dPSNR| between either run and its repeat with another seed. A gap is significant when it is "
+        f"larger than {FAMILY_SIGNIFICANCE:g} x that noise: 'better' or 'worse'; otherwise 'within noise'.")
+    doc.table(["half", "metric", "scenes", "median gap", "worst gap (scene)", "better", "worse", "within noise",
+               "noise not measured"], family_half_rows(family))
+    name = plot_family(family, out)
+    if name:
+        doc.images([(name, "per-scene dPSNR on the transparent region, by half")])
+    header = ["scene", "kind", "seed", "half"]
+    for _, label in FAMILY_KEYS:
+        header += [f"d {label}", "noise", "verdict"]
+    doc.table(header, family_scene_rows(family))
 
 
 def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[list[str]]:
@@ -567,14 +719,16 @@ def scene_reflection_reach(prepared: Path) -> str:
 
 
 def appearance_rows(runs: dict[str, Run]) -> list[list[str]]:
-    """One row per run that measured its photos' exposure spread: on/off, spread, why, and the mean
-    absolute log gain its training and test views' corrections took."""
+    """One row per run that measured its photos' exposure spread: on/off, spread, how confident the decision
+    is (high, low, unknown; '-' for runs that did not record it), why, and the mean absolute log gain its
+    training and test views' corrections took."""
     rows = []
     for m, r in sorted(runs.items()):
         a = r.summary.get("appearance")
         if not isinstance(a, dict):
             continue
-        rows.append([m, "on" if a.get("on") else "off", _fmt(a.get("spread"), 3), str(a.get("reason", "")),
+        rows.append([m, "on" if a.get("on") else "off", _fmt(a.get("spread"), 3), str(a.get("confidence") or "-"),
+                     str(a.get("reason", "")),
                      _fmt(a.get("train_mean_abs_log_gain"), 3), _fmt(a.get("test_mean_abs_log_gain"), 3)])
     return rows
 
@@ -612,6 +766,110 @@ def masks_paragraph(summary: dict) -> str:
         if sources.get(key):
             text += f"; {sources[key]} {what}"
     return f"{text}; {coverage}"
+
+
+def polarity_text(summary: dict) -> str:
+    """The masks stage's polarity decision and why (:func:`rtsplat.masks.polarity.decide_polarity`), for masks read from
+    mask files; empty for segmented masks, marks drawn in the config only, and summaries without it."""
+    reason = summary.get("polarity_reason") or ""
+    if not reason or summary.get("source") not in ("ingest", "propagate") or not summary.get("has_masks"):
+        return ""
+    return f"Polarity: {reason}."
+
+
+MASK_OVERLAYS = 3  # photos per scene shown with their mask tinted over them
+OVERLAY_MAX_SIDE = 960  # px: larger photos are area-downsampled by an integer factor for the overlays
+OVERLAY_TINT = np.array([1.0, 0.0, 1.0], np.float32)  # magenta over the see-through surface
+OVERLAY_TINT_NEAR = np.array([0.0, 1.0, 0.0], np.float32)  # green where the photo is near magenta itself
+OVERLAY_ALPHA = 0.5
+
+
+def overlay_photos(summary: dict, count: int = MASK_OVERLAYS) -> list[str]:
+    """The photos (names) whose masks the report shows: spread evenly over the photos by name; for propagated
+    masks one marked view first, the others spread over the propagated ones."""
+    names = sorted(summary.get("photos") or {})
+    sources = summary.get("mask_sources") or {}
+    marked = [n for n in names if sources.get(n) == "given"]
+    pool = [n for n in names if sources.get(n) == "propagated"] if marked else names
+    chosen = marked[:1]
+    wanted = min(count - len(chosen), len(pool))
+    if wanted > 0:
+        chosen += [pool[int(i)] for i in np.unique(np.round(np.linspace(0, len(pool) - 1, wanted)).astype(int))]
+    return chosen
+
+
+def mask_source(summary: dict, name: str) -> str:
+    """Where the mask of photo ``name`` came from, for a caption: given, given empty (no mask file), marked
+    (how), propagated, empty, no SfM pose, segmented (model kind)."""
+    source = summary.get("source")
+    if source == "ingest":
+        return "no mask file: empty" if name in (summary.get("without_mask") or []) else "given"
+    if source == "onnx":
+        return f"segmented ({summary.get('model_kind') or 'ONNX'})"
+    kind = (summary.get("mask_sources") or {}).get(name, "?")
+    if kind == "given":
+        return f"marked ({(summary.get('mark_sources') or {}).get(name, 'file')})"
+    return {"unregistered": "no SfM pose: empty", "empty": "empty (the marked region is not in view)"}.get(kind, kind)
+
+
+def mask_overlay(photo: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``photo`` (float RGB [H, W, 3]) with ``mask`` (bool or the covered fraction of each pixel, [H, W]) tinted
+    over it: :data:`OVERLAY_TINT` at :data:`OVERLAY_ALPHA`, :data:`OVERLAY_TINT_NEAR` where the photo is close to
+    that colour itself, so that every covered pixel changes and every other pixel stays as it is."""
+    near = np.abs(photo - OVERLAY_TINT).max(-1, keepdims=True) < 0.25
+    tint = np.where(near, OVERLAY_TINT_NEAR, OVERLAY_TINT)
+    weight = OVERLAY_ALPHA * np.asarray(mask, np.float32)[..., None]
+    return (photo * (1 - weight) + tint * weight).astype(np.float32)
+
+
+def _mask_overlay_image(photo_path: Path, mask_path: Path) -> np.ndarray:
+    """The overlay of one photo and its mask at the photo's size, or area-downsampled by the smallest integer
+    factor that brings its longer side to :data:`OVERLAY_MAX_SIDE` at most."""
+    from rtsplat.io.images import area_downsample, read_mask
+
+    photo, mask = read_image(photo_path), read_mask(mask_path)
+    if mask.shape != photo.shape[:2]:
+        raise PipelineError(f"mask is {mask.shape[1]}x{mask.shape[0]}, its photo {photo.shape[1]}x{photo.shape[0]}",
+                            path=mask_path, fix="rerun 'rtsplat masks' on the scene's photos")
+    factor = -(-max(photo.shape[:2]) // OVERLAY_MAX_SIDE)
+    return mask_overlay(area_downsample(photo, factor), area_downsample(mask.astype(np.float32), factor))
+
+
+def _masks_section(doc: Document, scene_dir: Path, out: Path) -> None:
+    """The scene's transparent masks: where they came from, the polarity decision and its warning, and the masks
+    of :func:`overlay_photos` tinted over the photos (the photos from the dataset scene the masks stage recorded,
+    the masks from its output), written into the report's images/."""
+    masks_dir = scene_dir / "masks"
+    summary = _read_json(masks_dir / "summary.json")
+    doc.heading("Transparent masks", 3)
+    doc.paragraph(" ".join(t for t in (masks_paragraph(summary), polarity_text(summary)) if t))
+    if summary.get("polarity_warning"):
+        doc.paragraph(f"Warning: {summary['polarity_warning']}.")
+    if not summary.get("has_masks"):
+        return
+    images = Path(summary.get("scene_dir") or "") / "images"
+    coverage = summary.get("coverage") or {}
+    items, missing = [], []
+    for name in overlay_photos(summary):
+        stem = Path(name).stem
+        if not (images / name).is_file() or not (masks_dir / f"{stem}.png").is_file():
+            missing.append(name)
+            continue
+        overlay = _mask_overlay_image(images / name, masks_dir / f"{stem}.png")
+        (out / "images").mkdir(exist_ok=True)
+        file = f"images/{scene_dir.name}_mask_{stem}.png"
+        write_png(out / file, overlay)
+        cover = coverage.get(stem)
+        items.append((file, f"{name}: {mask_source(summary, name)}"
+                      + (f", {100 * float(cover):.1f}% covered" if cover is not None else "")))
+    if items:
+        doc.paragraph("The masks tinted magenta (green over magenta-like pixels) on the photos: the tint should lie "
+                      "on the see-through surface and nowhere else. If it lies on everything but the glass, the "
+                      "mask files are inverted: set masks.polarity: black.")
+        doc.images(items)
+    if missing:
+        doc.paragraph(f"No overlay for {', '.join(missing)}: the photo is not in {images} or its mask not in "
+                      f"{masks_dir}.")
 
 
 def sfm_section(summary: dict) -> tuple[str, list[str], list[list[str]]]:
@@ -784,6 +1042,9 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                    "noise from"], summary)
     else:
         doc.paragraph(f"No scene has both the main method and the baseline {PLAIN_2DGS!r}, so there is no summary.")
+    family = family_scenes(scenes, roles, results)
+    if family:
+        _family_section(doc, family, out)
     any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
     machine = any_metrics.get("machine", {})
     doc.paragraph(f"Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
@@ -800,9 +1061,8 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
             doc.paragraph(text)
             if sfm_rows:
                 doc.table(sfm_header, sfm_rows)
-        masks_summary = results / scene / "masks" / "summary.json"
-        if masks_summary.is_file():
-            doc.paragraph(masks_paragraph(_read_json(masks_summary)))
+        if (results / scene / "masks" / "summary.json").is_file():
+            _masks_section(doc, results / scene, out)
         doc.heading("Quality", 3)
         other_splits = {m: r.metrics.get("split") for m, r in runs.items() if r.metrics.get("split", "test") != "test"}
         if other_splits:
@@ -858,10 +1118,12 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
         if any(row[1] == "on" for row in exposure_rows):
             doc.heading("Per-view appearance (exposure and white balance)", 3)
             doc.paragraph("Whether each run learnt a colour correction per photo (effects.appearance; auto turns it "
-                          "on where the photos' colours of the SfM points spread by exposure), and how far the "
+                          "on where the photos' colours of the SfM points spread by exposure beyond what the "
+                          "measurement's own noise explains, and keeps it off where too few observations lie off "
+                          "the see-through surface to tell), how confident that decision is, and how far the "
                           "corrections moved (mean |log gain|; 0.1 is a 10% exposure change).")
-            doc.table(["method", "appearance", "exposure spread", "why", "train |log gain|", "test |log gain|"],
-                      exposure_rows)
+            doc.table(["method", "appearance", "exposure spread", "confidence", "why", "train |log gain|",
+                       "test |log gain|"], exposure_rows)
 
         doc.heading("Accuracy against training time", 3)
         measure = time_measure(runs)

@@ -26,8 +26,11 @@ On disk::
       "versions": {"rtsplat": "0.1.0", ...},
       "inputs": {"images": fp, "sfm": fp, "masks": fp | null},  # content fingerprints of what it was made
                                             # from (rtsplat.io.manifest); {} in scenes written before them
-      "exposure": {"IMG_0001": [r, g, b] | null, ...}  # each photo's log gain against the SfM points' colours
-    }                                       # (median over its observations; {} in scenes written before it)
+      "exposure": {"IMG_0001": [r, g, b] | null, ...},  # each photo's log gain against the SfM points' colours
+                                            # (median over its observations; {} in scenes written before it)
+      "exposure_points": {"IMG_0001": 412, ...},  # the observations off the see-through surface it used
+      "exposure_error": {"IMG_0001": 0.004 | null, ...}  # the gain's standard error ({} in older scenes)
+    }
 
 Cameras follow :mod:`rtsplat.camera` (OpenCV axes, world-to-camera, pixel corner at (0, 0)), sorted
 by name; the test split is every ``test_every``-th camera of that order starting with the first.
@@ -110,6 +113,10 @@ class PreparedScene:
     # per view: its photo's log gain per channel against the SfM points it observed (prepare); None where too
     # few observations; {} in scenes written before it
     exposure: dict[str, list[float] | None] = field(default_factory=dict)
+    # per view: how many observations outside the see-through surface measured its gain, and the gain's standard
+    # error (None where there is no gain; rtsplat.model.appearance.GainEstimate); {} in scenes written before them
+    exposure_points: dict[str, int] = field(default_factory=dict)
+    exposure_error: dict[str, float | None] = field(default_factory=dict)
     # the views whose masks were marked when the others' were propagated from them (masks.source: propagate);
     # [] when every mask was given, and in scenes written before it
     marked_views: list[str] = field(default_factory=list)
@@ -212,7 +219,7 @@ class PreparedScene:
             cams = [CameraRecord(**c) for c in data["cameras"]]
             roi = Roi(**data["roi"])
             keys = ("downsample", "resolution", "source", "has_transparency", "versions", "inputs", "exposure",
-                    "marked_views", "format")
+                    "exposure_points", "exposure_error", "marked_views", "format")
             rest = {k: data[k] for k in keys if k in data}
         except (KeyError, TypeError) as exc:
             raise PipelineError(
@@ -306,6 +313,12 @@ class PreparedScene:
         for name, gain in (self.exposure or {}).items():
             if gain is not None and not (len(gain) == 3 and np.all(np.isfinite(np.asarray(gain, dtype=float)))):
                 raise bad(f"exposure of view {name!r} must be 3 finite numbers or null, got {gain!r}")
+        for name, points in (self.exposure_points or {}).items():
+            if isinstance(points, bool) or not isinstance(points, int) or points < 0:
+                raise bad(f"exposure_points of view {name!r} must be a count (an integer >= 0), got {points!r}")
+        for name, error in (self.exposure_error or {}).items():
+            if error is not None and not (isinstance(error, (int, float)) and np.isfinite(error) and error >= 0):
+                raise bad(f"exposure_error of view {name!r} must be a finite number >= 0 or null, got {error!r}")
         if check_files:
             self._check_files(bad)
 

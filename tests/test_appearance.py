@@ -16,8 +16,11 @@ from rtsplat.model.checkpoint import read_checkpoint
 from rtsplat.train.appearance import (
     APPEARANCE_SPREAD,
     PROJECTED_SPREAD,
+    ExposureSpread,
+    ViewGains,
     appearance_spread,
     decide_appearance,
+    exposure_spread,
     view_log_gains,
 )
 from rtsplat.train.data import load_views
@@ -92,7 +95,7 @@ def _gains(scene) -> torch.Tensor:
     views = load_views(scene, "train")
     xyz, rgb = scene.load_points()
     return view_log_gains(views.cameras, views.images, views.masks, torch.as_tensor(np.asarray(xyz)).float(),
-                          torch.as_tensor(np.asarray(rgb)).float() / 255)
+                          torch.as_tensor(np.asarray(rgb)).float() / 255).log_gains
 
 
 def test_the_views_log_gains_are_read_from_the_point_colours(tmp_path):
@@ -112,12 +115,107 @@ def test_the_views_log_gains_are_read_from_the_point_colours(tmp_path):
 
 
 def test_the_decision_says_why():
-    assert decide_appearance("auto", APPEARANCE_SPREAD * 2)[0]
-    assert not decide_appearance("auto", APPEARANCE_SPREAD / 2)[0]
-    on, why = decide_appearance("auto", None)
-    assert not on and "not measurable" in why
-    assert decide_appearance("on", 0.0)[0] and not decide_appearance("off", 1.0)[0]
+    assert decide_appearance("auto", ExposureSpread(APPEARANCE_SPREAD * 2, 8, 300, 0.0)).on
+    off = decide_appearance("auto", ExposureSpread(APPEARANCE_SPREAD / 2, 8, 300, 0.0))
+    assert not off.on and "one exposure" in off.reason and off.confidence == "high"
+    none = decide_appearance("auto", ExposureSpread(None, 2, 12))
+    assert not none.on and "too few reliable observations (12 per view)" in none.reason and none.confidence == "low"
+    assert decide_appearance("on", ExposureSpread(0.0, 8)).on
+    assert not decide_appearance("off", ExposureSpread(1.0, 8)).on
     assert appearance_spread(torch.full((2, 3), 0.1)) is None  # fewer than 3 views
+    # the spread the noise explains does not count: 0.02 measured with 0.014 of noise is 0.0143 beyond it
+    noisy = decide_appearance("auto", ExposureSpread(0.02, 8, 300, 0.014))
+    assert not noisy.on and "0.014 beyond the 0.014" in noisy.reason and noisy.confidence == "low"
+    # a scene prepared before the noise was recorded: the spread alone decides, its confidence unknown
+    old = decide_appearance("auto", ExposureSpread(0.02, 8))
+    assert old.on and old.confidence == "unknown" and "rerun rtsplat prepare" in old.reason
+
+
+GLASS_PHOTO = (80, 100)  # height, width of the synthetic photos below
+
+
+def _measured_views(glass: float, log_gains: list[float], keypoints: int = 400, scatter: float = 0.25,
+                    seed: int = 0) -> list:
+    """Each view's exposure as prepare measures it (its ``_exposure``) from synthetic SfM observations: a photo
+    whose see-through mask covers the fraction ``glass`` of it (a pane filling the view but for a strip of wall
+    at the bottom), ``keypoints`` observations spread over it, each showing its point's colour at the view's log
+    gain times a per-observation scatter (view-dependent colour, keypoints off by a pixel) of ``scatter``."""
+    from rtsplat.prepare import _exposure
+
+    height, width = GLASS_PHOTO
+    rng = np.random.default_rng(seed)
+    mask = np.zeros((height, width), bool)
+    mask[: int(round(glass * height))] = True
+    out = []
+    for gain in log_gains:
+        pixels = rng.choice(height * width, keypoints, replace=False)
+        xy = np.stack([pixels % width + 0.5, pixels // width + 0.5], 1)
+        rgb = rng.integers(60, 220, (keypoints, 3)).astype(np.uint8)
+        seen = rgb / 255 * np.exp(gain + scatter * rng.standard_normal((keypoints, 1)))
+        image = np.zeros((height, width, 3), np.float32)
+        image[pixels // width, pixels % width] = np.clip(seen, 0, 1)
+        out.append(_exposure(image, (xy, rgb), (width, height), mask))
+    return out
+
+
+def _view_gains(estimates: list) -> ViewGains:
+    nan = torch.full((3,), float("nan"))
+    return ViewGains(torch.stack([nan if e.log_gain is None else e.log_gain for e in estimates]),
+                     torch.tensor([e.points for e in estimates]),
+                     torch.tensor([float("nan") if e.error is None else e.error for e in estimates]))
+
+
+def test_one_exposure_seen_through_photos_mostly_of_glass_stays_off_for_too_few_reliable_observations():
+    estimates = _measured_views(glass=0.9, log_gains=[0.0] * 12)
+    outside = [e.points for e in estimates]
+    assert max(outside) < 70  # ~10% of the 400 keypoints lie off the glass
+    measured = exposure_spread(_view_gains(estimates))
+    assert measured.spread >= APPEARANCE_SPREAD  # the few keypoints' scatter alone looks like an exposure spread
+    decision = decide_appearance("auto", measured)
+    assert not decision.on and decision.confidence == "low"
+    assert f"too few reliable observations ({round(np.median(outside))} per view)" in decision.reason
+    # the same photos with their glass taking a tenth of the view: measured on ten times the keypoints
+    clear = exposure_spread(_view_gains(_measured_views(glass=0.1, log_gains=[0.0] * 12)))
+    assert clear.noise < APPEARANCE_SPREAD  # measurable
+    off = decide_appearance("auto", clear)
+    assert not off.on and "one exposure" in off.reason
+
+
+def test_a_real_exposure_spread_measured_on_enough_observations_turns_on():
+    estimates = _measured_views(glass=0.1, log_gains=[0.0, -0.2] * 6)  # every other photo 0.2 darker
+    measured = exposure_spread(_view_gains(estimates))
+    assert measured.views == 12 and measured.observations >= 300
+    decision = decide_appearance("auto", measured)
+    assert decision.on and decision.confidence == "high", decision.reason
+    assert measured.spread == pytest.approx(0.1, abs=0.03)
+
+
+def test_the_trainer_decides_from_the_scenes_recorded_observations(tmp_path):
+    """prepare's per-view counts and errors (scene.json's exposure_points, exposure_error) reach the trainer's
+    decision and its summary: one exposure measured on photos mostly of glass stays off, a real spread on
+    enough observations turns on."""
+    from rtsplat.scene import PreparedScene
+
+    for case, glass, gains in (("glass", 0.9, [0.0] * 7), ("spread", 0.1, [0.0, -0.2] * 3 + [0.0])):
+        scene = write_scene(tmp_path / case, views=8, width=32, height=24, with_pane=False, test_every=100)
+        names = [c.name for c in scene.train_cameras]
+        estimates = _measured_views(glass, gains)
+        by_name = dict(zip(names, estimates, strict=True))
+        scene.exposure = {n: None if e.log_gain is None else e.log_gain.tolist() for n, e in by_name.items()}
+        scene.exposure_points = {n: e.points for n, e in by_name.items()}
+        scene.exposure_error = {n: e.error for n, e in by_name.items()}
+        scene.save(tmp_path / case)
+        trainer = Trainer(PreparedScene.load(tmp_path / case), train_config(10), tmp_path / f"{case}_run",
+                          progress=False, log=lambda m: None)
+        summary = trainer.appearance_summary()
+        assert summary["observations_per_view"] == round(np.median([e.points for e in estimates]))
+        assert summary["views_measured"] == sum(e.log_gain is not None for e in estimates)
+        if case == "glass":
+            assert trainer.appearance is None and not summary["on"] and summary["confidence"] == "low"
+            assert summary["reason"].startswith("auto: too few reliable observations (")
+        else:
+            assert trainer.appearance is not None and summary["on"] and summary["confidence"] == "high"
+            assert summary["noise"] < APPEARANCE_SPREAD
 
 
 def test_training_learns_and_saves_every_views_correction_and_render_applies_it(tmp_path):
@@ -199,9 +297,12 @@ def test_prepare_measures_each_photos_exposure_at_the_sfm_observations(tmp_path)
     run_sfm(tmp_path / "s", tmp_path / "sfm", SfmConfig(use_dataset_model=False, camera_model="PINHOLE"),
             progress=False)
     prepare_scene(tmp_path / "s", tmp_path / "sfm", tmp_path / "prepared", PrepareConfig(), progress=False)
-    exposure = PreparedScene.load(tmp_path / "prepared").exposure
+    prepared = PreparedScene.load(tmp_path / "prepared")
+    exposure = prepared.exposure
     measured = {name: gain for name, gain in exposure.items() if gain is not None}
     assert len(measured) >= 10
+    # each measured view's observation count and the gain's standard error are recorded beside it
+    assert all(prepared.exposure_points[name] >= 20 and prepared.exposure_error[name] >= 0 for name in measured)
     dark = torch.tensor([g for n, g in measured.items() if n in darker])
     bright = torch.tensor([g for n, g in measured.items() if n not in darker])
     gap = dark.median(0).values - bright.median(0).values

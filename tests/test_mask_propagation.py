@@ -1,4 +1,4 @@
-"""Masks propagated from a few marked views (rtsplat.masks_propagate, masks.source propagate) on a small
+"""Masks propagated from a few marked views (rtsplat.masks.propagation, masks.source propagate) on a small
 ray-cast scene whose true masks are known (tests/masks_scene.py)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.colmap import ColmapImage, ColmapPoints, ColmapView, write_sparse_model
 from rtsplat.io.images import read_mask, write_mask, write_png
 from rtsplat.masks import make_masks
-from rtsplat.masks_propagate import (
+from rtsplat.masks.propagation import (
     check_marked,
     project_hull,
     propagate_masks,

@@ -350,20 +350,55 @@ def test_ingest_recognises_label_maps_and_colour_masks(tmp_path, kind, data):
     assert s.mean_coverage == pytest.approx(WINDOW.mean())
 
 
-def test_inverted_masks_are_read_inverted_and_the_decision_recorded(tmp_path, capsys):
-    inverted = np.where(WINDOW, 0, 255).astype(np.uint8)
+def _pane_filling_the_view() -> np.ndarray:
+    """A 30x40 uint8 mask of glass that fills the view (a shop window): white but for a strip of wall above
+    and at the left, 88% of the photo."""
+    out = np.full((30, 40), 255, np.uint8)
+    out[:3] = 0
+    out[:, :1] = 0
+    return out
+
+
+def test_glass_that_fills_the_view_keeps_its_masks_and_is_flagged(tmp_path, capsys):
+    pane = _pane_filling_the_view()
+    d = _scene_with_masks(tmp_path, {"view_000": pane, "view_001": pane})
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "out")]) == 0
+    captured = capsys.readouterr()
+    for stem in ("view_000", "view_001"):  # white stays the see-through surface
+        assert np.array_equal(read_mask(tmp_path / "out" / f"{stem}.png"), pane > 0)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["polarity"] == "white" and "kept as given" in summary["polarity_reason"]
+    assert summary["mean_coverage"] == pytest.approx((pane > 0).mean())
+    warning = summary["polarity_warning"]
+    assert "87.8%" in warning and "view_000.png 88%" in warning and "masks.polarity: black" in warning
+    assert f"WARNING: {warning}" in captured.err  # said loudly in the log, not only in the summary
+    assert "kept as given" in captured.out
+    # the user's own choice: no warning when white is confirmed, the masks inverted with black
+    s = make_masks(d, tmp_path / "white", MasksConfig(polarity="white"), progress=False)
+    assert s.polarity == "white" and not s.polarity_warning
+    assert np.array_equal(read_mask(tmp_path / "white" / "view_000.png"), pane > 0)
+    s = make_masks(d, tmp_path / "black", MasksConfig(polarity="black"), progress=False)
+    assert s.polarity == "black" and not s.polarity_warning
+    assert np.array_equal(read_mask(tmp_path / "black" / "view_000.png"), pane == 0)
+
+
+def test_inverted_masks_are_flagged_with_the_fix_and_read_inverted_with_polarity_black(tmp_path, capsys):
+    inverted = np.where(WINDOW, 0, 255).astype(np.uint8)  # black = the small window: an inverted mask set
     d = _scene_with_masks(tmp_path, {"view_000": inverted, "view_001": inverted})
     assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "out")]) == 0
-    printed = capsys.readouterr().out
-    assert "inverted" in printed and "masks.polarity: white" in printed
+    err = capsys.readouterr().err
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert summary["polarity"] == "black" and "inverted" in summary["polarity_reason"]
+    assert summary["polarity"] == "white" and summary["mean_coverage"] == pytest.approx(1 - WINDOW.mean())
+    coverage = f"{100 * (1 - WINDOW.mean()):.0f}%"
+    assert f"view_000.png {coverage}, view_001.png {coverage}" in summary["polarity_warning"]
+    assert "set masks.polarity: black" in err and "view_001.png" in err
+    assert np.array_equal(read_mask(tmp_path / "out" / "view_000.png"), ~WINDOW)  # as given, until told
+    argv = ["masks", "--scene-dir", str(d), "--out", str(tmp_path / "fixed"), "--config-json", '{"polarity": "black"}']
+    assert cli_main(argv) == 0
+    summary = json.loads((tmp_path / "fixed" / "summary.json").read_text())
+    assert summary["polarity"] == "black" and summary["polarity_warning"] == ""
     assert summary["mean_coverage"] == pytest.approx(WINDOW.mean())
-    assert np.array_equal(read_mask(tmp_path / "out" / "view_000.png"), WINDOW)
-    # the user's own choice wins
-    s = make_masks(d, tmp_path / "kept", MasksConfig(polarity="white"), progress=False)
-    assert s.polarity == "white" and s.mean_coverage == pytest.approx(1 - WINDOW.mean())
-    assert np.array_equal(read_mask(tmp_path / "kept" / "view_000.png"), ~WINDOW)
+    assert np.array_equal(read_mask(tmp_path / "fixed" / "view_000.png"), WINDOW)
 
 
 def test_a_photo_as_a_mask_is_refused(tmp_path):
@@ -482,14 +517,15 @@ def test_a_mask_set_that_matches_no_photo_shows_an_expected_and_a_found_name(tmp
 
 
 def test_photos_without_masks_are_an_error_or_empty_masks_with_allow_missing(tmp_path, capsys):
-    inverted = np.where(WINDOW, 0, 255).astype(np.uint8)  # read as inverted masks (polarity auto)
+    inverted = np.where(WINDOW, 0, 255).astype(np.uint8)  # read inverted (polarity black)
     d = _scene_with_masks(tmp_path, {"view_000": inverted})
     out = tmp_path / "out"
     assert cli_main(["masks", "--scene-dir", str(d), "--out", str(out)]) == 1
     err = capsys.readouterr().err
     assert "no mask for image view_001.png (1 of 2 photos have none)" in err and "masks.allow_missing" in err
     assert not out.exists()
-    argv = ["masks", "--scene-dir", str(d), "--out", str(out), "--config-json", '{"allow_missing": true}']
+    argv = ["masks", "--scene-dir", str(d), "--out", str(out), "--config-json",
+            '{"allow_missing": true, "polarity": "black"}']
     assert cli_main(argv) == 0
     assert "1 photo(s) without a mask" in capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
@@ -515,7 +551,7 @@ def test_propagation_prompts_the_onnx_model_with_the_projected_box(onnx_models, 
 
     from rtsplat.config import MaskPropagationConfig
     from rtsplat.io.colmap import ColmapImage, ColmapPoints, write_sparse_model
-    from rtsplat.masks_propagate import suggest_views
+    from rtsplat.masks.propagation import suggest_views
 
     model = ring_model(12)
     truth = {v.name: render(v)[1] for v in model.views}

@@ -6,6 +6,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -126,6 +127,46 @@ def test_report_has_tables_plots_and_images(results, tmp_path):
         (results / "toy" / "videos" / "rtsplat.mp4").read_bytes()
     assert "rtsplat: orbit path, 4 frames at 24 fps, 40x30 per panel (image | reflection | transmission" in md
     assert "[![rtsplat: orbit path" in md and "](toy_video_rtsplat.mp4)" in md
+
+
+def test_report_shows_the_masks_over_three_photos_with_the_polarity_decision(results, tmp_path):
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fixtures_pipeline import make_corner_scene
+
+    from rtsplat.io.images import read_mask, write_mask
+    from rtsplat.masks import make_masks
+
+    copy = tmp_path / "results"
+    shutil.copytree(results, copy)
+    shutil.rmtree(copy / "toy" / "masks", ignore_errors=True)  # another test's hand-written summary
+    data = tmp_path / "data" / "toy"
+    make_corner_scene(data, n_views=5, width=48, height=36, with_masks=True)
+    pane = np.ones((36, 48), bool)  # glass that fills the view: white but for a strip of wall above
+    pane[:4] = False
+    for stem in ("view_000", "view_002", "view_004"):
+        write_mask(data / "transparent_masks" / f"{stem}.png", pane)
+    summary = make_masks(data, copy / "toy" / "masks", progress=False)
+    assert summary.polarity_warning  # white covers more than half of the photos on average
+
+    index = build_report(copy, tmp_path / "report", roles=Roles.from_dict(ROLES))
+    html, md = index.read_text(), index.with_suffix(".md").read_text()
+    for text in (md, html):
+        assert "Polarity: masks.polarity: auto: white = see-through, kept as given" in text
+        assert "Warning: white covers" in text and "set masks.polarity: black" in text
+    shown = 0
+    for i in (0, 2, 4):  # five photos: the first, the middle and the last
+        name = f"view_{i:03d}"
+        file = f"images/toy_mask_{name}.png"
+        assert f"src='{file}'" in html and f"![{name}.png: given, " in md
+        photo = read_image(data / "images" / f"{name}.png")
+        overlay = read_image(tmp_path / "report" / file)
+        assert overlay.shape == photo.shape
+        mask = read_mask(copy / "toy" / "masks" / f"{name}.png")
+        changed = np.abs(overlay - photo).max(-1) > 0.5 / 255
+        np.testing.assert_array_equal(changed, mask)  # tinted exactly where the mask is
+        shown += 1
+        assert f"{name}.png: given, {100 * summary.coverage[name]:.1f}% covered" in md
+    assert shown == 3 and "toy_mask_view_001" not in html
 
 
 def test_report_measures_noise_from_repeated_runs(results, tmp_path):
@@ -342,13 +383,13 @@ def test_appearance_rows_show_the_spread_and_the_corrections_size():
     from rtsplat.report import Run, appearance_rows
 
     on = {"on": True, "spread": 0.047, "reason": "auto: the photos' exposure spread is 0.047 (>= 0.03)",
-          "train_mean_abs_log_gain": 0.052, "test_mean_abs_log_gain": 0.071}
+          "confidence": "high", "train_mean_abs_log_gain": 0.052, "test_mean_abs_log_gain": 0.071}
     runs = {"rtsplat": Run("glass", "rtsplat", summary={"appearance": on}),
             "2dgs": Run("glass", "2dgs", summary={"appearance": {"on": False, "spread": 0.01, "reason": "auto"}}),
             "old": Run("glass", "old", summary={})}
     rows = appearance_rows(runs)
-    assert rows == [["2dgs", "off", "0.010", "auto", "-", "-"],
-                    ["rtsplat", "on", "0.047", on["reason"], "0.052", "0.071"]]
+    assert rows == [["2dgs", "off", "0.010", "-", "auto", "-", "-"],  # written before the confidence
+                    ["rtsplat", "on", "0.047", "high", on["reason"], "0.052", "0.071"]]
 
 
 def test_the_near_reflection_section_says_what_share_of_the_true_reflection_is_near(tmp_path):
@@ -408,3 +449,49 @@ def test_results_page_of_a_folder_without_report_json_is_a_clear_error(tmp_path,
     assert results_page(["--report", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "no report.json" in err and str(tmp_path) in err and "rtsplat report" in err
+
+
+def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_half_its_summary(results, tmp_path):
+    """Copies of the toy run named as family scenes, with the main method's transparent PSNR set to a known
+    gap over 2dgs and a repeat of rtsplat with another seed at a known distance (the seed noise)."""
+    copy = tmp_path / "results"
+    # scene: (gap on the transparent region, seed noise or None for no repeat)
+    built = {"shop_window-0": (2.0, 0.3), "curved-2": (-1.0, 0.2), "shop_window-1": (0.1, 0.3), "car-3": (0.5, None)}
+    shutil.copytree(results / "toy", copy / "toy")  # not a family name: not in the section
+    for scene, (gap, noise) in built.items():
+        shutil.copytree(results / "toy", copy / scene)
+        base = json.loads((copy / scene / "metrics" / "2dgs.json").read_text())
+        ours = json.loads((copy / scene / "metrics" / "rtsplat.json").read_text())
+        ours["mean"]["psnr_transparent"] = base["mean"]["psnr_transparent"] + gap
+        ours["mean"]["psnr_reflection_layer"] = 20.0 + gap
+        base["mean"]["psnr_reflection_layer"] = 20.0
+        (copy / scene / "metrics" / "rtsplat.json").write_text(json.dumps(ours))
+        (copy / scene / "metrics" / "2dgs.json").write_text(json.dumps(base))
+        if noise is not None:
+            shutil.copytree(copy / scene / "runs" / "rtsplat", copy / scene / "runs" / "rtsplat_seed1")
+            config = json.loads((copy / scene / "runs" / "rtsplat_seed1" / "config.json").read_text())
+            (copy / scene / "runs" / "rtsplat_seed1" / "config.json").write_text(json.dumps({**config, "seed": 1}))
+            ours["mean"]["psnr_transparent"] += noise
+            (copy / scene / "metrics" / "rtsplat_seed1.json").write_text(json.dumps(ours))
+    roles = Roles.from_dict({**ROLES, "rtsplat_seed1": {"role": "repeat", "of": "rtsplat"}})
+    report = build_report(copy, tmp_path / "report", roles=roles)
+    md = report.with_suffix(".md").read_text()
+    assert "Scene family: RT-Splatting minus plain 2DGS per scene" in md and "larger than 2 x that noise" in md
+    section = md.split("Scene family")[1].split("Machine:")[0]
+    assert "| toy |" not in section
+    verdicts = {"shop_window-0": "better", "curved-2": "worse", "shop_window-1": "within noise",
+                "car-3": "noise not measured"}
+    for scene, (gap, noise) in built.items():
+        row = _md_row(section, f"| {scene} | ")
+        kind, seed = scene.rsplit("-", 1)
+        assert row[1:4] == [kind, seed, "tuning" if int(seed) % 2 == 0 else "held out"]
+        assert float(row[4]) == pytest.approx(gap, abs=0.005)
+        assert row[5] == ("-" if noise is None else f"{noise:.3f}") and row[6] == verdicts[scene]
+        assert float(row[10]) == pytest.approx(gap, abs=0.005)  # the reflection layer's gap
+    tuning = _md_row(section, "| tuning (even seeds) | transparent |")
+    assert tuning[2:] == ["2", "+0.50", "-1.00 (curved-2)", "1", "1", "0", "0"]
+    held = _md_row(section, "| held out (odd seeds) | transparent |")
+    assert held[2:] == ["2", "+0.30", "+0.10 (shop_window-1)", "0", "0", "1", "1"]
+    assert (report.parent / "family_psnr_transparent.png").is_file()
+    plain = build_report(copy, tmp_path / "plain").with_suffix(".md").read_text()
+    assert "Scene family" not in plain  # no main method: nothing to compare

@@ -81,6 +81,9 @@ def test_no_transparency_has_no_masks(tmp_path):
         (lambda d: d["cameras"][0].update(width=31), "is 32x24, camera img0 says 31x24"),
         (lambda d: d.update(exposure={"img0": [0.1, float("nan"), 0.0]}), "exposure of view 'img0' must be 3 finite"),
         (lambda d: d.update(exposure={"img1": [0.1]}), "exposure of view 'img1' must be 3 finite"),
+        (lambda d: d.update(exposure_points={"img1": -3}), "exposure_points of view 'img1' must be a count"),
+        (lambda d: d.update(exposure_points={"img1": 2.5}), "exposure_points of view 'img1' must be a count"),
+        (lambda d: d.update(exposure_error={"img0": -0.1}), "exposure_error of view 'img0' must be a finite"),
     ],
 )
 def test_validation_names_the_problem(tmp_path, mutate, message):

@@ -162,7 +162,7 @@ def test_feature_masks_are_applied(tmp_path):
 
     for p in (tmp_path / "s" / "transparent_masks").iterdir():
         write_mask(p, np.ones((90, 120), bool))
-    # all-white masks would be read as inverted under polarity auto
+    # all-white masks: confirmed as white = see-through (polarity auto would warn about their coverage)
     make_masks(tmp_path / "s", tmp_path / "masks", MasksConfig(polarity="white"), progress=False)
     with pytest.raises(PipelineError, match="registered no images|only 0 of 6"):
         run_sfm(

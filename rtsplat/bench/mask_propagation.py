@@ -6,7 +6,7 @@
 ``DATASET_SCENE`` has ``images/``, a mask for every photo in ``transparent_masks/`` and a COLMAP model
 (``sparse/0``, e.g. the ground-truth cameras of ``rtsplat synth``, or ``--model``). For each count in
 ``--marked`` the views to mark are chosen like the stage suggests them (farthest-point sampling over the
-camera centres, :func:`rtsplat.masks_propagate.suggest_views`); the other views' propagated masks are
+camera centres, :func:`rtsplat.masks.propagation.suggest_views`); the other views' propagated masks are
 compared with their true masks: mean and worst-view IoU (a view whose two masks are both empty counts 1),
 how many views were refined and by what, and the seconds taken (wall clock, noisy on a shared machine).
 
@@ -34,7 +34,7 @@ from rtsplat.config import MaskPropagationConfig
 from rtsplat.io.colmap import dataset_model_dir, load_model
 from rtsplat.io.images import list_images, read_image, read_mask
 from rtsplat.masks import match_masks
-from rtsplat.masks_propagate import propagate_masks, suggest_views
+from rtsplat.masks.propagation import propagate_masks, suggest_views
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -28,6 +28,7 @@ def dataset_reach(dataset: Path, stride: int = 1) -> ReflectionReach:
 
     from rtsplat.camera import Camera
     from rtsplat.io.images import read_mask
+    from rtsplat.synth.family import build_member, is_family_name
     from rtsplat.synth.render import load_scene, set_variant
     from rtsplat.synth.scenes import build_scene, params_from_dict
 
@@ -55,8 +56,12 @@ def dataset_reach(dataset: Path, stride: int = 1) -> ReflectionReach:
         weights.append(reflection @ LUMINANCE)
     set_variant()
     with tempfile.TemporaryDirectory() as workdir:
-        spec = build_scene(name, int(description["seed"]), Path(workdir), params_from_dict(name, description["params"]),
-                           float(description.get("texture_scale", 1.0)))
+        texture_scale = float(description.get("texture_scale", 1.0))
+        if is_family_name(name):  # a family member is rebuilt from the kind and seed in its name
+            spec = build_member(name, Path(workdir), texture_scale)
+        else:
+            spec = build_scene(name, int(description["seed"]), Path(workdir),
+                               params_from_dict(name, description["params"]), texture_scale)
         scene = load_scene(spec.elements, [], spp=1)
         return reflection_reach(scene, cameras, masks, weights, stride)
 

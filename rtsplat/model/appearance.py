@@ -15,6 +15,7 @@ applies the stored ones.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -58,11 +59,33 @@ def fit_appearance(rendered: Tensor, photo: Tensor, prior: float = 1e-2) -> Tens
     return torch.cat([gain.log(), offset]).to(rendered.dtype)
 
 
-def observed_log_gain(seen: Tensor, reference: Tensor) -> Tensor | None:
+MEDIAN_ERROR = 1.2533  # the standard error of a median of normal samples, in units of sigma / sqrt(n)
+MAD_SIGMA = 1.4826  # sigma of normal samples per unit of their median absolute deviation
+
+
+@dataclass(frozen=True)
+class GainEstimate:
+    """A photo's log gain per channel measured at ``points`` point colours, and ``error``: the standard error
+    of that measurement (the largest channel's), from how much the points' log ratios scatter (view-dependent
+    colour, misplaced keypoints): ``MEDIAN_ERROR * MAD_SIGMA * MAD / sqrt(points)``. ``log_gain`` is None
+    with fewer than :data:`MIN_POINTS_PER_VIEW` points (``error`` is then None too)."""
+
+    log_gain: Tensor | None
+    points: int
+    error: float | None = None
+
+
+def observed_log_gain(seen: Tensor, reference: Tensor) -> GainEstimate:
     """A photo's log gain per channel [3] from colours it shows of known points: the median over the
     points of ``log(seen / reference)`` (both [n, 3] in [0, 1]), leaving out points where either colour
-    is darker than :data:`DARK`; None with fewer than :data:`MIN_POINTS_PER_VIEW` such points."""
+    is darker than :data:`DARK`, with its standard error (:class:`GainEstimate`); no gain with fewer than
+    :data:`MIN_POINTS_PER_VIEW` such points."""
     keep = (seen > DARK).all(-1) & (reference > DARK).all(-1)
-    if int(keep.sum()) < MIN_POINTS_PER_VIEW:
-        return None
-    return (seen[keep] / reference[keep]).log().median(dim=0).values
+    points = int(keep.sum())
+    if points < MIN_POINTS_PER_VIEW:
+        return GainEstimate(None, points)
+    ratios = (seen[keep] / reference[keep]).log()
+    gain = ratios.median(dim=0).values
+    deviation = (ratios - gain).abs().median(dim=0).values
+    error = float(MEDIAN_ERROR * MAD_SIGMA * deviation.max()) / math.sqrt(points)
+    return GainEstimate(gain, points, error)

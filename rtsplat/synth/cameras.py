@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -29,6 +30,7 @@ class OrbitPath:
     ``height_mid + height_amplitude * sin(2 pi * height_cycles * i / n)``.
     """
 
+    TYPE: ClassVar[str] = "orbit"  # scene.json's camera_path type
     target: tuple[float, float, float] = (0.0, 0.0, 0.5)
     radius: float = 4.0
     height_mid: float = 2.0
@@ -61,6 +63,53 @@ class OrbitPath:
             )
             for eye in self.eyes(n)
         ]
+
+
+@dataclass(frozen=True)
+class WalkPath:
+    """A forward-facing walk past: camera centres evenly spaced on the segment ``start`` - ``end`` with
+    a sinusoidal height variation, view ``i`` looking at the point at the same fraction of the segment
+    ``look_start`` - ``look_end`` (parallel views when the two segments are parallel and as long, a slow
+    turn when the looked-at segment is shorter).
+
+    View ``i`` of ``n`` is at fraction ``i / (n - 1)``; its height is the segment's plus
+    ``height_amplitude * sin(2 pi * height_cycles * i / n)``.
+    """
+
+    TYPE: ClassVar[str] = "walk"  # scene.json's camera_path type
+    start: tuple[float, float, float] = (-1.0, -3.0, 1.2)
+    end: tuple[float, float, float] = (1.0, -3.0, 1.2)
+    look_start: tuple[float, float, float] = (-0.5, 0.0, 1.0)
+    look_end: tuple[float, float, float] = (0.5, 0.0, 1.0)
+    height_amplitude: float = 0.1
+    height_cycles: float = 2.0
+    fov_x_deg: float = 55.0
+
+    def _fractions(self, n: int) -> np.ndarray:
+        return np.arange(n, dtype=np.float64) / max(n - 1, 1)
+
+    def eyes(self, n: int) -> np.ndarray:
+        """Camera centres [n, 3] (world, z up)."""
+        f = self._fractions(n)[:, None]
+        eyes = (1 - f) * np.asarray(self.start) + f * np.asarray(self.end)
+        eyes[:, 2] += self.height_amplitude * np.sin(2 * np.pi * self.height_cycles * np.arange(n) / n)
+        return eyes
+
+    def targets(self, n: int) -> np.ndarray:
+        """The looked-at points [n, 3]."""
+        f = self._fractions(n)[:, None]
+        return (1 - f) * np.asarray(self.look_start) + f * np.asarray(self.look_end)
+
+    def cameras(self, n: int, width: int, height: int) -> list[Camera]:
+        """The ``n`` ground-truth cameras (float64), all with the same centred intrinsics."""
+        return [
+            camera_from_fov(tuple(eye), tuple(target), width=width, height=height, fov_x_deg=self.fov_x_deg,
+                            dtype=torch.float64)
+            for eye, target in zip(self.eyes(n), self.targets(n), strict=True)
+        ]
+
+
+CameraPath = OrbitPath | WalkPath
 
 
 def camera_to_world_np(camera: Camera) -> np.ndarray:

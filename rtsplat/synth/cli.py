@@ -7,13 +7,13 @@ import time
 from pathlib import Path
 
 from rtsplat.errors import PipelineError
+from rtsplat.synth.catalog import SCENE_HELP
 from rtsplat.synth.dataset import VIEW_RANGE, SynthConfig
-from rtsplat.synth.scenes import SCENES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = SynthConfig()
-    parser.add_argument("--scene", required=True, help=f"one of: {', '.join(SCENES)}")
+    parser.add_argument("--scene", required=True, help=SCENE_HELP)
     parser.add_argument("--out", required=True, type=Path, help="output dataset directory")
     parser.add_argument(
         "--views",

@@ -34,9 +34,10 @@ from rtsplat.io.colmap import ColmapImage, ColmapPoints, write_sparse_model
 from rtsplat.io.images import linear_to_srgb, to_uint, write_png
 from rtsplat.io.outputs import output_dir
 from rtsplat.synth.cameras import SAMPLER, effective_spp
+from rtsplat.synth.catalog import build_any, check_scene_name
 from rtsplat.synth.reach import LUMINANCE, reach_record, reflection_reach
 from rtsplat.synth.render import VARIANT, ViewRender, load_scene, render_view, set_variant
-from rtsplat.synth.scenes import SCENES, SceneSpec, build_scene
+from rtsplat.synth.scenes import SceneSpec
 
 FORMAT = "rtsplat-synth/1"
 VIEW_RANGE = (40, 200)
@@ -60,8 +61,10 @@ class SynthConfig:
 
     def validate(self) -> None:
         """Raise :class:`~rtsplat.errors.ConfigError` with a clear message for any bad setting."""
-        if self.scene not in SCENES:
-            raise ConfigError(f"unknown scene {self.scene!r}; choose from {', '.join(SCENES)}")
+        try:
+            check_scene_name(self.scene)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         lo, hi = VIEW_RANGE
         if self.allow_any_views:
             if not 1 <= self.views <= 1000:
@@ -233,7 +236,7 @@ def _scene_json(config: SynthConfig, spec: SceneSpec, cams: list[Camera], check:
         "params": spec.params,
         "texture_scale": texture_scale(config),
         "transparent_shapes": list(spec.transparent),
-        "camera_path": {"type": "orbit", **asdict(spec.orbit)},
+        "camera_path": {"type": spec.orbit.TYPE, **asdict(spec.orbit)},
         "mitsuba_version": mi.__version__,
         "mitsuba_variant": VARIANT,
         "sampler": {"type": SAMPLER, "spp": effective_spp(config.spp)},
@@ -261,6 +264,7 @@ def _scene_json(config: SynthConfig, spec: SceneSpec, cams: list[Camera], check:
         "transmission = delta-transmission lobe + scatter (other lobes, e.g. the "
         "film's diffuse part). Elsewhere reflection = 0, transmission = full.",
         "layer_check": check,
+        **({"family": spec.family} if spec.family else {}),
     }
 
 
@@ -280,7 +284,7 @@ def render_dataset(
         set_variant()
         work = tmp / "_work"
         work.mkdir()
-        spec = build_scene(config.scene, config.seed, work, texture_scale=texture_scale(config))
+        spec = build_any(config.scene, config.seed, work, texture_scale=texture_scale(config))
         cams = spec.orbit.cameras(config.views, config.width, config.height)
         scene = load_scene(spec.elements, cams, config.spp, config.max_depth)
         check = _LayerCheck()

@@ -24,19 +24,21 @@ from pathlib import Path
 
 import numpy as np
 
-from rtsplat.synth.cameras import OrbitPath
+from rtsplat.synth.cameras import CameraPath, OrbitPath
 from rtsplat.synth.textures import FLOOR_PHOTOS, OBJECT_PHOTOS, environment_map, photo_crop, tile_mosaic
 
 
 @dataclass
 class SceneSpec:
-    """A built scene: Mitsuba elements, see-through shape ids, camera orbit, parameters."""
+    """A built scene: Mitsuba elements, see-through shape ids, camera path, parameters, and for a member
+    of the scene family (:mod:`rtsplat.synth.family`) its kind, seed, half and drawn parameters."""
 
     name: str
     elements: dict
     transparent: tuple[str, ...]
-    orbit: OrbitPath
+    orbit: CameraPath
     params: dict = field(default_factory=dict)
+    family: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,7 @@ class CabinParams:
     window_height: float = 0.7
     pillar_half: float = 0.04
     eta: float = 1.5
+    tint: tuple[float, float, float] = (1.0, 1.0, 1.0)  # the windows' transmittance (RGB)
 
 
 @dataclass(frozen=True)
@@ -210,8 +213,12 @@ def _photo_order(rng: np.random.Generator) -> list[str]:
     return [OBJECT_PHOTOS[i] for i in rng.permutation(len(OBJECT_PHOTOS))]
 
 
-def _glass(eta: float) -> dict:
-    return {"type": "thindielectric", "int_ior": float(eta), "ext_ior": 1.0}
+def _glass(eta: float, tint: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> dict:
+    """Thin glass (``thindielectric``); ``tint``: its transmittance per RGB channel (1: clear)."""
+    glass = {"type": "thindielectric", "int_ior": float(eta), "ext_ior": 1.0}
+    if tuple(tint) != (1.0, 1.0, 1.0):
+        glass["specular_transmittance"] = {"type": "rgb", "value": [float(t) for t in tint]}
+    return glass
 
 
 def build_dome(params: DomeParams, seed: int, workdir: Path, texture_scale: float = 1.0) -> SceneSpec:
@@ -283,7 +290,7 @@ def build_cabin(params: CabinParams, seed: int, workdir: Path, texture_scale: fl
         }
     panes = _cabin_panes(params)
     for name, m in panes.items():
-        elements[name] = {"type": "rectangle", "to_world": _xf(m), "bsdf": _glass(params.eta)}
+        elements[name] = {"type": "rectangle", "to_world": _xf(m), "bsdf": _glass(params.eta, params.tint)}
     # objects stand on the cabin floor (the body's top) and stay clear of the panes and pillars
     margin = 0.03
     elements.update(_objects(c, rng, texture_scale, base_z=B, box=(L - 2 * p - margin, W - margin)))

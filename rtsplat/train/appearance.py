@@ -17,9 +17,19 @@ balanced differently. ``rtsplat prepare`` measures each photo's log gain at the 
 scene without it the points are projected into the training images (:func:`view_log_gains`), which
 also reads points hidden from a view and is noisier. Where the photos' gains spread by less than
 :data:`APPEARANCE_SPREAD` (:data:`PROJECTED_SPREAD` for projected points) the corrections stay off.
+
+The measurement is only as good as the observations it rests on: a view whose photo is mostly glass has
+few keypoints outside it, and a median over few noisy colours scatters from view to view by itself. Each
+view's gain comes with its standard error (:class:`rtsplat.model.appearance.GainEstimate`), from which
+:func:`exposure_spread` computes the spread that the errors alone would give (``noise``); the decision
+(:func:`decide_appearance`) counts only the spread beyond that noise, stays off when the noise alone
+reaches the threshold ("too few reliable observations"), and says how confident it is.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -35,6 +45,7 @@ from rtsplat.model.appearance import observed_log_gain
 APPEARANCE_SPREAD = 0.015
 PROJECTED_SPREAD = 0.03  # the same for gains read from the projected points (a scene prepared without them)
 MAX_POINTS = 100_000  # a larger cloud is read at every k-th point: a view's median needs far fewer
+NORMAL_HALF_IQR = 0.6745  # half the interquartile range of a unit normal: the spread of gains that differ by noise
 
 
 class AppearanceCorrections:
@@ -67,20 +78,34 @@ class AppearanceCorrections:
         self.optimizer.load_state_dict(state["optimizer"])
 
 
+@dataclass(frozen=True)
+class ViewGains:
+    """Views' measured log gains ``[V, 3]`` (NaN where a view has none), how many observations each used
+    ``[V]`` and the gains' standard errors ``[V]`` (NaN where none); ``points`` and ``errors`` are None for a
+    scene prepared before they were recorded."""
+
+    log_gains: Tensor
+    points: Tensor | None = None
+    errors: Tensor | None = None
+
+
 @torch.no_grad()
 def view_log_gains(
     cameras: list[Camera], images: list[Tensor], masks: list[Tensor | None], xyz: Tensor, rgb: Tensor,
-) -> Tensor:
-    """[V, 3] each view's log gain against the SfM points' colours: the median over the points it sees
-    (in front, inside the image, off the transparent mask, neither colour dark) of ``log(photo / point)``;
-    NaN for a view with too few such points (:func:`rtsplat.model.appearance.observed_log_gain`). At most
-    :data:`MAX_POINTS` points are read (every k-th of a larger cloud)."""
+) -> ViewGains:
+    """Each view's log gain against the SfM points' colours: the median over the points it sees (in front,
+    inside the image, off the transparent mask, neither colour dark) of ``log(photo / point)``, with the
+    number of such points and the gain's standard error; NaN for a view with too few such points
+    (:func:`rtsplat.model.appearance.observed_log_gain`). At most :data:`MAX_POINTS` points are read (every
+    k-th of a larger cloud)."""
     out = torch.full((len(cameras), 3), float("nan"))
+    points = torch.zeros(len(cameras), dtype=torch.long)
+    errors = torch.full((len(cameras),), float("nan"))
     stride = max(1, -(-xyz.shape[0] // MAX_POINTS))
     xyz, rgb = xyz[::stride], rgb[::stride]
     for index, (camera, image, mask) in enumerate(zip(cameras, images, masks, strict=True)):
-        points = xyz.to(camera.K)
-        uv, z = camera.project(points)
+        projected = xyz.to(camera.K)
+        uv, z = camera.project(projected)
         height, width = image.shape[:2]
         u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         inside = (z > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height) & torch.isfinite(uv).all(-1)
@@ -88,19 +113,31 @@ def view_log_gains(
         if mask is not None:
             clear = mask[v, u, 0] < 0.5
             u, v, colour = u[clear], v[clear], colour[clear]
-        gain = observed_log_gain(image[v, u], colour)
-        if gain is not None:
-            out[index] = gain.float().cpu()
-    return out
+        estimate = observed_log_gain(image[v, u], colour)
+        points[index] = estimate.points
+        if estimate.log_gain is not None:
+            out[index] = estimate.log_gain.float().cpu()
+            errors[index] = estimate.error
+    return ViewGains(out, points, errors)
 
 
-def scene_log_gains(exposure: dict[str, list[float] | None], names: list[str]) -> Tensor | None:
-    """[V, 3] the prepared scene's measured log gains of the views ``names`` (NaN where it has none), or None
-    when it measured none of them (a scene prepared without the measurement)."""
+def scene_log_gains(exposure: dict[str, list[float] | None], names: list[str],
+                    points: dict[str, int] | None = None, errors: dict[str, float | None] | None = None,
+                    ) -> ViewGains | None:
+    """The prepared scene's measured log gains of the views ``names`` (NaN where it has none), with their
+    observation counts and standard errors where the scene recorded them (``exposure_points``,
+    ``exposure_error``), or None when it measured none of the views (a scene prepared without the
+    measurement)."""
     if not any(name in exposure for name in names):
         return None
     nan = [float("nan")] * 3
-    return torch.tensor([exposure.get(name) or nan for name in names], dtype=torch.float32)
+    gains = torch.tensor([exposure.get(name) or nan for name in names], dtype=torch.float32)
+    recorded = bool(points) and bool(errors) and all(name in points for name in names)
+    if not recorded:
+        return ViewGains(gains)
+    error = [errors.get(name) for name in names]
+    return ViewGains(gains, torch.tensor([int(points[name]) for name in names], dtype=torch.long),
+                     torch.tensor([float("nan") if e is None else float(e) for e in error], dtype=torch.float32))
 
 
 def appearance_spread(log_gains: Tensor) -> float | None:
@@ -115,17 +152,84 @@ def appearance_spread(log_gains: Tensor) -> float | None:
     return float(((quartiles[1] - quartiles[0]) / 2).max())
 
 
-def decide_appearance(mode: str, spread: float | None, source: str = "SfM observations",
-                      threshold: float = APPEARANCE_SPREAD) -> tuple[bool, str]:
-    """Whether the per-view corrections are learnt: ``on``/``off`` as configured; ``auto`` iff the
-    photos' gains spread by at least ``threshold`` (:data:`APPEARANCE_SPREAD` for gains from SfM's
-    observations, :data:`PROJECTED_SPREAD` for projected points). ``source`` names how they were read."""
-    measured = ("not measurable (too few views see the SfM points)" if spread is None
-                else f"{spread:.3f} (from {source})")
+@dataclass(frozen=True)
+class ExposureSpread:
+    """What :func:`exposure_spread` measured: the views' ``spread`` (:func:`appearance_spread`, None with fewer
+    than 3 views that have a gain), how many ``views`` have a gain, the median number of ``observations`` per
+    view (all views, those without a gain too) and the ``noise``: the spread the gains' standard errors alone
+    would give (half the interquartile range of normal errors of the views' median standard error);
+    ``observations`` and ``noise`` are None where the scene did not record the counts and errors."""
+
+    spread: float | None
+    views: int
+    observations: int | None = None
+    noise: float | None = None
+
+    @property
+    def beyond_noise(self) -> float | None:
+        """The spread that the noise does not explain: ``sqrt(spread^2 - noise^2)`` (independent spreads add
+        in squares), 0 when the noise explains it all; the spread itself where the noise is unknown."""
+        if self.spread is None or self.noise is None:
+            return self.spread
+        return math.sqrt(max(self.spread ** 2 - self.noise ** 2, 0.0))
+
+
+def exposure_spread(gains: ViewGains) -> ExposureSpread:
+    """The spread of the views' gains with how reliable it is (:class:`ExposureSpread`)."""
+    valid = torch.isfinite(gains.log_gains).all(-1)
+    views = int(valid.sum())
+    observations = noise = None
+    if gains.points is not None and len(gains.points):
+        observations = round(float(torch.quantile(gains.points.double(), 0.5)))
+    if gains.errors is not None and views:
+        errors = gains.errors[valid]
+        if torch.isfinite(errors).all():
+            noise = NORMAL_HALF_IQR * float(errors.double().median())
+    return ExposureSpread(appearance_spread(gains.log_gains), views, observations, noise)
+
+
+@dataclass(frozen=True)
+class AppearanceDecision:
+    """Whether the per-view corrections are learnt, why, and how confident the data make that decision:
+    ``high`` (the spread beyond the noise lies at least one noise away from the threshold), ``low`` (closer,
+    or too few reliable observations to measure it), ``unknown`` (the noise was not recorded)."""
+
+    on: bool
+    reason: str
+    confidence: str
+
+
+def decide_appearance(mode: str, measured: ExposureSpread, source: str = "SfM observations",
+                      threshold: float = APPEARANCE_SPREAD) -> AppearanceDecision:
+    """``on``/``off`` as configured; ``auto``: on iff the photos' gains spread by at least ``threshold``
+    (:data:`APPEARANCE_SPREAD` for gains from SfM's observations, :data:`PROJECTED_SPREAD` for projected
+    points) beyond what their measurement noise explains (:attr:`ExposureSpread.beyond_noise`); off with "too
+    few reliable observations" where fewer than 3 views have a gain or the noise alone reaches the threshold
+    (a photo mostly of glass has few keypoints outside it). ``source`` names how the gains were read."""
+    spread, noise = measured.spread, measured.noise
+    per_view = "" if measured.observations is None else f"{measured.observations} per view"
+    counted = f" ({per_view})" if per_view else ""
+    unreliable = spread is None or (noise is not None and noise >= threshold)
+    if unreliable:
+        what = (f"too few reliable observations{counted} to measure the exposure spread: "
+                + (f"{measured.views} view(s) have a gain, 3 are needed" if spread is None else
+                   f"the views' gains are uncertain enough to spread by {noise:.3f} by themselves (>= "
+                   f"{threshold}), measured {spread:.3f} (from {source})"))
+        confidence = "low"
+    else:
+        beyond = measured.beyond_noise
+        if noise is None:
+            what = (f"the photos' exposure spread is {spread:.3f} (from {source}; its noise was not recorded: "
+                    "rerun rtsplat prepare to measure it)")
+            confidence = "unknown"
+        else:
+            what = (f"the photos' exposure spread is {spread:.3f} (from {source}, {per_view}), {beyond:.3f} beyond "
+                    f"the {noise:.3f} its measurement noise explains")
+            confidence = "high" if abs(beyond - threshold) >= noise else "low"
     if mode != "auto":
-        return mode == "on", f"config: {mode}; the photos' exposure spread is {measured}"
-    if spread is None:
-        return False, f"auto: the photos' exposure spread is {measured}"
-    if spread >= threshold:
-        return True, f"auto: the photos' exposure spread is {measured} (>= {threshold})"
-    return False, f"auto: the photos' exposure spread is {measured} (< {threshold}: one exposure)"
+        return AppearanceDecision(mode == "on", f"config: {mode}; {what}", confidence)
+    if unreliable:
+        return AppearanceDecision(False, f"auto: {what}", confidence)
+    if measured.beyond_noise >= threshold:
+        return AppearanceDecision(True, f"auto: {what} (>= {threshold})", confidence)
+    return AppearanceDecision(False, f"auto: {what} (< {threshold}: one exposure)", confidence)

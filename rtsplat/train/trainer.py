@@ -58,8 +58,8 @@ from rtsplat.train.appearance import (
     APPEARANCE_SPREAD,
     PROJECTED_SPREAD,
     AppearanceCorrections,
-    appearance_spread,
     decide_appearance,
+    exposure_spread,
     scene_log_gains,
     view_log_gains,
 )
@@ -159,17 +159,19 @@ class Trainer:
         train_pixels = sum(int(image.shape[0]) * int(image.shape[1]) for image in self.train_views.images)
         self.starting = plan_starting_surfels(self.points[0].shape[0], cfg.densify.initial_copies,
                                               starting_cap(cfg.densify, train_pixels))
-        gains, source, threshold = (scene_log_gains(scene.exposure or {}, self.train_views.names),
+        gains, source, threshold = (scene_log_gains(scene.exposure or {}, self.train_views.names,
+                                                    scene.exposure_points, scene.exposure_error),
                                     "SfM observations", APPEARANCE_SPREAD)
         if gains is None:  # a scene prepared without the measurement
             gains = view_log_gains(self.train_views.cameras, self.train_views.images, self.train_views.masks,
                                    self.points[0].to(self.device), self.points[1].to(self.device))
             source, threshold = "the points projected", PROJECTED_SPREAD
-        self.appearance_spread = appearance_spread(gains)
-        use_appearance, self.effect_reasons["appearance"] = decide_appearance(
-            cfg.effects.appearance, self.appearance_spread, source, threshold)
+        self.exposure = exposure_spread(gains)
+        self.appearance_spread = self.exposure.spread
+        self.appearance_decision = decide_appearance(cfg.effects.appearance, self.exposure, source, threshold)
+        self.effect_reasons["appearance"] = self.appearance_decision.reason
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
-                           if use_appearance else None)
+                           if self.appearance_decision.on else None)
         self.test_appearance = torch.zeros(len(self.test_views), 6, device=self.device)
         self.model = self._new_model(self._init_surfels())
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
@@ -514,9 +516,13 @@ class Trainer:
                 rows[index] = torch.as_tensor(saved[name], device=self.device)
 
     def appearance_summary(self) -> dict:
-        """Whether appearance is learnt, why, and the mean absolute log gain and offset of the views."""
+        """Whether appearance is learnt, why, how confident that decision is, what it rested on (the spread, the
+        views with a gain, the median observations per view, the spread the gains' noise alone gives), and the
+        mean absolute log gain and offset of the views."""
         out = {"on": self.appearance is not None, "spread": self.appearance_spread,
-               "reason": self.effect_reasons["appearance"]}
+               "reason": self.effect_reasons["appearance"], "confidence": self.appearance_decision.confidence,
+               "views_measured": self.exposure.views, "observations_per_view": self.exposure.observations,
+               "noise": self.exposure.noise}
         if self.appearance is not None:
             for split, values in (("train", self.appearance.detached()), ("test", self.test_appearance)):
                 if len(values):

@@ -1,0 +1,223 @@
+"""Tests of the scene family (rtsplat.synth.family): names, parameters, geometry and tiny renders of every kind."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+cv2 = pytest.importorskip("cv2")
+
+from rtsplat.cli import main as cli_main  # noqa: E402
+from rtsplat.errors import ConfigError  # noqa: E402
+from rtsplat.synth.dataset import SynthConfig  # noqa: E402
+from rtsplat.synth.family import (  # noqa: E402
+    CAPTURES,
+    GLASS,
+    KINDS,
+    Member,
+    build_member,
+    draw_params,
+    members,
+    parse_name,
+)
+from rtsplat.synth.render import load_scene, set_variant  # noqa: E402
+
+TINY = ["--views", "6", "--width", "64", "--height", "48", "--spp", "4", "--layer-spp", "4", "--any-views"]
+# the share of each view that the glass covers, per kind (median over the views of a tiny render)
+COVERAGE = {"shop_window": (0.6, 0.95), "curved": (0.1, 0.8), "case": (0.1, 0.8), "car": (0.1, 0.8),
+            "grazing": (0.2, 0.9)}
+
+
+# one member of each kind, orbits and walks, both halves, every glass, both curved sections
+TINY_SEEDS = {"shop_window": 1, "curved": 2, "case": 3, "car": 0, "grazing": 3}
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> dict[str, Path]:
+    """A member of every kind (TINY_SEEDS) rendered tiny through the CLI."""
+    root = tmp_path_factory.mktemp("family")
+    outs = {}
+    for kind, seed in TINY_SEEDS.items():
+        out = root / kind
+        assert cli_main(["synth", "--scene", f"family/{kind}-{seed}", "--out", str(out), "--no-progress", *TINY]) == 0
+        outs[kind] = out
+    return outs
+
+
+def _masks(out: Path) -> list[np.ndarray]:
+    return [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 127 for p in sorted((out / "transparent_masks").glob("*.png"))]
+
+
+def test_names_seeds_and_halves():
+    m = parse_name("family/shop_window-3")
+    assert (m.kind, m.seed, m.half, m.name, m.dataset_name) == (
+        "shop_window", 3, "held_out", "family/shop_window-3", "shop_window-3")
+    assert parse_name("family/car-10").half == "tuning"
+    for bad in ("family/boat-1", "family/car", "family/car-x", "family/car--1", "family/"):
+        with pytest.raises(ValueError) as info:
+            parse_name(bad)
+        assert all(kind in str(info.value) for kind in KINDS), info.value
+    with pytest.raises(ConfigError, match="shop_window"):
+        SynthConfig(scene="family/boat-1").validate()
+    with pytest.raises(ConfigError, match="family/<kind>-<seed>"):
+        SynthConfig(scene="domes").validate()
+    SynthConfig(scene="family/grazing-7").validate()
+
+
+def test_cli_rejects_a_bad_family_name(tmp_path, capsys):
+    rc = cli_main(["synth", "--scene", "family/boat-1", "--out", str(tmp_path / "x"), "--no-progress", *TINY])
+    assert rc != 0
+    err = capsys.readouterr().err
+    assert "boat" in err and all(kind in err for kind in KINDS), err
+    assert not (tmp_path / "x").exists()
+
+
+def test_parameters_come_from_the_seed():
+    for kind in KINDS:
+        params = [draw_params(Member(kind, s)) for s in range(6)]
+        assert params == [draw_params(Member(kind, s)) for s in range(6)]  # same seed, same parameters
+        texts = [json.dumps(p, sort_keys=True) for p in params]
+        assert len(set(texts)) == len(texts), kind  # different seeds, different parameters
+    family = members(seeds=range(4))
+    assert len(family) == 4 * len(KINDS) >= 16
+    for kind in KINDS:
+        for half in ("tuning", "held_out"):
+            mine = [m for m in family if m.kind == kind and m.half == half]
+            assert {m.capture for m in mine} == set(CAPTURES), (kind, half)
+    assert {m.glass for m in family} == set(GLASS)
+    tints = {m.glass: draw_params(m)["tint"] for m in family if m.kind == "case"}
+    assert tints["clear"] == (1.0, 1.0, 1.0)
+    assert max(tints["dim"]) <= 0.45 and len(set(tints["tinted"])) > 1  # grey and dim; coloured
+
+
+def _obj(path: Path, tag: str) -> np.ndarray:
+    return np.array([[float(x) for x in line.split()[1:4]] for line in path.read_text().splitlines()
+                     if line.startswith(tag + " ")])
+
+
+@pytest.mark.parametrize("seed", [0, 1])  # 0: a cylindrical section, 1: a spherical cap
+def test_curved_glass_is_curved(tmp_path, seed):
+    set_variant()
+    spec = build_member(f"family/curved-{seed}", tmp_path)
+    section = spec.family["params"]["section"]
+    assert section == ("cylinder", "sphere")[seed]
+    glass = spec.elements["glass"]
+    assert glass["face_normals"] is False  # shaded with the exact surface's normals
+    points, normals = _obj(Path(glass["filename"]), "v"), _obj(Path(glass["filename"]), "vn")
+    centred = points - points.mean(0)
+    flatness = np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(len(points))  # rms off the best plane
+    assert flatness > 0.01, f"{section}: the glass is nearly flat ({flatness:.4f} m off its plane)"
+    radius = spec.family["params"]["radius"]
+    # every vertex lies at the glass's radius from one centre, and its normal points away from it
+    centre = points - radius * normals
+    assert np.allclose(centre, centre.mean(0), atol=1e-4) if section == "sphere" else \
+        np.allclose(centre[:, 1:], centre[:, 1:].mean(0), atol=1e-4)
+    spread = np.degrees(np.arccos(np.clip(normals @ normals.mean(0) / np.linalg.norm(normals.mean(0)), -1, 1)))
+    assert spread.max() > 10.0
+
+
+@pytest.mark.parametrize("name", ["family/curved-0", "family/curved-1", "family/car-2"])
+def test_interior_is_seen_only_through_the_glass(tmp_path, name):
+    """No pixel ray of the capture reaches an interior object without crossing the glass first, and some
+    reach one through it."""
+    from rtsplat.synth.cameras import pixel_rays
+    from rtsplat.synth.render import is_see_through, see_through_flags
+
+    set_variant()
+    spec = build_member(name, tmp_path)
+    cams = spec.orbit.cameras(8, 40, 30)
+    scene = load_scene(spec.elements, cams, spp=1)
+    glass = see_through_flags()
+    through = 0
+    jj, ii = np.mgrid[0:30, 0:40]
+    for cam in cams:
+        o, d = pixel_rays(cam, ii.ravel() + 0.5, jj.ravel() + 0.5)
+        for dk in d.tolist():
+            ray = mi.Ray3f(mi.Point3f(*o.tolist()), mi.Vector3f(*dk))
+            si = scene.ray_intersect(ray)
+            if not si.is_valid():
+                continue
+            assert not si.shape.id().startswith("object_"), f"{name}: an interior object is visible without glass"
+            if is_see_through(si, glass):
+                behind = scene.ray_intersect(si.spawn_ray(ray.d))
+                through += behind.is_valid() and behind.shape.id().startswith("object_")
+    assert through > 20, name
+
+
+def test_tiny_renders_have_masks_layers_and_family_records(tiny):
+    captures = set()
+    for kind, out in tiny.items():
+        seed = TINY_SEEDS[kind]
+        description = json.loads((out / "scene.json").read_text())
+        assert description["scene"] == f"family/{kind}-{seed}"
+        family = description["family"]
+        assert (family["kind"], family["seed"], family["half"]) == (kind, seed, ("tuning", "held_out")[seed % 2])
+        assert family["params"] == json.loads(json.dumps(draw_params(Member(kind, seed))))
+        captures.add(description["camera_path"]["type"])
+        assert description["camera_path"]["type"] == family["params"]["capture"]
+        masks = _masks(out)
+        assert len(masks) == 6 and all(m.any() for m in masks), kind
+        coverage = [float(m.mean()) for m in masks]
+        lo, hi = COVERAGE[kind]
+        print(kind, "glass coverage per view:", " ".join(f"{c:.2f}" for c in coverage))
+        assert lo <= float(np.median(coverage)) <= hi, (kind, coverage)
+        for stem in ("0000", "0003"):
+            with np.load(out / "layers" / "linear" / f"{stem}.npz") as layers:
+                full, refl, trans = (layers[k].astype(np.float64) for k in ("full", "reflection", "transmission"))
+            assert all(np.isfinite(x).all() for x in (full, refl, trans)), kind
+            mask = masks[int(stem)]
+            assert refl[mask].mean() > 1e-3 and trans[mask].mean() > 1e-3, kind  # the glass reflects and shows through
+            assert refl[~_grow(mask)].max() == 0.0, kind  # no reflection off the glass
+        check = description["layer_check"]
+        assert abs(check["relative_residual"]) < 0.05, (kind, check)  # R + T adds up to the full render
+        assert description["reflection_reach"]["glass_pixels"] > 0
+    assert captures == {"orbit", "walk"}
+
+
+def _grow(mask: np.ndarray) -> np.ndarray:
+    return cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+
+
+def test_walk_path_views_look_from_the_segment_at_the_looked_at_points():
+    from rtsplat.synth.cameras import WalkPath, camera_to_world_np
+
+    path = WalkPath(start=(-1.0, -3.0, 1.2), end=(1.0, -3.0, 1.2), look_start=(-0.5, 0.0, 1.0),
+                    look_end=(0.5, 0.0, 1.0), height_amplitude=0.1)
+    eyes, targets = path.eyes(5), path.targets(5)
+    assert np.allclose(eyes[[0, -1], :2], [[-1.0, -3.0], [1.0, -3.0]]) and np.ptp(eyes[:, 2]) > 0.05
+    for cam, eye, target in zip(path.cameras(5, 40, 30), eyes, targets, strict=True):
+        c2w = camera_to_world_np(cam)
+        axis = (target - eye) / np.linalg.norm(target - eye)
+        assert np.allclose(c2w[:3, 3], eye) and np.allclose(c2w[:3, 2], axis, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_grazing_views_meet_the_pane_at_grazing_angles(tmp_path, seed):
+    """Every camera's optical axis meets the pane's plane (y = 0) at 10-36 degrees (0 would be in the plane)."""
+    from rtsplat.synth.cameras import camera_to_world_np
+
+    set_variant()
+    spec = build_member(f"family/grazing-{seed}", tmp_path)
+    for cam in spec.orbit.cameras(12, 40, 30):
+        axis = camera_to_world_np(cam)[:3, 2]
+        angle = np.degrees(np.arcsin(abs(axis[1])))
+        assert 10.0 <= angle <= 36.0, (seed, angle)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_shop_window_pane_fills_most_of_each_view(tmp_path, seed):
+    """Ray-cast masks of 6 views at 40 x 30: the pane covers 60-95% of each."""
+    from rtsplat.synth.render import first_hit_mask
+
+    set_variant()
+    spec = build_member(f"family/shop_window-{seed}", tmp_path)
+    cams = spec.orbit.cameras(6, 40, 30)
+    scene = load_scene(spec.elements, cams, spp=1)
+    coverage = [float(first_hit_mask(scene, cam).mean()) for cam in cams]
+    print(f"shop_window-{seed} ({spec.family['params']['capture']}) pane coverage:",
+          " ".join(f"{c:.2f}" for c in coverage))
+    assert all(0.6 <= c <= 0.95 for c in coverage), coverage
