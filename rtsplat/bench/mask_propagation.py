@@ -61,6 +61,11 @@ def _label(panel: np.ndarray, text: str) -> None:
         cv2.putText(panel, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, width, cv2.LINE_AA)
 
 
+def _suggested(model, count: int, masks: dict[str, np.ndarray]) -> list[str]:
+    """The first ``count`` views with a true mask in the stage's suggestion order (every view suggested)."""
+    return [n for n in suggest_views(model, len(model.views)) if n in masks][:count]
+
+
 def drawn_marks(marked: list[str], masks: dict[str, np.ndarray], by_name: dict[str, Path], mark: str,
                 settings: MaskPropagationConfig) -> tuple[dict[str, list[np.ndarray]], dict[str, np.ndarray]]:
     """The outlines (each [N, 2], pixels) and the marked mask of each marked view, marked with its true mask
@@ -99,7 +104,7 @@ def draw_figure(model, by_name: dict[str, Path], masks: dict[str, np.ndarray], n
     """The ``--figure`` PNG (see the module's description)."""
     import cv2
 
-    marked = suggest_views(model, count)
+    marked = _suggested(model, count, masks)
     outlines, drawn = drawn_marks(marked, masks, by_name, mark, settings)
     first = model.view(marked[0])
     others = sorted((n for n in names if n not in marked),
@@ -150,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     for refine in args.refine.split(","):
         for count in (int(c) for c in args.marked.split(",")):
-            marked = suggest_views(model, count)
+            marked = _suggested(model, count, masks)
             settings = MaskPropagationConfig(grid=args.grid, refine=refine, occlusion=not args.no_occlusion)
             start = time.perf_counter()
             scores, refined = {}, collections.Counter()
