@@ -46,9 +46,9 @@ COARSE_GRID = 48  # voxels along the longest side of the first pass
 MIN_BOX_KEPT = 0.2  # a box mark's GrabCut cut keeping less of the box is taken for a failure (the box is kept)
 # an SfM point occludes only on a surface: this many points within this many mean point spacings in the image, and
 # within this fraction of its depth (surface_points)
-SURFACE_NEIGHBOURS = 3
+SURFACE_NEIGHBOURS = 4
 SURFACE_RADIUS = 2.0
-SURFACE_DEPTH = 0.05
+SURFACE_DEPTH = 0.02
 
 
 @dataclass
