@@ -5,7 +5,12 @@ marked view that has it in frame sees it inside its mask (dilated by half a voxe
 two marked views have it in frame, and every marked view whose mask does not touch the image border (the
 whole object is in frame) has it in frame. The grid covers the box that holds most SfM points; a coarse
 pass finds the hull, a finer grid over the hull's box refines it (:func:`visual_hull`). Connected parts
-much smaller than the largest are dropped.
+much smaller than the largest are dropped. With ``occlusion`` on, opaque things in front of the object hide
+it: a marked view does not carve a voxel they hide, and a propagated silhouette leaves out the pixels they
+cover. What is opaque is read from the SfM points, and only from points on a surface (:func:`surface_points`:
+neighbours in the image at about the same depth), each covering a disc of the points' mean spacing
+(:func:`opaque_depth`): points triangulated from what is seen through glass scatter in depth and would punch
+scattered holes into the masks.
 
 Every other registered view gets the hull's silhouette: the hull's boundary voxels projected with the
 view's camera (COLMAP models with distortion through pycolmap), each splatted as a disc of half its
