@@ -7,8 +7,9 @@
 neither marked nor scored) and a COLMAP model (``sparse/0``, e.g. the ground-truth cameras of ``rtsplat synth``,
 or ``--model``). For each count in ``--marked`` the views to mark are chosen like the stage suggests them
 (farthest-point sampling over the camera centres, :func:`rtsplat.masks.propagation.suggest_views`); the other
-views' propagated masks are compared with their true masks: mean and worst-view IoU (a view whose two masks are both empty counts 1),
-how many views were refined and by what, and the seconds taken (wall clock, noisy on a shared machine).
+views' propagated masks are compared with their true masks: mean and worst-view IoU (a view whose two masks
+are both empty counts 1), how many views were refined and by what, and the seconds taken (wall clock, noisy on
+a shared machine).
 
     python -m rtsplat.bench.mask_propagation --data DATASET_SCENE --marked 5 --mark polygon --figure PNG
 
