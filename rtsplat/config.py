@@ -200,8 +200,9 @@ class MaskPropagationConfig:
         "of its size (at least one pixel)", exclusiveMinimum=0.0, maximum=0.5,
     )
     occlusion: bool = _f(
-        True, help="SfM points in front of the marked object hide it: they keep a marked view from carving what "
-        "they hide, and leave it out of the propagated masks"
+        True, help="SfM points on a surface (with neighbours in the image at about their depth) in front of the "
+        "marked object hide it: they keep a marked view from carving what they hide, and leave it out of the "
+        "propagated masks; points scattered in depth (triangulated through glass) hide nothing"
     )
     work_size: int = _f(1024, help="longest image side the projection and its refinement work at", minimum=64)
     min_part: float = _f(

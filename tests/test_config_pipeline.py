@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -55,6 +57,25 @@ def test_the_real_capture_benchmark_builds_every_method_on_both_captures():
             "iterations"]
         assert TrainConfig.from_dict(trees[(scene, "rtsplat_no_appearance")]).effects.appearance == "off"
         assert TrainConfig.from_dict(trees[(scene, "rtsplat")]).effects.appearance == "auto"
+
+
+def test_the_real_glass_is_marked_with_the_outlines_of_the_test_capture():
+    """benchmarks/real.yaml marks 3-5 photos of the glass (its masks propagated, RT-Splatting's glass trained on
+    real photos) with polygons in pixels of the 1008x756 photos named as README's fetch leaves them
+    (frame_000NN.jpeg): the outlines drawn on tests/data/glass's 336x252 copies of the same photos, times 3."""
+    from rtsplat.config import scene_config
+    from rtsplat.masks.propagation import polygon_mask
+
+    cfg = load_config(ROOT / "benchmarks" / "real.yaml")
+    marks = scene_config(cfg, "glass").masks.marks
+    outlines = json.loads((ROOT / "tests" / "data" / "glass" / "outlines.json").read_text())
+    assert 3 <= len(marks) <= 5 and not scene_config(cfg, "fox").masks.marks
+    for name, mark in marks.items():
+        assert re.fullmatch(r"frame_000\d\d\.jpeg", name) and mark["polygon"]
+        drawn = polygon_mask(np.asarray(mark["polygon"]) / 3.0, 336, 252)
+        outline = polygon_mask(np.asarray(outlines[name.replace(".jpeg", ".jpg")], float), 336, 252)
+        assert (drawn & outline).sum() >= 0.97 * (drawn | outline).sum(), name
+        assert (np.asarray(mark["polygon"]).max(0) <= [1008, 756]).all()
 
 
 @pytest.mark.parametrize("layer", ["targets.yaml", "targets_quick.yaml"])

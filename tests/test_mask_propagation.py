@@ -18,7 +18,9 @@ from rtsplat.io.images import read_mask, write_mask, write_png
 from rtsplat.masks import make_masks
 from rtsplat.masks.propagation import (
     check_marked,
+    opaque_depth,
     project_hull,
+    project_points,
     propagate_masks,
     snap_to_edges,
     suggest_views,
@@ -133,6 +135,38 @@ def test_sfm_points_in_front_of_the_object_hide_it(scene):
     upper, lower = rows < view.height / 2 - 3, rows > view.height / 2 + 3
     assert free[upper].sum() > 50 and not hidden[upper].any()
     assert free[lower].sum() > 50 and (hidden == free)[lower].all()
+
+
+def test_scattered_points_in_front_of_the_object_hide_nothing_while_a_surface_still_does(scene):
+    # what SfM triangulates through glass: points scattered in depth between the camera and the object over the
+    # lower half of the picture, beside the wall of points over the upper half; and the marked views' hull
+    # carved with both as occluders
+    model, rendered = scene
+    marked = [(model.view(n), rendered[n][1]) for n in suggest_views(model, 5)]
+    hull = visual_hull(model, marked, FAST)
+    view = model.views[1]
+    R, centre = view.world_to_camera[:3, :3], view.center
+    x, y = np.meshgrid(np.linspace(-1.0, 1.0, 60), np.linspace(-1.0, 0.0, 30))
+    wall = np.stack([x.ravel(), y.ravel(), np.full(x.size, 1.5)], 1)
+    free = project_hull(hull, view)
+    rows = np.arange(view.height)
+    upper, lower = rows < view.height / 2 - 3, rows > view.height / 2 + 3
+    # one point over every sixth pixel of the object's lower half, at a random depth in front of it
+    rng = np.random.default_rng(0)
+    ys, xs = np.nonzero(free & lower[:, None])
+    pick = rng.choice(len(ys), len(ys) // 6, replace=False)
+    depth = rng.uniform(0.8, 2.6, len(pick))
+    rays = np.stack([xs[pick] + 0.5, ys[pick] + 0.5, np.ones(len(pick))], 1) @ np.linalg.inv(view.K).T
+    scattered = rays * depth[:, None]
+    occluders = np.concatenate([wall, scattered]) @ R + centre  # camera -> world
+    uv, z, _ = project_points(view, scattered @ R + centre)
+    assert len(pick) >= 20 and np.allclose(uv, np.stack([xs[pick], ys[pick]], 1) + 0.5)  # over the object
+    hidden = project_hull(hull, view, occluders=occluders)
+    assert free[upper].sum() > 50 and not hidden[upper].any()
+    assert free[lower].sum() > 50 and (hidden & free)[lower].sum() >= 0.97 * free[lower].sum()
+    # the occluders' depth map, which also keeps marked views from carving what it hides: the wall's, not the points'
+    depth = opaque_depth(view, occluders)
+    assert np.isfinite(depth[upper]).mean() > 0.8 and not np.isfinite(depth[ys[pick], xs[pick]]).any()
 
 
 def test_suggested_views_are_spread_around_the_capture(scene):

@@ -3,12 +3,13 @@
     python -m rtsplat.bench.mask_propagation --data DATASET_SCENE --marked 3,5,8 [--refine grabcut,none]
         [--mark file|polygon|box]
 
-``DATASET_SCENE`` has ``images/``, a mask for every photo in ``transparent_masks/`` and a COLMAP model
-(``sparse/0``, e.g. the ground-truth cameras of ``rtsplat synth``, or ``--model``). For each count in
-``--marked`` the views to mark are chosen like the stage suggests them (farthest-point sampling over the
-camera centres, :func:`rtsplat.masks.propagation.suggest_views`); the other views' propagated masks are
-compared with their true masks: mean and worst-view IoU (a view whose two masks are both empty counts 1),
-how many views were refined and by what, and the seconds taken (wall clock, noisy on a shared machine).
+``DATASET_SCENE`` has ``images/``, true masks in ``transparent_masks/`` (registered views without one are
+neither marked nor scored) and a COLMAP model (``sparse/0``, e.g. the ground-truth cameras of ``rtsplat synth``,
+or ``--model``). For each count in ``--marked`` the views to mark are chosen like the stage suggests them
+(farthest-point sampling over the camera centres, :func:`rtsplat.masks.propagation.suggest_views`); the other
+views' propagated masks are compared with their true masks: mean and worst-view IoU (a view whose two masks
+are both empty counts 1), how many views were refined and by what, and the seconds taken (wall clock, noisy on
+a shared machine).
 
     python -m rtsplat.bench.mask_propagation --data DATASET_SCENE --marked 5 --mark polygon --figure PNG
 
@@ -62,6 +63,11 @@ def label_panel(panel: np.ndarray, text: str) -> None:
         cv2.putText(panel, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, width, cv2.LINE_AA)
 
 
+def _suggested(model, count: int, masks: dict[str, np.ndarray]) -> list[str]:
+    """The first ``count`` views with a true mask in the stage's suggestion order (every view suggested)."""
+    return [n for n in suggest_views(model, len(model.views)) if n in masks][:count]
+
+
 def drawn_marks(marked: list[str], masks: dict[str, np.ndarray], by_name: dict[str, Path], mark: str,
                 settings: MaskPropagationConfig) -> tuple[dict[str, list[np.ndarray]], dict[str, np.ndarray]]:
     """The outlines (each [N, 2], pixels) and the marked mask of each marked view, marked with its true mask
@@ -100,7 +106,7 @@ def draw_figure(model, by_name: dict[str, Path], masks: dict[str, np.ndarray], n
     """The ``--figure`` PNG (see the module's description)."""
     import cv2
 
-    marked = suggest_views(model, count)
+    marked = _suggested(model, count, masks)
     outlines, drawn = drawn_marks(marked, masks, by_name, mark, settings)
     first = model.view(marked[0])
     others = sorted((n for n in names if n not in marked),
@@ -151,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     for refine in args.refine.split(","):
         for count in (int(c) for c in args.marked.split(",")):
-            marked = suggest_views(model, count)
+            marked = _suggested(model, count, masks)
             settings = MaskPropagationConfig(grid=args.grid, refine=refine, occlusion=not args.no_occlusion)
             start = time.perf_counter()
             scores, refined = {}, collections.Counter()

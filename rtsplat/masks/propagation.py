@@ -5,7 +5,12 @@ marked view that has it in frame sees it inside its mask (dilated by half a voxe
 two marked views have it in frame, and every marked view whose mask does not touch the image border (the
 whole object is in frame) has it in frame. The grid covers the box that holds most SfM points; a coarse
 pass finds the hull, a finer grid over the hull's box refines it (:func:`visual_hull`). Connected parts
-much smaller than the largest are dropped.
+much smaller than the largest are dropped. With ``occlusion`` on, opaque things in front of the object hide
+it: a marked view does not carve a voxel they hide, and a propagated silhouette leaves out the pixels they
+cover. What is opaque is read from the SfM points, and only from points on a surface (:func:`surface_points`:
+neighbours in the image at about the same depth), each covering a disc of the points' mean spacing
+(:func:`opaque_depth`): points triangulated from what is seen through glass scatter in depth and would punch
+scattered holes into the masks.
 
 Every other registered view gets the hull's silhouette: the hull's boundary voxels projected with the
 view's camera (COLMAP models with distortion through pycolmap), each splatted as a disc of half its
@@ -44,6 +49,11 @@ from rtsplat.io.colmap import ColmapModel, ColmapView
 MIN_MARKED = 3  # fewer marked views do not bound the object in depth
 COARSE_GRID = 48  # voxels along the longest side of the first pass
 MIN_BOX_KEPT = 0.2  # a box mark's GrabCut cut keeping less of the box is taken for a failure (the box is kept)
+# an SfM point occludes only on a surface: this many points within this many mean point spacings in the image, and
+# within this fraction of its depth (surface_points)
+SURFACE_NEIGHBOURS = 4
+SURFACE_RADIUS = 2.0
+SURFACE_DEPTH = 0.02
 
 
 @dataclass
@@ -137,9 +147,9 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def opaque_depth(view: ColmapView, xyz: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """Depth of the nearest SfM point at each pixel of ``view`` (its size times ``scale``; inf where none):
-    each point covers a disc of the mean spacing of the points in frame, so a sparse surface hides
-    what lies behind it."""
+    """Depth of the nearest occluding SfM point at each pixel of ``view`` (its size times ``scale``; inf where
+    none): each point on a surface (:func:`surface_points`) covers a disc of the mean spacing of the points in
+    frame, so a sparse surface hides what lies behind it and a scattered point hides nothing."""
     import cv2
 
     h, w = int(round(view.height * scale)), int(round(view.width * scale))
@@ -147,15 +157,38 @@ def opaque_depth(view: ColmapView, xyz: np.ndarray, scale: float = 1.0) -> np.nd
     if not len(xyz):
         return depth
     uv, z, front = project_points(view, xyz)
-    u = np.floor(uv[:, 0] * scale).astype(np.int64)
-    v = np.floor(uv[:, 1] * scale).astype(np.int64)
-    ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    uv = uv * scale
+    ok = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     if not ok.any():
         return depth
-    np.minimum.at(depth, (v[ok], u[ok]), z[ok].astype(np.float32))
-    radius = int(max(1, round(np.sqrt(h * w / ok.sum()))))
+    spacing = float(np.sqrt(h * w / ok.sum()))
+    on_surface = surface_points(uv[ok], z[ok], spacing)
+    u = np.floor(uv[ok][on_surface, 0]).astype(np.int64)
+    v = np.floor(uv[ok][on_surface, 1]).astype(np.int64)
+    np.minimum.at(depth, (v, u), z[ok][on_surface].astype(np.float32))
+    radius = int(max(1, round(spacing)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
     return cv2.erode(depth, kernel)
+
+
+def surface_points(uv: np.ndarray, z: np.ndarray, spacing: float) -> np.ndarray:
+    """bool [N]: which projected points (pixels ``uv`` [N, 2], depths ``z`` [N]) lie on a surface seen in the view:
+    at least :data:`SURFACE_NEIGHBOURS` other points within :data:`SURFACE_RADIUS` times the mean point
+    ``spacing`` (pixels) lie within :data:`SURFACE_DEPTH` of its depth. An opaque object hides a region, which
+    SfM samples with neighbouring points at neighbouring depths; points triangulated from what is seen through
+    glass lie scattered in depth (refraction moves each one by its own amount) and hide nothing."""
+    from scipy.spatial import cKDTree
+
+    if len(uv) <= SURFACE_NEIGHBOURS:
+        return np.zeros(len(uv), bool)
+    tree = cKDTree(uv)
+    pairs = tree.query_pairs(SURFACE_RADIUS * spacing, output_type="ndarray")
+    if not len(pairs):
+        return np.zeros(len(uv), bool)
+    i, j = pairs[:, 0], pairs[:, 1]
+    near_depth = np.abs(z[i] - z[j]) <= SURFACE_DEPTH * np.minimum(z[i], z[j])
+    counts = np.bincount(i[near_depth], minlength=len(uv)) + np.bincount(j[near_depth], minlength=len(uv))
+    return counts >= SURFACE_NEIGHBOURS
 
 
 def _occluded(depth: np.ndarray, z: np.ndarray, step: float) -> np.ndarray:
