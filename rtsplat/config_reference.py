@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from rtsplat.config import json_schema
+from rtsplat.io.atomic import print_or_write
 
 OUTPUT = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
 COMMAND = "python -m rtsplat.config_reference --out docs/configuration.md"
@@ -125,11 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="write the page here (default: print it)")
     args = parser.parse_args(argv)
     text = markdown()
-    if args.out is None:
-        sys.stdout.write(text)
-    else:
-        args.out.write_text(text)
-        print(f"wrote {args.out}")
+    print_or_write(text, args.out)
     return 0
 
 

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from rtsplat.errors import PipelineError
+from rtsplat.io.atomic import print_or_write
 from rtsplat.report import REPORT_JSON
 
 # the report's headings whose tables the page keeps, in the report's order
@@ -94,11 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     except PipelineError as exc:
         print(f"rtsplat.results_page: error: {exc}", file=sys.stderr)
         return 1
-    if args.out is None:
-        sys.stdout.write(text)
-    else:
-        args.out.write_text(text)
-        print(f"wrote {args.out}")
+    print_or_write(text, args.out)
     return 0
 
 
