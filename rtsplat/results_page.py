@@ -70,7 +70,7 @@ def results_markdown(record: dict, source: str) -> str:
         f"- Scenes: {', '.join(record.get('scenes', [])) or '?'}",
         "",
     ]
-    current_scene = None
+    current_scene, current_headings = None, None
     for table in record.get("tables", []):
         headings = table.get("headings", [])
         if not headings or headings[-1] not in KEPT_HEADINGS:
@@ -79,7 +79,9 @@ def results_markdown(record: dict, source: str) -> str:
         if scene != current_scene and scene is not None:
             lines += [f"## {scene}", ""]
             current_scene = scene
-        lines += [f"{'###' if scene else '##'} {headings[-1]}", ""]
+        if headings != current_headings:  # a section's second table follows its first without a heading
+            lines += [f"{'###' if scene else '##'} {headings[-1]}", ""]
+            current_headings = headings
         lines += _table(table["header"], table["rows"])
     return "\n".join(lines)
 
