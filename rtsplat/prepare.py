@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -85,6 +86,7 @@ class PrepareSummary:
     gt_layer_views: int = 0  # test views with ground-truth layers (synthetic scenes)
     resolution: int | None = None  # the requested longest side (prepare.resolution), when it chose the factor
     downsample_reason: str = ""  # how the factor was chosen, in words
+    roi_warning: str = ""  # why the masks' region of interest was not used (checked_mask_roi), in words
 
 
 def load_stage_summary(directory: str | Path, stage: str) -> dict:
@@ -224,6 +226,52 @@ def roi_from_masks(
     or None when the masks carve nothing."""
     hull = mask_hull(views, bound, agreement, grid)
     return None if hull is None else roi_around(hull)
+
+
+MIN_MASK_RAYS_IN_ROI = 0.5  # median share of see-through pixels whose ray must meet a masks' region of interest
+
+
+def mask_rays_in_roi(roi: Roi, views: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> float:
+    """The median, over the views with a see-through pixel, of the share of those pixels whose ray (through
+    the pixel centre, :func:`rtsplat.camera.pixel_rays`) meets the sphere ``roi`` in front of the camera.
+
+    A region of interest around the glass meets nearly all of them. Glass set in an opaque body (a car's
+    windows) can leave its visual hull without the part inside the body, since each view sees the body
+    where another sees through a window; the largest part left can then lie away from the glass, and a
+    region of interest around it meets none of the masked rays."""
+    import torch
+
+    from rtsplat.camera import PIXEL_CENTER_OFFSET, Camera, pixel_rays
+
+    center = torch.as_tensor(roi.center, dtype=torch.float64)
+    shares = []
+    for K, world_to_camera, mask in views:
+        v, u = np.nonzero(mask)
+        if len(u) == 0:
+            continue
+        camera = Camera(torch.as_tensor(K, dtype=torch.float64), torch.as_tensor(world_to_camera, dtype=torch.float64),
+                        mask.shape[1], mask.shape[0])
+        origin, dirs = pixel_rays(camera, torch.as_tensor(u + PIXEL_CENTER_OFFSET),
+                                  torch.as_tensor(v + PIXEL_CENTER_OFFSET))
+        to_center = center - origin
+        along = dirs @ to_center
+        miss2 = float(to_center @ to_center) - along**2
+        shares.append(float(((miss2 <= roi.radius**2) & (along > 0)).double().mean()))
+    return float(np.median(shares)) if shares else 0.0
+
+
+def checked_mask_roi(mask_roi: Roi | None, fallback: Roi,
+                     views: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[Roi, str]:
+    """The masks' region of interest when its sphere meets the masked rays (:func:`mask_rays_in_roi`), else
+    ``fallback``; with a warning in words when it fell back, else ''."""
+    if mask_roi is None:
+        return fallback, ""
+    share = mask_rays_in_roi(mask_roi, views)
+    if share >= MIN_MASK_RAYS_IN_ROI:
+        return mask_roi, ""
+    return fallback, (f"the masks' visual hull lies away from the glass (its sphere meets {100 * share:.0f}% of the "
+                      f"see-through pixels' rays in the median view, needs {100 * MIN_MASK_RAYS_IN_ROI:.0f}%): the "
+                      f"region of interest is the {fallback.source} one instead; set prepare.roi to place it")
 
 
 def hull_surface(
@@ -555,9 +603,11 @@ def prepare_scene(
 
             shutil.rmtree(tmp / MASKS_DIR)
             has_masks = False
+        roi_warning = ""
         if has_masks and cfg.roi is None and cfg.roi_from_masks:
-            roi = roi_from_masks(mask_views, roi, cfg.roi_mask_agreement) or roi
-        if has_masks and cfg.transparent_surface:
+            roi, roi_warning = checked_mask_roi(roi_from_masks(mask_views, roi, cfg.roi_mask_agreement), roi,
+                                                mask_views)
+        if has_masks and cfg.transparent_surface and not roi_warning:  # a hull away from the glass seeds nothing
             hull = mask_hull(mask_views, roi, cfg.roi_mask_agreement, grid=64)
             if hull is not None:
                 xyz, normal = hull_surface(hull, mask_views)
@@ -594,6 +644,7 @@ def prepare_scene(
         gt_layer_views=gt_layer_views,
         resolution=cfg.resolution,
         downsample_reason=downsample_reason,
+        roi_warning=roi_warning,
     )
 
 
@@ -623,6 +674,8 @@ def run(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, resolution=None)
     s = prepare_scene(args.scene_dir, args.sfm, args.out, cfg, args.masks)
     print(f"prepare {args.out}: {s.downsample_reason}")
+    if s.roi_warning:
+        print(f"WARNING: prepare {args.out}: {s.roi_warning}", file=sys.stderr)
     print(
         f"prepared {args.out}: {s.num_train} train + {s.num_test} test views at {s.width}x{s.height} "
         f"(downsample {s.downsample}{', pre-scaled images' if s.used_prescaled else ''}), "

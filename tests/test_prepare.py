@@ -19,8 +19,8 @@ from rtsplat.config import PrepareConfig, RoiConfig  # noqa: E402
 from rtsplat.errors import PipelineError  # noqa: E402
 from rtsplat.io.images import area_downsample, read_image, read_mask, write_png  # noqa: E402
 from rtsplat.masks import make_masks  # noqa: E402
-from rtsplat.prepare import prepare_scene  # noqa: E402
-from rtsplat.scene import PreparedScene  # noqa: E402
+from rtsplat.prepare import checked_mask_roi, mask_hull, mask_rays_in_roi, prepare_scene  # noqa: E402
+from rtsplat.scene import PreparedScene, Roi  # noqa: E402
 from rtsplat.sfm import run_sfm  # noqa: E402
 
 W, H = 160, 120
@@ -464,3 +464,45 @@ def test_hull_surface_normals_follow_the_true_surface_not_the_grids_staircase(sh
     angle = np.degrees(np.arccos(np.clip((truth[judged] * (normals[judged] @ rotation)).sum(1), -1.0, 1.0)))
     assert judged.sum() > 300
     assert np.median(angle) < 1.5 and np.percentile(angle, 90) < 3.0
+
+
+def _ring_of_views(mask_of):
+    """Eight cameras on a ring around the origin, looking at it, with the mask ``mask_of(camera)`` each."""
+    import torch
+
+    from rtsplat.camera import camera_from_fov
+
+    views = []
+    for k in range(8):
+        a = 2 * np.pi * k / 8
+        cam = camera_from_fov((3 * np.cos(a), 3 * np.sin(a), 1.0), (0, 0, 0), width=40, height=30,
+                              dtype=torch.float64)
+        views.append((cam.K.numpy(), cam.world_to_camera.numpy(), mask_of(cam)))
+    return views
+
+
+def _disc_mask(cam, radius=6):
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    return (u + 0.5 - cam.width / 2) ** 2 + (v + 0.5 - cam.height / 2) ** 2 <= radius**2
+
+
+def test_a_region_of_interest_on_the_glass_meets_its_masked_rays_and_one_beside_it_falls_back():
+    # the masks: a disc at the image centre of every view, i.e. glass around the origin the ring looks at
+    views = _ring_of_views(_disc_mask)
+    on_glass, beside = Roi([0.0, 0.0, 0.0], 0.7, "masks"), Roi([-2.7, 3.5, -0.3], 0.7, "masks")
+    fallback = Roi([0.0, 0.0, 0.5], 4.0, "estimated")
+    assert mask_rays_in_roi(on_glass, views) == 1.0
+    assert mask_rays_in_roi(beside, views) < 0.5
+    assert checked_mask_roi(on_glass, fallback, views) == (on_glass, "")
+    roi, warning = checked_mask_roi(beside, fallback, views)
+    assert roi == fallback and "lies away from the glass" in warning and "prepare.roi" in warning
+
+
+def test_the_masks_hull_of_a_disc_seen_from_a_ring_gives_a_region_of_interest_that_meets_the_masks():
+    views = _ring_of_views(_disc_mask)
+    hull = mask_hull(views, Roi([0.0, 0.0, 0.0], 2.0, "estimated"), grid=32)
+    assert hull is not None and hull.inside.any()
+    from rtsplat.prepare import roi_around
+
+    roi, warning = checked_mask_roi(roi_around(hull), Roi([0.0, 0.0, 0.0], 4.0, "estimated"), views)
+    assert warning == "" and roi.source == "masks" and np.linalg.norm(roi.center) < 0.3
