@@ -121,18 +121,25 @@ def test_the_splatted_voxels_do_not_grow_the_outline(scene):
         scores.append(iou(silhouette, truth))
     assert np.mean(scores) >= 0.9 and min(scores) >= 0.88
 
-def test_sfm_points_in_front_of_the_object_hide_it(scene):
-    # a wall of points halfway between the camera and the object, over the upper half of the picture
+
+def _hull_and_wall(scene):
+    """The marked views' hull, view 1, and a wall of points (camera coordinates) halfway between that camera and
+    the object, over the upper half of its picture; the masks' upper and lower rows (a band left out between)."""
     model, rendered = scene
     marked = [(model.view(n), rendered[n][1]) for n in suggest_views(model, 5)]
     hull = visual_hull(model, marked, FAST)
     view = model.views[1]
-    R, centre = view.world_to_camera[:3, :3], view.center
     x, y = np.meshgrid(np.linspace(-1.0, 1.0, 60), np.linspace(-1.0, 0.0, 30))
-    wall = np.stack([x.ravel(), y.ravel(), np.full(x.size, 1.5)], 1) @ R + centre  # camera -> world
-    free, hidden = project_hull(hull, view), project_hull(hull, view, occluders=wall)
+    wall = np.stack([x.ravel(), y.ravel(), np.full(x.size, 1.5)], 1)
     rows = np.arange(view.height)
-    upper, lower = rows < view.height / 2 - 3, rows > view.height / 2 + 3
+    return hull, view, wall, rows < view.height / 2 - 3, rows > view.height / 2 + 3
+
+
+def test_sfm_points_in_front_of_the_object_hide_it(scene):
+    # a wall of points halfway between the camera and the object, over the upper half of the picture
+    hull, view, wall, upper, lower = _hull_and_wall(scene)
+    R, centre = view.world_to_camera[:3, :3], view.center
+    free, hidden = project_hull(hull, view), project_hull(hull, view, occluders=wall @ R + centre)  # camera -> world
     assert free[upper].sum() > 50 and not hidden[upper].any()
     assert free[lower].sum() > 50 and (hidden == free)[lower].all()
 
@@ -141,16 +148,9 @@ def test_scattered_points_in_front_of_the_object_hide_nothing_while_a_surface_st
     # what SfM triangulates through glass: points scattered in depth between the camera and the object over the
     # lower half of the picture, beside the wall of points over the upper half; and the marked views' hull
     # carved with both as occluders
-    model, rendered = scene
-    marked = [(model.view(n), rendered[n][1]) for n in suggest_views(model, 5)]
-    hull = visual_hull(model, marked, FAST)
-    view = model.views[1]
+    hull, view, wall, upper, lower = _hull_and_wall(scene)
     R, centre = view.world_to_camera[:3, :3], view.center
-    x, y = np.meshgrid(np.linspace(-1.0, 1.0, 60), np.linspace(-1.0, 0.0, 30))
-    wall = np.stack([x.ravel(), y.ravel(), np.full(x.size, 1.5)], 1)
     free = project_hull(hull, view)
-    rows = np.arange(view.height)
-    upper, lower = rows < view.height / 2 - 3, rows > view.height / 2 + 3
     # one point over every sixth pixel of the object's lower half, at a random depth in front of it
     rng = np.random.default_rng(0)
     ys, xs = np.nonzero(free & lower[:, None])
