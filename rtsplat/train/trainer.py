@@ -167,7 +167,6 @@ class Trainer:
                                    self.points[0].to(self.device), self.points[1].to(self.device))
             source, threshold = "the points projected", PROJECTED_SPREAD
         self.exposure = exposure_spread(gains)
-        self.appearance_spread = self.exposure.spread
         self.appearance_decision = decide_appearance(cfg.effects.appearance, self.exposure, source, threshold)
         self.effect_reasons["appearance"] = self.appearance_decision.reason
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
@@ -519,7 +518,7 @@ class Trainer:
         """Whether appearance is learnt, why, how confident that decision is, what it rested on (the spread, the
         views with a gain, the median observations per view, the spread the gains' noise alone gives), and the
         mean absolute log gain and offset of the views."""
-        out = {"on": self.appearance is not None, "spread": self.appearance_spread,
+        out = {"on": self.appearance is not None, "spread": self.exposure.spread,
                "reason": self.effect_reasons["appearance"], "confidence": self.appearance_decision.confidence,
                "views_measured": self.exposure.views, "observations_per_view": self.exposure.observations,
                "noise": self.exposure.noise}
@@ -746,7 +745,7 @@ class Trainer:
         _write_json(self.out / "effects.json", {**self.effects.to_dict(), "reasons": self.effect_reasons,
                                                 "perceptual": self.perceptual_note, "near_fit": self.near_fit,
                                                 "appearance": self.appearance is not None,
-                                                "appearance_spread": self.appearance_spread,
+                                                "appearance_spread": self.exposure.spread,
                                                 "mirror_planes": self.model.mirror_planes.tolist()})
 
     def finish(self) -> dict:
