@@ -12,8 +12,10 @@ Steps (function API :func:`prepare_scene`):
 4. define the spherical region of interest: from the config; on a scene with transparent masks, the
    sphere around the masks' visual hull (:func:`roi_from_masks`, the see-through object and what it
    encloses); otherwise estimated from the SfM points and the point the cameras look at
-   (:func:`estimate_roi`); saved with its source. The hull is carved with each propagated mask
-   (``masks.source: propagate``) less its outline pixels (:func:`hull_mask`);
+   (:func:`estimate_roi`); saved with its source. A masks' sphere that misses the masked rays gives way to
+   the estimated one (:func:`checked_mask_roi`), and ``scene.json`` records why (``roi_warning``). The
+   hull is carved with each propagated mask (``masks.source: propagate``) less its outline pixels
+   (:func:`hull_mask`);
 5. split train/test: every ``test_every``-th image of the name-sorted list is a test view;
 6. on a scene with masks, the points of the masks' visual hull that face the cameras, with their
    normals (:func:`hull_surface`, ``transparent_surface.npz``): where the see-through surface is,
@@ -627,6 +629,7 @@ def prepare_scene(
             exposure_points=exposure_points,
             exposure_error=exposure_error,
             marked_views=sorted(c.name for c in cameras if c.name in marked_names),
+            roi_warning=roi_warning,
         )
         scene.save(tmp)
         scene.validate(check_files=True, where=tmp / "scene.json")

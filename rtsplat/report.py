@@ -12,6 +12,7 @@ It reads what the other stages wrote under ``--results`` (the layout of ``docs/a
     <scene>/metrics/<method>.json                                          rtsplat metrics
     <scene>/sfm/summary.json                                               rtsplat sfm
     <scene>/masks/summary.json                                             rtsplat masks
+    <scene>/prepared/scene.json                                            rtsplat prepare
 
 Each method's role comes from the pipeline config (``methods.<name>.role``, see
 :func:`rtsplat.config.method_roles`), handed over as ``--roles-json``; without it every method is a
@@ -22,7 +23,8 @@ repeats with another seed measured), then the machine and the package versions. 
 table (registered/total views, reprojection error and time of every attempt, and for scenes whose
 dataset ships reference cameras the rotation and centre errors after a similarity fit), the transparent masks
 (:func:`_masks_section`: where they came from, given, segmented, or propagated from how many marked views, the
-polarity decision and its warning, and the masks of three photos tinted over them), the
+polarity decision and its warning, the prepare stage's warning when it did not use the masks' region of interest,
+and the masks of three photos tinted over them), the
 quality table (entire
 image / transparent region), the time table (FPS timed alone, training CPU and wall seconds and how busy the
 other cores were meanwhile), the ablation table (the ablations against the main
@@ -61,7 +63,7 @@ from rtsplat.io.images import read_image, write_png
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.layer_references import LAYERS_SUM, ceilings, read_views
 from rtsplat.model.composite import transmission_with_scatter
-from rtsplat.scene import GT_LAYERS_DIR, REFLECTION_REACH_FILE
+from rtsplat.scene import GT_LAYERS_DIR, REFLECTION_REACH_FILE, SCENE_FILE, PreparedScene
 
 ROLES = ("main", "baseline", "ablation", "repeat")
 REPORT_JSON = "report.json"  # the report's tables as data, with the commit and the machine (rtsplat.results_page)
@@ -777,6 +779,16 @@ def polarity_text(summary: dict) -> str:
     return f"Polarity: {reason}."
 
 
+def roi_warning_text(scene: str, prepared: Path) -> str:
+    """The prepare stage's warning when it did not use the region of interest around the masks' visual hull
+    (``scene.json``'s ``roi_warning``, :func:`rtsplat.prepare.checked_mask_roi`), as a sentence naming the scene;
+    empty when it used it and where there is no prepared scene."""
+    if not (prepared / SCENE_FILE).is_file():
+        return ""
+    warning = PreparedScene.load(prepared, check_files=False).roi_warning
+    return f"Warning (region of interest, scene {scene}): {warning}." if warning else ""
+
+
 MASK_OVERLAYS = 3  # photos per scene shown with their mask tinted over them
 OVERLAY_MAX_SIDE = 960  # px: larger photos are area-downsampled by an integer factor for the overlays
 OVERLAY_TINT = np.array([1.0, 0.0, 1.0], np.float32)  # magenta over the see-through surface
@@ -836,15 +848,18 @@ def _mask_overlay_image(photo_path: Path, mask_path: Path) -> np.ndarray:
 
 
 def _masks_section(doc: Document, scene_dir: Path, out: Path) -> None:
-    """The scene's transparent masks: where they came from, the polarity decision and its warning, and the masks
-    of :func:`overlay_photos` tinted over the photos (the photos from the dataset scene the masks stage recorded,
-    the masks from its output), written into the report's images/."""
+    """The scene's transparent masks: where they came from, the polarity decision and its warning, the warning of
+    :func:`roi_warning_text`, and the masks of :func:`overlay_photos` tinted over the photos (the photos from the
+    dataset scene the masks stage recorded, the masks from its output), written into the report's images/."""
     masks_dir = scene_dir / "masks"
     summary = _read_json(masks_dir / "summary.json")
     doc.heading("Transparent masks", 3)
     doc.paragraph(" ".join(t for t in (masks_paragraph(summary), polarity_text(summary)) if t))
     if summary.get("polarity_warning"):
         doc.paragraph(f"Warning: {summary['polarity_warning']}.")
+    roi_warning = roi_warning_text(scene_dir.name, scene_dir / "prepared")
+    if roi_warning:
+        doc.paragraph(roi_warning)
     if not summary.get("has_masks"):
         return
     images = Path(summary.get("scene_dir") or "") / "images"

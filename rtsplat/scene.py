@@ -19,6 +19,8 @@ On disk::
       "cameras": [{"name": "IMG_0001", "image": "IMG_0001.JPG", "split": "train" | "test",
                    "width": W, "height": H, "K": 3x3, "world_to_camera": 4x4}, ...],
       "roi": {"center": [x, y, z], "radius": r, "source": "config" | "masks" | "estimated"},
+      "roi_warning": "",  # why the masks' region of interest was not used, in words ("" when it was, when
+                          # none was asked for, and in scenes written before it; rtsplat.prepare.checked_mask_roi)
       "downsample": 4,
       "resolution": 800 | null,   # prepare.resolution (longest side in pixels) when it chose the factor
       "source": "/path/to/dataset/scene",
@@ -120,6 +122,9 @@ class PreparedScene:
     # the views whose masks were marked when the others' were propagated from them (masks.source: propagate);
     # [] when every mask was given, and in scenes written before it
     marked_views: list[str] = field(default_factory=list)
+    # why prepare did not use the masks' region of interest (rtsplat.prepare.checked_mask_roi; roi.source says which
+    # one it used instead), in words; "" when it did, when none was asked for, and in scenes written before it
+    roi_warning: str = ""
     format: int = FORMAT_VERSION
     root: Path | None = field(default=None, compare=False, repr=False)
 
@@ -219,7 +224,7 @@ class PreparedScene:
             cams = [CameraRecord(**c) for c in data["cameras"]]
             roi = Roi(**data["roi"])
             keys = ("downsample", "resolution", "source", "has_transparency", "versions", "inputs", "exposure",
-                    "exposure_points", "exposure_error", "marked_views", "format")
+                    "exposure_points", "exposure_error", "marked_views", "roi_warning", "format")
             rest = {k: data[k] for k in keys if k in data}
         except (KeyError, TypeError) as exc:
             raise PipelineError(
@@ -307,6 +312,8 @@ class PreparedScene:
             raise bad(f"roi.center {self.roi.center} and roi.radius {self.roi.radius} must be finite")
         if self.roi.source not in ("config", "masks", "estimated"):
             raise bad(f"roi.source must be 'config', 'masks' or 'estimated', got {self.roi.source!r}")
+        if not isinstance(self.roi_warning, str):
+            raise bad(f"roi_warning must be a string, got {self.roi_warning!r}")
         unknown = sorted(set(self.marked_views) - set(names))
         if unknown:
             raise bad(f"marked_views names no camera: {', '.join(unknown)}")

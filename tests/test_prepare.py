@@ -498,6 +498,35 @@ def test_a_region_of_interest_on_the_glass_meets_its_masked_rays_and_one_beside_
     assert roi == fallback and "lies away from the glass" in warning and "prepare.roi" in warning
 
 
+def test_scene_json_records_whether_the_masks_region_of_interest_was_used(base, tmp_path, monkeypatch):
+    """prepare writes why it did not use the masks' region of interest into scene.json (``roi_warning``, with
+    ``roi.source`` naming the region used instead), the loader reads it back, and a scene.json written without
+    the field loads with no warning."""
+    root, views, sfm, masks = base
+    prepare_scene(root / "scene", sfm, tmp_path / "kept", PrepareConfig(downsample=2), masks, progress=False)
+    kept = json.loads((tmp_path / "kept" / "scene.json").read_text())
+    assert kept["roi"]["source"] == "masks" and kept["roi_warning"] == ""
+    assert PreparedScene.load(tmp_path / "kept").roi_warning == ""
+    assert (tmp_path / "kept" / "transparent_surface.npz").is_file()
+    # asked for a share of the masked rays above 100%, the check falls back to the estimated region
+    monkeypatch.setattr("rtsplat.prepare.MIN_MASK_RAYS_IN_ROI", 1.01)
+    s = prepare_scene(root / "scene", sfm, tmp_path / "fell", PrepareConfig(downsample=2), masks, progress=False)
+    assert "lies away from the glass" in s.roi_warning and "set prepare.roi" in s.roi_warning
+    data = json.loads((tmp_path / "fell" / "scene.json").read_text())
+    assert data["roi"]["source"] == "estimated" and data["roi_warning"] == s.roi_warning
+    scene = PreparedScene.load(tmp_path / "fell")
+    assert scene.roi_warning == s.roi_warning and scene.roi.source == "estimated"
+    assert not (tmp_path / "fell" / "transparent_surface.npz").exists()  # nothing seeded from that hull
+    # a scene.json written before the field: no warning
+    del data["roi_warning"]
+    (tmp_path / "fell" / "scene.json").write_text(json.dumps(data))
+    assert PreparedScene.load(tmp_path / "fell").roi_warning == ""
+    data["roi_warning"] = 3
+    (tmp_path / "fell" / "scene.json").write_text(json.dumps(data))
+    with pytest.raises(PipelineError, match="roi_warning must be a string"):
+        PreparedScene.load(tmp_path / "fell")
+
+
 def test_the_masks_hull_of_a_disc_seen_from_a_ring_gives_a_region_of_interest_that_meets_the_masks():
     views = _ring_of_views(_disc_mask)
     hull = mask_hull(views, Roi([0.0, 0.0, 0.0], 2.0, "estimated"), grid=32)

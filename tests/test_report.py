@@ -105,6 +105,8 @@ def test_report_has_tables_plots_and_images(results, tmp_path):
     index = build_report(results, tmp_path / "report", roles=Roles.from_dict(ROLES), commands=["make demo"])
     html, md = index.read_text(), (tmp_path / "report" / "index.md").read_text()
     assert "Transparent masks: given for the 12 photos, mean coverage 25.0%." in md
+    assert json.loads((results / "toy" / "prepared" / "scene.json").read_text())["roi_warning"] == ""
+    assert "Warning (region of interest" not in md  # prepare used the masks' region: nothing to warn of
     for method in METHODS:
         assert f"<td>{method}</td>" in html and f"| {method} |" in md
     assert "Ablations (transparent-region PSNR)" in md and "Pareto front" in md
@@ -167,6 +169,24 @@ def test_report_shows_the_masks_over_three_photos_with_the_polarity_decision(res
         shown += 1
         assert f"{name}.png: given, {100 * summary.coverage[name]:.1f}% covered" in md
     assert shown == 3 and "toy_mask_view_001" not in html
+
+
+def test_report_names_the_scene_whose_masks_region_of_interest_prepare_did_not_use(results, tmp_path):
+    copy = tmp_path / "results"
+    shutil.copytree(results, copy)
+    write_json_atomic(copy / "toy" / "masks" / "summary.json",
+                      {"has_masks": True, "source": "ingest", "num_images": 8, "mean_coverage": 0.25})
+    warning = ("the masks' visual hull lies away from the glass (its sphere meets 0% of the see-through pixels' "
+               "rays in the median view, needs 50%): the region of interest is the estimated one instead; set "
+               "prepare.roi to place it")
+    scene_json = copy / "toy" / "prepared" / "scene.json"
+    scene_json.write_text(json.dumps({**json.loads(scene_json.read_text()), "roi_warning": warning}))
+    index = build_report(copy, tmp_path / "report", roles=Roles.from_dict(ROLES))
+    html, md = index.read_text(), index.with_suffix(".md").read_text()
+    assert f"Warning (region of interest, scene toy): {warning}." in md
+    assert "Warning (region of interest, scene toy): the masks&#x27; visual hull lies away from the glass" in html
+    # under the scene's masks, before its quality table
+    assert md.index("### Transparent masks") < md.index("Warning (region of interest") < md.index("### Quality")
 
 
 def test_report_measures_noise_from_repeated_runs(results, tmp_path):
