@@ -660,14 +660,16 @@ def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -
 
 
 def near_reflection_rows(runs: dict[str, Run]) -> list[list[str]]:
-    """One row per run whose model asked for near reflections: on/off, planes, planar share, why, how far the
-    image loss moved the planes (``mirror_planes_moved``), s/it."""
+    """One row per run whose model asked for near reflections: on/off, planes, how many of them are bent,
+    planar share, the mirrored render's coverage of the glass, why, how far the image loss moved the planes
+    (``mirror_planes_moved``), s/it. Summaries written before the bend and the coverage show "-" there."""
     rows = []
     for m, r in sorted(runs.items()):
         fit = r.summary.get("near_reflection")
         if not r.summary.get("effects", {}).get("near_reflection") or not isinstance(fit, dict):
             continue
-        rows.append([m, "on" if fit.get("on") else "off", _fmt(fit.get("planes"), 0), _fmt(fit.get("planar_share")),
+        rows.append([m, "on" if fit.get("on") else "off", _fmt(fit.get("planes"), 0), _fmt(fit.get("bent_planes"), 0),
+                     _fmt(fit.get("planar_share")), _fmt(fit.get("coverage")),
                      str(fit.get("reason", "")), _planes_moved(r.summary.get("mirror_planes_moved")),
                      _fmt(r.summary.get("seconds_per_iteration"), 3),
                      _fmt(_per_iteration(r.summary.get("train_cpu_seconds"), r.summary.get("iterations")), 3)])
@@ -1121,12 +1123,15 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                 doc.paragraph(reach)
             if near_rows:
                 doc.paragraph("Whether each run reflected its own surfels in planes fitted to the see-through "
-                              "surface (effects.near_reflection; auto keeps them where planes explain enough of it), "
+                              "surface (effects.near_reflection; auto keeps them where planes explain enough of it "
+                              "and their mirrored render covers enough of it), how many planes carry a bend "
+                              "(curved glass, model.near_reflection_bend), "
                               "how far the image loss moved the planes where they are learnt "
                               "(lr.mirror_plane_rotation, lr.mirror_plane_shift), and the seconds per training "
                               "iteration it paid (wall seconds, and CPU seconds, which depend less on what ran "
                               "beside it).")
-                doc.table(["method", "near reflection", "planes", "planar share", "why", "planes learnt",
+                doc.table(["method", "near reflection", "planes", "bent", "planar share", "coverage", "why",
+                           "planes learnt",
                            "wall s / iteration", "CPU s / iteration"], near_rows)
 
         exposure_rows = appearance_rows(runs)

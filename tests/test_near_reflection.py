@@ -12,13 +12,17 @@ from test_raster_hard_cases import surfels_at
 from rtsplat.camera import camera_from_fov
 from rtsplat.model.checkpoint import read_checkpoint, write_checkpoint
 from rtsplat.model.mirror import (
+    BEND_MIN_DEGREES,
+    FLAT_COLUMNS,
     PLANE_COLUMNS,
+    bent_lookup,
     first_plane_hit,
     fit_planes,
     mirror_points,
     mirror_quats,
     move_planes,
     plane_assignment,
+    plane_bend,
     plane_parts,
     rotate_vectors,
 )
@@ -27,12 +31,18 @@ from rtsplat.model.settings import ModelSettings
 from rtsplat.model.surfels import init_from_points
 from rtsplat.raster import RasterSettings, Surfels, rasterize
 from rtsplat.raster.projection import quat_to_rotmat
-from rtsplat.train.effects import PLANAR_SHARE, decide_near_planes, planes_seen_edge_on, see_through_planes
+from rtsplat.train.effects import (
+    NEAR_COVERAGE,
+    PLANAR_SHARE,
+    decide_near_planes,
+    planes_seen_edge_on,
+    see_through_planes,
+)
 from rtsplat.train.planes import PlaneRefinement
 
 
-def plane_row(normal, centre, u, half=(10.0, 10.0), thickness=0.01, dtype=torch.float32):
-    return torch.tensor([*normal, *centre, *u, *half, thickness], dtype=dtype)[None]
+def plane_row(normal, centre, u, half=(10.0, 10.0), thickness=0.01, dtype=torch.float32, bend=None):
+    return torch.tensor([*normal, *centre, *u, *half, thickness, *(bend or [])], dtype=dtype)[None]
 
 
 # -- geometry ----------------------------------------------------------------------------------------
@@ -145,6 +155,124 @@ def test_decide_near_planes_modes():
     assert not decide_near_planes("auto", 2, PLANAR_SHARE - 0.01)[0]
     assert decide_near_planes("on", 2, 0.1)[0]
     assert not decide_near_planes("on", 0, None)[0]
+    # glass that reflects little of the model: planar, but its mirrored render covers too little of it
+    use, why = decide_near_planes("auto", 2, 0.8, NEAR_COVERAGE - 0.01)
+    assert not use and "reflects little" in why
+    assert decide_near_planes("auto", 2, 0.8, NEAR_COVERAGE)[0]
+    assert decide_near_planes("on", 2, 0.8, 0.0)[0]  # on is on
+
+
+# -- bent glass --------------------------------------------------------------------------------------
+
+CURVATURE_RADIUS = 1.0  # the test's glass: a ridge z = -y^2 / (2 R) along x (a windshield seen from above)
+
+
+def _ridge_points(n=4000, half_width=0.3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, generator=g, dtype=torch.float64) * 2 - 1
+    y = (torch.rand(n, generator=g, dtype=torch.float64) * 2 - 1) * half_width
+    z = -y * y / (2 * CURVATURE_RADIUS)
+    normals = torch.nn.functional.normalize(torch.stack([torch.zeros_like(x), y / CURVATURE_RADIUS,
+                                                         torch.ones_like(x)], -1), dim=-1)
+    return torch.stack([x, y, z], -1), normals
+
+
+def test_fit_planes_measures_the_bend_of_curved_glass_and_none_of_flat_glass():
+    points, normals = _ridge_points()
+    planes, shares = fit_planes(points, normals, tolerance=0.02)
+    assert float(shares[0]) > 0.5
+    n, _, u, v, _, _ = plane_parts(planes)
+    # the height's second derivative across the ridge, in the plane's own axes: -1/R along y
+    a, b, c = plane_bend(planes)[0, :3].double()
+    hessian = torch.tensor([[2 * a, b], [b, 2 * c]], dtype=torch.float64)
+    across = torch.stack([u[0].double() @ torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+                          v[0].double() @ torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)])
+    along = torch.stack([-across[1], across[0]])
+    sign = float(torch.sign(n[0, 2]))  # heights are along the plane's normal
+    assert abs(sign * float(across @ hessian @ across) + 1.0 / CURVATURE_RADIUS) < 0.1 / CURVATURE_RADIUS
+    assert abs(float(along @ hessian @ along)) < 0.05 / CURVATURE_RADIUS
+    box_points, box_normals = _box_points(noise=0.003)
+    flat, _ = fit_planes(box_points, box_normals, tolerance=0.02)
+    assert flat.shape[0] == 6 and (plane_bend(flat) == 0).all()  # tilts below BEND_MIN_DEGREES are dropped
+    assert BEND_MIN_DEGREES > 0
+
+
+def test_bent_lookup_on_flat_glass_reads_each_pixel_at_itself():
+    camera = _camera(width=32, height=24)
+    directions = image_ray_directions(camera)
+    plane = plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(1.0, 1.0), dtype=torch.float64,
+                      bend=[0.0] * (PLANE_COLUMNS - FLAT_COLUMNS))[0]
+    index, distance = plane_assignment(camera, plane[None], directions)
+    g = torch.Generator().manual_seed(0)
+    content = distance + 3.0 * torch.rand(distance.shape, generator=g, dtype=torch.float64)
+    content[::3] = float("inf")  # rows that show nothing
+    xy, valid = bent_lookup(camera, directions, plane, distance, content)
+    assert valid.sum() == (index >= 0).sum() > 100
+    ys, xs = torch.meshgrid(torch.arange(24.0, dtype=torch.float64) + 0.5,
+                            torch.arange(32.0, dtype=torch.float64) + 0.5, indexing="ij")
+    torch.testing.assert_close(xy[valid], torch.stack([xs, ys], -1)[valid], rtol=0, atol=1e-9)
+
+
+def _traced_ridge_reflection(camera, target, sigma):
+    """Per pixel, the weight of a small disc (facing +z at ``target``, Gaussian of std ``sigma``) seen in
+    the ridge mirror by ray tracing: the ray meets the exact surface, reflects about its exact normal and
+    crosses the disc's plane."""
+    d = image_ray_directions(camera)
+    o = camera.center
+    # o + t d on z = -y^2 / (2 R): (dy^2 / 2R) t^2 + (dz + oy dy / R) t + (oz + oy^2 / 2R) = 0
+    qa = d[..., 1] ** 2 / (2 * CURVATURE_RADIUS)
+    qb = d[..., 2] + o[1] * d[..., 1] / CURVATURE_RADIUS
+    qc = o[2] + o[1] ** 2 / (2 * CURVATURE_RADIUS)
+    disc = qb * qb - 4 * qa * qc
+    t = (-qb - torch.sqrt(disc.clamp_min(0))) / (2 * qa)
+    x = o + t[..., None] * d
+    n = torch.nn.functional.normalize(torch.stack([torch.zeros_like(t), x[..., 1] / CURVATURE_RADIUS,
+                                                   torch.ones_like(t)], -1), dim=-1)
+    r = d - 2 * (d * n).sum(-1, keepdim=True) * n
+    s = (target[2] - x[..., 2]) / r[..., 2]
+    crossing = x + s[..., None] * r
+    weight = torch.exp(-((crossing - target) ** 2).sum(-1) / (2 * sigma ** 2))
+    return torch.where((disc >= 0) & (t > 0) & (s > 0), weight, torch.zeros_like(weight))
+
+
+def _centroid(weight):
+    H, W = weight.shape
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=weight.dtype) + 0.5, torch.arange(W, dtype=weight.dtype) + 0.5,
+                            indexing="ij")
+    return torch.stack([(weight * xs).sum(), (weight * ys).sum()]) / weight.sum()
+
+
+@pytest.mark.parametrize("target_y", [0.0, 0.4])
+def test_a_bent_pane_shows_a_surfel_where_the_curved_glass_reflects_it(target_y):
+    """A ridge of glass mirrors a small disc above it: its near reflection lies where ray tracing the
+    exact surface puts it (within a pixel); reflected in the flat plane it lies several pixels away."""
+    sigma = 0.03
+    camera = camera_from_fov((0.0, -2.5, 2.0), (0.0, 0.0, 0.0), width=64, height=48, fov_x_deg=50,
+                             dtype=torch.float64)
+    target = torch.tensor([0.1, target_y, 0.7], dtype=torch.float64)
+    traced = _centroid(_traced_ridge_reflection(camera, target, sigma))
+    g = torch.Generator().manual_seed(0)
+    surfel = init_from_points(target[None].float(), torch.ones(1, 3), sh_degree=0, occupancy=0.99, opacity=0.99,
+                              generator=g, normals=torch.tensor([[0.0, 0.0, 1.0]]))
+    with torch.no_grad():
+        surfel.log_scales.fill_(math.log(sigma))
+    # the ridge's plane z = 0 (u = x, v = y) with the height h = -v^2 / (2 R)
+    ridge = plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(2.0, 2.0), dtype=torch.float64,
+                      bend=[0.0, 0.0, -0.5 / CURVATURE_RADIUS, 0.0, 0.0, 0.0])
+    found = {}
+    for bend in (True, False):
+        settings = ModelSettings(env_height=8, env_width=16, env_levels=3, mlp_width=16, sh_degree=0,
+                                 near_reflection_bend=bend)
+        model = RTModel(surfel, effects=ActiveEffects(near_reflection=True), settings=settings,
+                        roi_center=(0.0, 0.0, 0.0), roi_radius=3.0).double()
+        model.set_mirror_planes(ridge)
+        wanted = torch.ones(camera.height, camera.width, dtype=torch.bool)
+        with torch.no_grad():
+            _, alpha = model._near_reflection(camera, wanted, None, "reference")
+        assert float(alpha.max()) > 0.05
+        found[bend] = _centroid(alpha[..., 0])
+    assert float((found[True] - traced).norm()) < 1.0
+    assert float((found[False] - traced).norm()) > 3.0
 
 
 # -- the model ---------------------------------------------------------------------------------------
@@ -239,19 +367,24 @@ def test_near_reflection_gradcheck_float64():
     assert torch.autograd.gradcheck(near_of, heads, eps=1e-6, atol=1e-5, rtol=1e-3, fast_mode=True)
 
 
+@pytest.mark.parametrize("bent", [False, True])
 @pytest.mark.parametrize("case", ["camera_in_plane", "grazing", "misses", "behind_camera"])
-def test_hard_cases_stay_finite(case):
+def test_hard_cases_stay_finite(case, bent):
     model = _model()
     camera = _camera()
+    bend = [0.3, -0.1, 0.2, 0.05, 0.0, 0.01] if bent else None
     if case == "camera_in_plane":  # the mirror plane passes through the camera centre
         camera = _camera(eye=(0.2, -2.5, 0.0))
-        model.set_mirror_planes(plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(5.0, 5.0)))
+        model.set_mirror_planes(plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(5.0, 5.0), bend=bend))
     elif case == "grazing":  # the view skims the pane
         camera = _camera(eye=(0.0, -3.0, 1e-3))
+        if bent:
+            model.set_mirror_planes(plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(1.0, 1.0), thickness=0.02,
+                                              bend=bend))
     elif case == "misses":  # the pane lies outside the view
-        model.set_mirror_planes(plane_row((0, 0, 1), (50, 50, 0), (1, 0, 0), half=(0.1, 0.1)))
+        model.set_mirror_planes(plane_row((0, 0, 1), (50, 50, 0), (1, 0, 0), half=(0.1, 0.1), bend=bend))
     elif case == "behind_camera":  # the pane is behind the camera
-        model.set_mirror_planes(plane_row((0, 1, 0), (0, -4.0, 0), (1, 0, 0), half=(5.0, 5.0)))
+        model.set_mirror_planes(plane_row((0, 1, 0), (0, -4.0, 0), (1, 0, 0), half=(5.0, 5.0), bend=bend))
     result = model.render(camera, stage="full", backend="reference")
     assert torch.isfinite(result.color).all()
     if case in ("camera_in_plane", "misses", "behind_camera"):
@@ -281,6 +414,18 @@ def test_mirror_planes_survive_a_checkpoint(tmp_path):
     with torch.no_grad():
         torch.testing.assert_close(back.render(camera, backend="reference").color,
                                    model.render(camera, backend="reference").color)
+
+
+def test_flat_rows_of_twelve_columns_read_as_unbent_glass_and_moves_keep_the_bend():
+    model = _model()
+    assert model.mirror_planes.shape == (1, PLANE_COLUMNS) and (plane_bend(model.mirror_planes) == 0).all()
+    bend = [0.2, 0.0, -0.1, 0.0, 0.0, 0.0]
+    row = plane_row((0, 0, 1), (0, 0, 0), (1, 0, 0), half=(1.0, 1.0), dtype=torch.float64, bend=bend)
+    moved = move_planes(row, torch.tensor([[0.1, 0.0, 0.0]], dtype=torch.float64),
+                        torch.tensor([0.2], dtype=torch.float64))
+    torch.testing.assert_close(plane_bend(moved)[0], torch.tensor(bend, dtype=torch.float64))
+    with pytest.raises(ValueError, match="columns"):
+        model.set_mirror_planes(torch.zeros(1, 7))
 
 
 def test_no_near_reflection_effect_renders_no_mirrored_pass():

@@ -325,8 +325,9 @@ def test_near_reflection_rows_list_the_runs_that_asked_for_them():
     from rtsplat.report import Run, near_reflection_rows
 
     fit = {"iteration": 201, "planes": 4, "planar_share": 0.92, "on": True, "reason": "auto: planar glass"}
+    bent = dict(fit, bent_planes=3, coverage=0.4127)
     runs = {
-        "rtsplat": Run("film", "rtsplat", summary={"effects": {"near_reflection": True}, "near_reflection": fit,
+        "rtsplat": Run("film", "rtsplat", summary={"effects": {"near_reflection": True}, "near_reflection": bent,
                                                    "seconds_per_iteration": 0.61, "iterations": 200,
                                                    "train_cpu_seconds": 100.0}),
         "2dgs": Run("film", "2dgs", summary={"effects": {"near_reflection": False}, "near_reflection": None,
@@ -339,8 +340,9 @@ def test_near_reflection_rows_list_the_runs_that_asked_for_them():
                                                  "train_cpu_seconds": 110.0}),
     }
     rows = near_reflection_rows(runs)
-    assert rows == [["learnt", "on", "4", "0.92", "auto: planar glass", "up to 1.7 deg, 0.034", "0.640", "0.550"],
-                    ["rtsplat", "on", "4", "0.92", "auto: planar glass", "-", "0.610", "0.500"]]
+    assert rows == [["learnt", "on", "4", "-", "0.92", "-", "auto: planar glass", "up to 1.7 deg, 0.034", "0.640",
+                     "0.550"],
+                    ["rtsplat", "on", "4", "3", "0.92", "0.41", "auto: planar glass", "-", "0.610", "0.500"]]
 
 
 def _table_rows(md: str, header_start: str) -> dict[str, dict[str, str]]:

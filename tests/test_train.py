@@ -589,6 +589,7 @@ def test_mirror_planes_are_fitted_once_as_the_reflections_start_and_come_back_on
     assert fits == [cfg.schedule.specular_from + 1]  # once, at the first iteration of the full model
     near = trainer.near_fit
     assert near["points"] > 100 and near["planes"] >= 1 and near["on"] and near["seconds"] >= 0
+    assert 0.0 <= near["coverage"] <= 1.0 and f"covers {near['coverage']:.0%}" in near["reason"]
     assert trainer.model.uses_near_reflection
     normal = trainer.model.mirror_planes[0, :3]
     assert abs(float(normal.norm()) - 1.0) < 1e-5

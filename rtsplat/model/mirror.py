@@ -18,7 +18,19 @@ model rendered through the pane's mirror image:
   ``L = C_near + (1 - A_near) L_env`` (:class:`rtsplat.model.specular.SpecularNetwork`).
 
 A plane row holds ``normal (3), centre (3), u axis (3), half extents along u and v (2), thickness (1)``
-(``v = n x u``; surfels within the thickness of the plane are the glass and are not reflected).
+(``v = n x u``; surfels within the thickness of the plane are the glass and are not reflected), then the
+pane's bend (6): the height of the glass above the plane, ``h(u, v) = a u^2 + b u v + c v^2 + d u + e v + f``
+in the plane's own coordinates (zero for flat glass; rows of 12 columns read as flat).
+
+Curved glass (a windshield, a bent shop window) is served by the same mirrored render. At a pixel whose
+glass is bent, the ray meets the glass at a point ``x`` off the plane, with a normal tilted from the
+plane's; the reflected ray ``r`` leaves ``x`` in another direction than the plane would send it. Mirrored
+in the plane, that ray is the straight line from ``M x`` along ``M r``; where it meets what it sees (at the
+distance the mirrored render shows at that pixel) is a point the real camera sees at some pixel ``q`` of
+the mirrored render, and the pixel takes its near reflection from there (:func:`bent_lookup`, sampled
+bilinearly). For flat glass ``q`` is the pixel itself. The bend is fitted with the plane
+(:func:`fit_planes`: a least-squares quadric over the plane's inliers, kept where it tilts the normal by at
+least :data:`BEND_MIN_DEGREES` somewhere on the rectangle).
 """
 
 from __future__ import annotations
@@ -28,7 +40,10 @@ from torch import Tensor
 
 from rtsplat.camera import Camera
 
-PLANE_COLUMNS = 12
+PLANE_COLUMNS = 18
+FLAT_COLUMNS = 12  # a row without its bend (flat glass)
+BEND_MIN_DEGREES = 1.0  # a fitted bend that tilts the normal less than this anywhere on its rectangle is flat
+BEND_MIN_POINTS = 32  # fewer inliers than this fit no bend
 MIN_RAY_COSINE = 1e-4  # rays this close to parallel with a plane never hit it (no grazing blow-up)
 CHUNK = 8192  # points scored against every candidate plane at once in fit_planes
 
@@ -37,8 +52,31 @@ def empty_planes(dtype=torch.float32, device=None) -> Tensor:
     return torch.zeros(0, PLANE_COLUMNS, dtype=dtype, device=device)
 
 
+def with_bend(planes: Tensor) -> Tensor:
+    """Plane rows [K,18]: rows of 12 columns (flat glass) get a zero bend; rows of 18 are returned as they are."""
+    if planes.shape[-1] == PLANE_COLUMNS:
+        return planes
+    if planes.shape[-1] != FLAT_COLUMNS:
+        raise ValueError(f"plane rows have {FLAT_COLUMNS} or {PLANE_COLUMNS} columns, got {planes.shape[-1]}")
+    return torch.cat([planes, planes.new_zeros(*planes.shape[:-1], PLANE_COLUMNS - FLAT_COLUMNS)], -1)
+
+
+def plane_bend(planes: Tensor) -> Tensor:
+    """The bend coefficients ``a, b, c, d, e, f`` [K,6] of plane rows (zero for rows of 12 columns)."""
+    return with_bend(planes)[:, FLAT_COLUMNS:PLANE_COLUMNS]
+
+
+def bend_height(bend: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The glass's height above its plane ``h`` and its slopes ``dh/du``, ``dh/dv`` at plane coordinates
+    ``u``, ``v`` (any shape), for one row's bend ``a..f`` [6] (``h = a u^2 + b u v + c v^2 + d u + e v + f``)."""
+    a, b, c, d, e, f = bend.unbind(-1)
+    height = a * u * u + b * u * v + c * v * v + d * u + e * v + f
+    return height, 2.0 * a * u + b * v + d, b * u + 2.0 * c * v + e
+
+
 def plane_parts(planes: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """normal [K,3], centre [K,3], u [K,3], v [K,3], half extents [K,2] and thickness [K] of plane rows [K,12]."""
+    """normal [K,3], centre [K,3], u [K,3], v [K,3], half extents [K,2] and thickness [K] of plane rows
+    [K,12 or 18]."""
     n, c, u, half, thickness = planes[:, 0:3], planes[:, 3:6], planes[:, 6:9], planes[:, 9:11], planes[:, 11]
     return n, c, u, torch.cross(n, u, dim=-1), half, thickness
 
@@ -90,14 +128,15 @@ def rotate_vectors(vectors: Tensor, rotation: Tensor) -> Tensor:
 
 
 def move_planes(planes: Tensor, rotation: Tensor, shift: Tensor) -> Tensor:
-    """Plane rows [K,12] turned about their centres by the rotation vectors ``rotation`` [K,3] (normal and
-    rectangle together) and then moved by ``shift`` [K] along their turned normals; extents and thickness
-    stay. Differentiable in ``rotation`` and ``shift`` (the trainer refines the fitted planes this way)."""
+    """Plane rows [K,12 or 18] turned about their centres by the rotation vectors ``rotation`` [K,3] (normal
+    and rectangle together) and then moved by ``shift`` [K] along their turned normals; extents, thickness
+    and bend (in the plane's own coordinates) stay. Differentiable in ``rotation`` and ``shift`` (the trainer
+    refines the fitted planes this way)."""
     n, c, u, _, half, thickness = plane_parts(planes)
     n = rotate_vectors(n, rotation)
     u = rotate_vectors(u, rotation)
     c = c + shift[:, None] * n
-    return torch.cat([n, c, u, half, thickness[:, None]], -1)
+    return torch.cat([n, c, u, half, thickness[:, None], planes[:, FLAT_COLUMNS:]], -1)
 
 
 def plane_assignment(camera: Camera, planes: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
@@ -130,11 +169,123 @@ def first_plane_hit(origins: Tensor, directions: Tensor, planes: Tensor) -> tupl
     return index, distance
 
 
+def is_bent(planes: Tensor) -> Tensor:
+    """[K] bool: the rows whose bend is not zero (curved glass, whose pixels :func:`bent_lookup` moves)."""
+    return (plane_bend(planes) != 0).any(-1)
+
+
+def bent_lookup(camera: Camera, directions: Tensor, plane: Tensor, distance: Tensor,
+                content_distance: Tensor, iterations: int = 3) -> tuple[Tensor, Tensor]:
+    """Where each pixel of bent glass finds its near reflection in the render mirrored in its plane.
+
+    ``directions`` [H,W,3]: the pixels' unit rays from the camera centre; ``plane``: one row [18];
+    ``distance`` [H,W]: along each ray to the plane (inf where the ray misses it); ``content_distance``
+    [H,W]: along each ray to what the mirrored render shows there (inf where it shows nothing). Returns
+    the pixel coordinates [H,W,2] (x, y; pixel centres at +0.5) to sample the mirrored render at, and [H,W]
+    bool where that is defined (the ray meets the plane and the mirrored point lies in front of the camera).
+
+    The ray meets the glass at ``x``, at the glass's height above the plane (``iterations`` fixed-point steps
+    from the plane's hit), reflects about the bent normal
+    there and is mirrored in the plane: the line from ``x' = M x`` along ``r' = M r``. What it sees is the
+    point of the mirrored render that lies on that line: starting from the median distance the render
+    shows, ``iterations`` times the line's point at the current distance is projected to a pixel ``q``, and
+    the distance becomes that from ``x'`` to what the render shows at ``q`` (a reprojection that converges
+    where the render's depth varies slowly). Where the render shows nothing at ``q`` the distance stays.
+    With a zero bend the line is the pixel's own ray and ``q`` the pixel itself, whatever the distance. No
+    gradient: the lookup is a place to read the render, whose colours carry the gradient."""
+    with torch.no_grad():
+        dtype = directions.dtype
+        H, W = distance.shape
+        row = with_bend(plane[None].to(dtype))
+        n, c, u, v, _, _ = (t[0] for t in plane_parts(row))
+        origin = camera.center.to(dtype)
+        hit = torch.isfinite(distance)
+        t = torch.where(hit, distance, torch.zeros_like(distance))[..., None]
+        cosine = directions @ n
+        cosine = torch.where(cosine.abs() > MIN_RAY_COSINE, cosine,
+                             torch.full_like(cosine, MIN_RAY_COSINE) * torch.where(cosine < 0, -1.0, 1.0))
+        glass = origin + t * directions
+        for _ in range(iterations):  # where the ray meets the bent glass: its height where the ray is now
+            local = glass - c
+            height, slope_u, slope_v = bend_height(plane_bend(row)[0], local @ u, local @ v)
+            glass = origin + (t + (height / cosine)[..., None]) * directions
+        normal = torch.nn.functional.normalize(n - slope_u[..., None] * u - slope_v[..., None] * v, dim=-1)
+        reflected = directions - 2.0 * (directions * normal).sum(-1, keepdim=True) * normal
+        start = glass - 2.0 * ((glass - c) @ n)[..., None] * n
+        along = reflected - 2.0 * (reflected @ n)[..., None] * n
+        seen = torch.isfinite(content_distance)
+        shown_at = torch.where(seen, content_distance, torch.zeros_like(content_distance))
+        content = origin + shown_at[..., None] * directions
+        R, T, K = camera.rotation.to(dtype), camera.translation.to(dtype), camera.K.to(dtype)
+        typical = content_distance[seen & hit].median() if bool((seen & hit).any()) else None
+        if typical is None:  # the render shows nothing: the line's direction alone (its vanishing point)
+            point = along @ R.T
+        else:
+            reach = (typical - t).clamp_min(0.0)
+            for _ in range(iterations):
+                xy = _project(start + reach * along, R, T, K)[0]
+                col = (xy[..., 0] - 0.5).round().long()
+                line = (xy[..., 1] - 0.5).round().long()
+                inside = (col >= 0) & (col < W) & (line >= 0) & (line < H) & torch.isfinite(xy).all(-1)
+                flat = (line.clamp(0, H - 1) * W + col.clamp(0, W - 1)).reshape(-1)
+                there = inside & seen.reshape(-1)[flat].reshape(H, W)
+                target = content.reshape(-1, 3)[flat].reshape(H, W, 3)
+                reach = torch.where(there[..., None], (target - start).norm(dim=-1, keepdim=True), reach)
+            point = (start + reach * along) @ R.T + T
+        depth = point[..., 2]
+        in_front = depth > 1e-6 * (1.0 + t[..., 0])
+        xy = (point @ K.T)[..., :2] / torch.where(in_front, depth, torch.ones_like(depth))[..., None]
+        valid = hit & in_front & torch.isfinite(xy).all(-1)
+        return torch.where(valid[..., None], xy, torch.zeros_like(xy)), valid
+
+
+def _project(points: Tensor, R: Tensor, T: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixel coordinates [...,2] of world points [...,3] and their camera depth [...]; behind the camera the
+    coordinates are inf."""
+    cam = points @ R.T + T
+    depth = cam[..., 2]
+    xy = (cam @ K.T)[..., :2] / depth.clamp_min(1e-12)[..., None]
+    return torch.where((depth > 0)[..., None], xy, torch.full_like(xy, float("inf"))), depth
+
+
+def sample_pixels(image: Tensor, xy: Tensor, valid: Tensor) -> Tensor:
+    """``image`` [H,W,C] read bilinearly at pixel coordinates ``xy`` [H,W,2] (pixel centres at +0.5), zero
+    outside the image and where not ``valid`` [H,W]. Differentiable in ``image``."""
+    H, W = image.shape[:2]
+    grid = torch.stack([2.0 * xy[..., 0] / W - 1.0, 2.0 * xy[..., 1] / H - 1.0], -1).to(image.dtype)
+    out = torch.nn.functional.grid_sample(image.permute(2, 0, 1)[None], grid[None], mode="bilinear",
+                                          padding_mode="zeros", align_corners=False)[0].permute(1, 2, 0)
+    return torch.where(valid[..., None], out, torch.zeros_like(out))
+
+
+def fit_bend(local: Tensor, u: Tensor, v: Tensor, normal: Tensor, half: tuple[float, float]) -> Tensor:
+    """The bend ``a..f`` [6] of the glass whose points lie at ``local`` [N,3] from a plane's centre (plane
+    axes ``u``, ``v``, ``normal``): the least-squares quadric height over the plane; zero when fewer than
+    :data:`BEND_MIN_POINTS` points or when it tilts the normal less than :data:`BEND_MIN_DEGREES` at every
+    corner and edge midpoint of the rectangle of half extents ``half``."""
+    zero = torch.zeros(6, dtype=local.dtype)
+    if local.shape[0] < BEND_MIN_POINTS:
+        return zero
+    pu, pv, height = local @ u, local @ v, local @ normal
+    scale_u, scale_v = max(half[0], 1e-9), max(half[1], 1e-9)  # solve in unit coordinates: well conditioned
+    su, sv = pu / scale_u, pv / scale_v
+    design = torch.stack([su * su, su * sv, sv * sv, su, sv, torch.ones_like(su)], -1)
+    solution = torch.linalg.lstsq(design, height[:, None]).solution[:, 0]
+    if not torch.isfinite(solution).all():
+        return zero
+    scales = torch.tensor([scale_u ** 2, scale_u * scale_v, scale_v ** 2, scale_u, scale_v, 1.0], dtype=local.dtype)
+    bend = solution / scales
+    corners = torch.tensor([[su_, sv_] for su_ in (-1.0, 0.0, 1.0) for sv_ in (-1.0, 0.0, 1.0)], dtype=local.dtype)
+    _, slope_u, slope_v = bend_height(bend, corners[:, 0] * scale_u, corners[:, 1] * scale_v)
+    tilt = torch.rad2deg(torch.atan(torch.sqrt(slope_u ** 2 + slope_v ** 2)))
+    return bend if float(tilt.max()) >= BEND_MIN_DEGREES else zero
+
+
 def fit_planes(
     points: Tensor, normals: Tensor, *, tolerance: float, max_planes: int = 6, min_share: float = 0.05,
     max_angle_deg: float = 15.0, candidates: int = 256, seed: int = 0,
 ) -> tuple[Tensor, Tensor]:
-    """Planes [K,12] that explain the oriented points [N,3] (with unit normals [N,3]), and the share of
+    """Planes [K,18] that explain the oriented points [N,3] (with unit normals [N,3]), and the share of
     the points each explains [K] (their sum: the share explained).
 
     Sequential RANSAC: each round draws ``candidates`` points and takes each one's own plane (its
@@ -142,7 +293,8 @@ def fit_planes(
     with a normal within ``max_angle_deg`` of it, either side) wins and is refitted to its inliers
     (least squares), which leave the pool. Rounds stop at ``max_planes`` or when the best plane
     explains less than ``min_share`` of all the points. The rectangle of a plane is the smallest-area one
-    holding its inliers (grown by ``tolerance``); its thickness is ``tolerance``. Scoring is chunked: a
+    holding its inliers (grown by ``tolerance``); its thickness is ``tolerance``; its bend is the quadric
+    height of its inliers over it (:func:`fit_bend`; zero for flat glass). Scoring is chunked: a
     round holds [CHUNK, candidates] distances and normal agreements (about 20 MB at the defaults) whatever
     the number of points, and takes O(N candidates) time."""
     points = points.to(torch.float64)
@@ -182,7 +334,8 @@ def fit_planes(
         centre = anchor + 0.5 * (lo_u + hi_u) * u + 0.5 * (lo_v + hi_v) * v
         extent = torch.tensor([0.5 * (hi_u - lo_u) + tolerance, 0.5 * (hi_v - lo_v) + tolerance, tolerance],
                               dtype=torch.float64)
-        planes.append(torch.cat([normal, centre, u, extent]))
+        bend = fit_bend(points[inliers] - centre, u, v, normal, (float(extent[0]), float(extent[1])))
+        planes.append(torch.cat([normal, centre, u, extent, bend]))
         explained.append(inliers.numel() / max(n_all, 1))
         remaining[inliers] = False
     if not planes:

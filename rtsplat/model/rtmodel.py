@@ -42,12 +42,17 @@ from rtsplat.model.composite import (
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient
 from rtsplat.model.mirror import (
+    PLANE_COLUMNS,
+    bent_lookup,
     empty_planes,
+    is_bent,
     mirror_points,
     mirror_quats,
     plane_assignment,
     plane_parts,
+    sample_pixels,
     signed_distance,
+    with_bend,
 )
 from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh
@@ -118,8 +123,9 @@ class RTModel(nn.Module):
 
     def set_mirror_planes(self, planes: Tensor) -> None:
         """The planes of the glass (:func:`rtsplat.model.mirror.fit_planes` rows) that near reflections use."""
-        self.mirror_planes = planes.detach().to(device=self.roi_center.device, dtype=torch.float32).reshape(
-            -1, self.mirror_planes.shape[1]).contiguous()
+        planes = planes.detach().to(device=self.roi_center.device, dtype=torch.float32)
+        self.mirror_planes = with_bend(planes.reshape(-1, planes.shape[-1] if planes.numel() else PLANE_COLUMNS)
+                                       ).contiguous()
 
     @property
     def uses_near_reflection(self) -> bool:
@@ -274,7 +280,7 @@ class RTModel(nn.Module):
         (which pixel meets which plane, and which surfels are mirrored, are discrete choices, without it)."""
         H, W = wanted.shape
         p = self.surfels
-        planes = self.mirror_planes if planes is None else planes
+        planes = self.mirror_planes if planes is None else with_bend(planes)
         if planes.shape != self.mirror_planes.shape:
             raise ValueError(f"mirror_planes must be {tuple(self.mirror_planes.shape)} (the model's), "
                              f"got {tuple(planes.shape)}")
@@ -291,6 +297,7 @@ class RTModel(nn.Module):
         color = torch.zeros(H, W, 3, dtype=p.means.dtype, device=p.means.device)
         alpha = torch.zeros(H, W, 1, dtype=p.means.dtype, device=p.means.device)
         center = camera.center.to(p.means.dtype)
+        bent = (is_bent(planes) & self.settings.near_reflection_bend).tolist()
         for k in order:
             if counts[k] == 0:
                 break
@@ -315,9 +322,16 @@ class RTModel(nn.Module):
             mirrored = Surfels(mirror_points(means, n, c), mirror_quats(quats, n), scales, occupancy, opacity,
                                means.new_zeros(keep.numel(), 0), colors)
             out = rasterize(mirrored, camera, raster_settings, backend=backend)
+            plane_color, plane_alpha = out.color, out.volume_alpha
+            if bent[k]:  # curved glass: each pixel reads the mirrored render where its bent reflection lands
+                plane_distance = torch.where(index == k, distance, torch.full_like(distance, float("inf")))
+                xy, valid = bent_lookup(camera, directions, planes[k].detach(), plane_distance,
+                                        mirrored_distance(out, directions, camera))
+                plane_color = sample_pixels(out.color, xy, valid)
+                plane_alpha = sample_pixels(out.volume_alpha, xy, valid)
             on_plane = (index == k)[..., None]
-            color = torch.where(on_plane, out.color, color)
-            alpha = torch.where(on_plane, out.volume_alpha, alpha)
+            color = torch.where(on_plane, plane_color, color)
+            alpha = torch.where(on_plane, plane_alpha, alpha)
         return color, alpha
 
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
@@ -369,6 +383,19 @@ class RTModel(nn.Module):
             spec = spec.index_copy(0, idx, s)
             beta = beta.index_copy(0, idx, b)
         return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
+
+
+MIRRORED_MIN_ALPHA = 0.05  # a mirrored render thinner than this shows nothing at a pixel (no distance)
+
+
+def mirrored_distance(out, directions: Tensor, camera: Camera) -> Tensor:
+    """Distance [H,W] along each pixel ray to what a mirrored render ``out`` shows there (its volume depth
+    turned from camera z to distance along the ray); inf where it shows less than :data:`MIRRORED_MIN_ALPHA`."""
+    forward = camera.world_to_camera[2, :3].to(directions.dtype)
+    along = (directions * forward).sum(-1).clamp_min(1e-6)
+    distance = out.volume_depth[..., 0].detach() / along
+    shown = (out.volume_alpha[..., 0].detach() >= MIRRORED_MIN_ALPHA) & torch.isfinite(distance)
+    return torch.where(shown, distance, torch.full_like(distance, float("inf")))
 
 
 ON_PLANE_TOLERANCE = 0.05  # relative to the distance: how far a pixel's surface may lie from the pane it is on

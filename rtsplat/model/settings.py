@@ -109,6 +109,12 @@ class ModelSettings:
         "from the views that see them directly only, and the reflection's errors (the plane, the reflectance) stay "
         "out of them, and the mirrored pass needs no backward (docs/fidelity.md, finding 24)"
     )
+    near_reflection_bend: bool = setting(
+        True, help="with near reflections, curved glass reflects about its own bent normal: each mirror plane carries "
+        "the quadric height of the glass over it (fitted with the plane), and a pixel on bent glass reads the "
+        "plane's mirrored render where its reflected ray lands instead of at itself; off: every pane reflects as "
+        "its flat plane. Costs a bilinear lookup per plane, no extra rasterization (docs/fidelity.md, finding 31)"
+    )
     near_reflection_weight: bool = setting(
         False, help="with near reflections, a sixth output w of the specular network weighs them per pixel: "
         "C_spec = reflectance (w C_near + (1 - w A_near) L) instead of w = 1"

@@ -16,6 +16,13 @@ from rtsplat.train_config import Effects
 # what lies behind the glass elsewhere (about a third of them on the cabin half-way through its demo
 # training): planar panes explain 40-50% there, curved glass (the dome) 0-5% (docs/fidelity.md, 23)
 PLANAR_SHARE = 0.3
+# near_reflection auto: the mean coverage of the see-through pixels by the mirrored render (what of the model
+# the glass would reflect) below which the near term is not worth its rasterizations: a pane facing an open
+# street or a sky shows nothing of the model in it. Measured at the fit on the tuning half: curved-0 (which
+# reflects a far environment) 0.003-0.004, curved-2 0.08-0.12 (the term gains 0.1-0.6 dB there), film 0.40
+# (docs/fidelity.md, finding 31)
+NEAR_COVERAGE = 0.02
+NEAR_COVERAGE_VIEWS = 8  # training views the coverage is measured on, spread over the capture
 BEHIND_SHARE = 0.5  # a plane is glass when this share of the rays meeting it first see something behind it
 EDGE_ON_DEGREES = 3.0  # a plane a marked view sees within this angle of edge-on is a face of the marked views' hull
 
@@ -69,19 +76,26 @@ def decide_effects(
     return ActiveEffects(transmission=transmission, specular=specular, near_reflection=near), reasons
 
 
-def decide_near_planes(mode: str, planes: int, planar_share: float | None) -> tuple[bool, str]:
+def decide_near_planes(mode: str, planes: int, planar_share: float | None,
+                       coverage: float | None = None) -> tuple[bool, str]:
     """Whether the fitted mirror planes are used: ``auto`` iff they explain at least :data:`PLANAR_SHARE`
-    of the glass's points (planar glass, whose reflections of the scene a mirrored render places; curved
-    glass such as a dome reflects mostly what is far, and the environment lookup stays alone); ``on``
-    iff any plane was found."""
+    of the glass's points (panes, flat or bent, whose reflections of the scene a mirrored render places;
+    strongly curved glass such as a dome reflects mostly what is far, and the environment lookup stays
+    alone) and, where it was measured, the mirrored render covers at least :data:`NEAR_COVERAGE` of the
+    see-through pixels (``coverage``: the glass reflects something of the model); ``on`` iff any plane was
+    found."""
     if planar_share is None or planes == 0:
         return False, "no plane found in the see-through surface"
     share = f"{planes} plane(s) explain {planar_share:.0%} of the see-through surface"
+    if coverage is not None:
+        share += f", their mirrored render covers {coverage:.0%} of it"
     if mode == "on":
         return True, f"config: on; {share}"
-    if planar_share >= PLANAR_SHARE:
-        return True, f"auto: planar glass; {share}"
-    return False, f"auto: the glass is not planar; {share}, needs {PLANAR_SHARE:.0%}"
+    if planar_share < PLANAR_SHARE:
+        return False, f"auto: the glass is not planar; {share}, needs {PLANAR_SHARE:.0%}"
+    if coverage is not None and coverage < NEAR_COVERAGE:
+        return False, f"auto: the glass reflects little of the scene near it; {share}, needs {NEAR_COVERAGE:.0%}"
+    return True, f"auto: planar glass; {share}"
 
 
 def planes_seen_edge_on(planes: Tensor, centres: Tensor, degrees: float = EDGE_ON_DEGREES) -> Tensor:

@@ -41,7 +41,7 @@ from rtsplat.io.atomic import write_errors, write_text_atomic
 from rtsplat.model.appearance import apply_appearance, fit_appearance, remove_appearance
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
-from rtsplat.model.mirror import empty_planes, fit_planes
+from rtsplat.model.mirror import empty_planes, fit_planes, is_bent
 from rtsplat.model.rtmodel import GBUFFER, RTModel, image_ray_directions
 from rtsplat.model.surfels import (
     PARAMETERS,
@@ -67,7 +67,13 @@ from rtsplat.train.cameras import PoseCorrections, fit_corrections
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
-from rtsplat.train.effects import decide_effects, decide_near_planes, planes_seen_edge_on, see_through_planes
+from rtsplat.train.effects import (
+    NEAR_COVERAGE_VIEWS,
+    decide_effects,
+    decide_near_planes,
+    planes_seen_edge_on,
+    see_through_planes,
+)
 from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train.planes import PlaneRefinement
@@ -255,7 +261,8 @@ class Trainer:
             dropped, hull_faces = int((~glass).sum()), int(faces.sum())
             keep = glass & ~faces
             planes, share = planes[keep], float(shares[keep].sum())
-        use, why = decide_near_planes(self.cfg.effects.near_reflection, planes.shape[0], share)
+        coverage = self._near_coverage(planes) if planes.shape[0] else None
+        use, why = decide_near_planes(self.cfg.effects.near_reflection, planes.shape[0], share, coverage)
         if dropped:
             why += f" ({dropped} plane(s) with nothing behind them left out)"
         if hull_faces:
@@ -263,12 +270,38 @@ class Trainer:
         self.model.set_mirror_planes(planes if use else empty_planes())
         self._start_plane_refinement()
         self.near_fit = {"iteration": self.iteration, "points": int(xyz.shape[0]), "planes": int(planes.shape[0]),
-                         "planar_share": share, "on": use, "reason": why,
+                         "bent_planes": int(is_bent(planes).sum()), "planar_share": share,
+                         "coverage": None if coverage is None else round(coverage, 4), "on": use, "reason": why,
                          "seconds": round(time.perf_counter() - start, 3)}
         self.log(f"near reflection at iteration {self.iteration}: {'on' if use else 'off'} ({why}; "
                  f"fitted in {self.near_fit['seconds']:.1f} s)")
         self._write_effects()
         return self.near_fit
+
+    def _near_coverage(self, planes: Tensor) -> float:
+        """The mean coverage (volume alpha) of the near reflection in ``planes`` over the see-through pixels
+        (mask > 0.5, surface alpha > 0.5) of at most ``NEAR_COVERAGE_VIEWS`` training views spread over the
+        capture: how much of the model the glass would reflect."""
+        masked = [i for i, m in enumerate(self.train_views.masks) if m is not None]
+        if not masked:
+            return 0.0
+        step = max(1, len(masked) // NEAR_COVERAGE_VIEWS)
+        held = self.model.mirror_planes
+        self.model.set_mirror_planes(planes)
+        covered, pixels = 0.0, 0
+        try:
+            for index in masked[::step][:NEAR_COVERAGE_VIEWS]:
+                camera = self.train_views.cameras[index]
+                out = rasterize(self.model.rasterizer_surfels(camera), camera, self.cfg.raster,
+                                backend=self.cfg.backend)
+                wanted = ((self.train_views.masks[index] > 0.5) & (out.alpha > 0.5))[..., 0]
+                _, alpha = self.model._near_reflection(camera, wanted, self.cfg.raster, self.cfg.backend,
+                                                       surface_depth=out.depth[..., 0])
+                covered += float(alpha[..., 0][wanted].sum())
+                pixels += int(wanted.sum())
+        finally:
+            self.model.set_mirror_planes(held)
+        return covered / max(pixels, 1)
 
     def _marked_centres(self) -> Tensor:
         """The camera centres [C,3] of the views whose masks were marked, when the others' were propagated
