@@ -38,7 +38,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from rtsplat.camera import Camera
+from rtsplat.camera import PIXEL_CENTER_OFFSET, Camera
 
 PLANE_COLUMNS = 18
 FLAT_COLUMNS = 12  # a row without its bend (flat glass)
@@ -204,10 +204,11 @@ def bent_lookup(camera: Camera, directions: Tensor, plane: Tensor, distance: Ten
         cosine = directions @ n
         cosine = torch.where(cosine.abs() > MIN_RAY_COSINE, cosine,
                              torch.full_like(cosine, MIN_RAY_COSINE) * torch.where(cosine < 0, -1.0, 1.0))
+        bend = plane_bend(row)[0]
         glass = origin + t * directions
         for _ in range(iterations):  # where the ray meets the bent glass: its height where the ray is now
             local = glass - c
-            height, slope_u, slope_v = bend_height(plane_bend(row)[0], local @ u, local @ v)
+            height, slope_u, slope_v = bend_height(bend, local @ u, local @ v)
             glass = origin + (t + (height / cosine)[..., None]) * directions
         normal = torch.nn.functional.normalize(n - slope_u[..., None] * u - slope_v[..., None] * v, dim=-1)
         reflected = directions - 2.0 * (directions * normal).sum(-1, keepdim=True) * normal
@@ -216,36 +217,33 @@ def bent_lookup(camera: Camera, directions: Tensor, plane: Tensor, distance: Ten
         seen = torch.isfinite(content_distance)
         shown_at = torch.where(seen, content_distance, torch.zeros_like(content_distance))
         content = origin + shown_at[..., None] * directions
-        R, T, K = camera.rotation.to(dtype), camera.translation.to(dtype), camera.K.to(dtype)
+        view = camera.to(dtype=dtype)
+
+        def project(points: Tensor) -> tuple[Tensor, Tensor]:  # pixel coordinates [H,W,2], camera depth [H,W]
+            xy, depth = view.project(points.reshape(-1, 3))
+            return xy.reshape(H, W, 2), depth.reshape(H, W)
+
         typical = content_distance[seen & hit].median() if bool((seen & hit).any()) else None
         if typical is None:  # the render shows nothing: the line's direction alone (its vanishing point)
-            point = along @ R.T
+            direction = along @ view.rotation.T
+            depth = direction[..., 2]
+            xy = (direction @ view.K.T)[..., :2] / torch.where(depth > 0, depth, torch.ones_like(depth))[..., None]
         else:
             reach = (typical - t).clamp_min(0.0)
             for _ in range(iterations):
-                xy = _project(start + reach * along, R, T, K)[0]
-                col = (xy[..., 0] - 0.5).round().long()
-                line = (xy[..., 1] - 0.5).round().long()
-                inside = (col >= 0) & (col < W) & (line >= 0) & (line < H) & torch.isfinite(xy).all(-1)
+                xy, depth = project(start + reach * along)
+                col = (xy[..., 0] - PIXEL_CENTER_OFFSET).round().long()
+                line = (xy[..., 1] - PIXEL_CENTER_OFFSET).round().long()
+                inside = ((depth > 0) & (col >= 0) & (col < W) & (line >= 0) & (line < H)
+                          & torch.isfinite(xy).all(-1))
                 flat = (line.clamp(0, H - 1) * W + col.clamp(0, W - 1)).reshape(-1)
                 there = inside & seen.reshape(-1)[flat].reshape(H, W)
                 target = content.reshape(-1, 3)[flat].reshape(H, W, 3)
                 reach = torch.where(there[..., None], (target - start).norm(dim=-1, keepdim=True), reach)
-            point = (start + reach * along) @ R.T + T
-        depth = point[..., 2]
+            xy, depth = project(start + reach * along)
         in_front = depth > 1e-6 * (1.0 + t[..., 0])
-        xy = (point @ K.T)[..., :2] / torch.where(in_front, depth, torch.ones_like(depth))[..., None]
         valid = hit & in_front & torch.isfinite(xy).all(-1)
         return torch.where(valid[..., None], xy, torch.zeros_like(xy)), valid
-
-
-def _project(points: Tensor, R: Tensor, T: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
-    """Pixel coordinates [...,2] of world points [...,3] and their camera depth [...]; behind the camera the
-    coordinates are inf."""
-    cam = points @ R.T + T
-    depth = cam[..., 2]
-    xy = (cam @ K.T)[..., :2] / depth.clamp_min(1e-12)[..., None]
-    return torch.where((depth > 0)[..., None], xy, torch.full_like(xy, float("inf"))), depth
 
 
 def sample_pixels(image: Tensor, xy: Tensor, valid: Tensor) -> Tensor:
