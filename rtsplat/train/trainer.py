@@ -230,12 +230,15 @@ class Trainer:
         not a pane (:func:`rtsplat.train.effects.planes_seen_edge_on`), and is left out too."""
         start = time.perf_counter()
         points, normals, rays = [], [], []
-        for index, camera in enumerate(self.train_views.cameras):
-            mask = self.train_views.masks[index]
-            if mask is None:
-                continue
+        masked = [i for i, m in enumerate(self.train_views.masks) if m is not None]
+        sampled = set(masked[::max(1, len(masked) // NEAR_COVERAGE_VIEWS)][:NEAR_COVERAGE_VIEWS])
+        coverage_views = []  # (camera, see-through pixels, surface depth) of the views the coverage is measured on
+        for index in masked:
+            camera, mask = self.train_views.cameras[index], self.train_views.masks[index]
             out = rasterize(self.model.rasterizer_surfels(camera), camera, self.cfg.raster, backend=self.cfg.backend)
             chosen = ((mask > 0.5) & (out.alpha > 0.5))[..., 0]
+            if index in sampled:
+                coverage_views.append((camera, chosen, out.depth[..., 0]))
             directions = image_ray_directions(camera)[chosen]
             seen_through = losses.depth_to_points(out.volume_depth, camera)[chosen]  # what the transmission shows
             points.append(losses.depth_to_points(out.depth, camera)[chosen])
@@ -261,7 +264,7 @@ class Trainer:
             dropped, hull_faces = int((~glass).sum()), int(faces.sum())
             keep = glass & ~faces
             planes, share = planes[keep], float(shares[keep].sum())
-        coverage = self._near_coverage(planes) if planes.shape[0] else None
+        coverage = self._near_coverage(planes, coverage_views) if planes.shape[0] else None
         use, why = decide_near_planes(self.cfg.effects.near_reflection, planes.shape[0], share, coverage)
         if dropped:
             why += f" ({dropped} plane(s) with nothing behind them left out)"
@@ -278,25 +281,18 @@ class Trainer:
         self._write_effects()
         return self.near_fit
 
-    def _near_coverage(self, planes: Tensor) -> float:
+    def _near_coverage(self, planes: Tensor, views: list[tuple]) -> float:
         """The mean coverage (volume alpha) of the near reflection in ``planes`` over the see-through pixels
-        (mask > 0.5, surface alpha > 0.5) of at most ``NEAR_COVERAGE_VIEWS`` training views spread over the
-        capture: how much of the model the glass would reflect."""
-        masked = [i for i, m in enumerate(self.train_views.masks) if m is not None]
-        if not masked:
-            return 0.0
-        step = max(1, len(masked) // NEAR_COVERAGE_VIEWS)
+        (mask > 0.5, surface alpha > 0.5) of ``views`` (camera, those pixels [H,W], surface depth [H,W]; at
+        most ``NEAR_COVERAGE_VIEWS`` training views spread over the capture, rasterized by the plane fit):
+        how much of the model the glass would reflect."""
         held = self.model.mirror_planes
         self.model.set_mirror_planes(planes)
         covered, pixels = 0.0, 0
         try:
-            for index in masked[::step][:NEAR_COVERAGE_VIEWS]:
-                camera = self.train_views.cameras[index]
-                out = rasterize(self.model.rasterizer_surfels(camera), camera, self.cfg.raster,
-                                backend=self.cfg.backend)
-                wanted = ((self.train_views.masks[index] > 0.5) & (out.alpha > 0.5))[..., 0]
+            for camera, wanted, surface_depth in views:
                 _, alpha = self.model._near_reflection(camera, wanted, self.cfg.raster, self.cfg.backend,
-                                                       surface_depth=out.depth[..., 0])
+                                                       surface_depth=surface_depth)
                 covered += float(alpha[..., 0][wanted].sum())
                 pixels += int(wanted.sum())
         finally:
