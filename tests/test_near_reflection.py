@@ -268,7 +268,7 @@ def test_a_bent_pane_shows_a_surfel_where_the_curved_glass_reflects_it(target_y)
         model.set_mirror_planes(ridge)
         wanted = torch.ones(camera.height, camera.width, dtype=torch.bool)
         with torch.no_grad():
-            _, alpha = model._near_reflection(camera, wanted, None, "reference")
+            _, alpha = model.near_reflection(camera, wanted, None, "reference")
         assert float(alpha.max()) > 0.05
         found[bend] = _centroid(alpha[..., 0])
     assert float((found[True] - traced).norm()) < 1.0
@@ -355,7 +355,7 @@ def test_near_reflection_gradcheck_float64():
         try:
             for name, head in zip(names, heads, strict=True):  # the tensors stand in for the parameters
                 parameters[name] = torch.cat([head, full[name][head.shape[0]:]])
-            color, alpha = model._near_reflection(camera, wanted, None, "reference")
+            color, alpha = model.near_reflection(camera, wanted, None, "reference")
             return torch.cat([color, alpha], -1)
         finally:
             parameters.update(originals)
@@ -398,8 +398,8 @@ def test_cpu_backend_matches_the_reference_on_the_mirrored_render():
     model = _model(dtype=torch.float64)
     camera = _camera()
     wanted = torch.ones(camera.height, camera.width, dtype=torch.bool)
-    ref = model._near_reflection(camera, wanted, RasterSettings(), "reference")
-    fast = model._near_reflection(camera, wanted, RasterSettings(), "cpu")
+    ref = model.near_reflection(camera, wanted, RasterSettings(), "reference")
+    fast = model.near_reflection(camera, wanted, RasterSettings(), "cpu")
     for a, b in zip(fast, ref, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-8)
 
@@ -584,8 +584,8 @@ def test_near_reflection_gradcheck_with_respect_to_the_plane_motion():
     base = model.mirror_planes.double()
 
     def near_of(rotation, shift):
-        color, alpha = model._near_reflection(camera, wanted, None, "reference",
-                                              planes=move_planes(base, rotation, shift))
+        color, alpha = model.near_reflection(camera, wanted, None, "reference",
+                                             planes=move_planes(base, rotation, shift))
         return torch.cat([color, alpha], -1)
 
     motion = (torch.tensor([[0.01, -0.02, 0.0]], dtype=torch.float64, requires_grad=True),
@@ -594,8 +594,8 @@ def test_near_reflection_gradcheck_with_respect_to_the_plane_motion():
     assert all(g.abs().sum() > 0 for g in grads)
     assert torch.autograd.gradcheck(near_of, motion, eps=1e-6, atol=1e-5, rtol=1e-3)
     # the cpu backend's backward gives the same plane gradient
-    fast = torch.autograd.grad(torch.cat(model._near_reflection(camera, wanted, None, "cpu",
-                                                                planes=move_planes(base, *motion)), -1).sum(), motion)
+    fast = torch.autograd.grad(torch.cat(model.near_reflection(camera, wanted, None, "cpu",
+                                                               planes=move_planes(base, *motion)), -1).sum(), motion)
     for a, b in zip(fast, grads, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-8)
 
@@ -609,7 +609,7 @@ def test_plane_refinement_finds_the_pane_that_made_the_reflections():
     cameras = [_camera(eye=eye, width=24, height=18) for eye in ((0.2, -2.5, 1.5), (1.8, -1.2, 1.2), (-1.5, -1.8, 1.8))]
     wanted = torch.ones(18, 24, dtype=torch.bool)
     with torch.no_grad():
-        targets = [torch.cat(model._near_reflection(c, wanted, None, "cpu", planes=true), -1) for c in cameras]
+        targets = [torch.cat(model.near_reflection(c, wanted, None, "cpu", planes=true), -1) for c in cameras]
     start = move_planes(true, torch.tensor([[math.radians(4.0), 0.0, 0.0]], dtype=torch.float64),
                         torch.tensor([0.05], dtype=torch.float64))
     refinement = PlaneRefinement(start, extent=1.0, lr_rotation=2e-3, lr_shift=2e-3)
@@ -622,7 +622,7 @@ def test_plane_refinement_finds_the_pane_that_made_the_reflections():
     angle0, shift0 = errors(start)
     for step in range(150):
         camera, target = cameras[step % 3], targets[step % 3]
-        near = torch.cat(model._near_reflection(camera, wanted, None, "cpu", planes=refinement.planes()), -1)
+        near = torch.cat(model.near_reflection(camera, wanted, None, "cpu", planes=refinement.planes()), -1)
         ((near - target) ** 2).sum().backward()
         refinement.step()
     angle, shift = errors(refinement.current)

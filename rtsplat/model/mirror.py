@@ -10,7 +10,7 @@ model rendered through the pane's mirror image:
 * the surfels on the camera's side of the plane (not the glass itself, which lies on the plane, and
   not what is seen through it, which lies behind) are reflected in the plane (:func:`mirror_points`,
   :func:`mirror_quats`: centres mirrored, rotations composed with the reflection so that they stay
-  rotations) and rasterized from the real camera (``RTModel._near_reflection``): every pixel then sees,
+  rotations) and rasterized from the real camera (``RTModel.near_reflection``): every pixel then sees,
   along its own ray, the scene that the ray reflected in the plane sees;
 * each pixel takes the near reflection of the first plane rectangle its ray hits
   (:func:`plane_assignment`), with the volume alpha of that render as its coverage. What the reflected

@@ -225,9 +225,9 @@ class RTModel(nn.Module):
             wanted = shade & (roi > 0)
             near = None
             if self.uses_near_reflection:
-                near_color, near_alpha = self._near_reflection(camera, wanted[..., 0], raster_settings, backend,
-                                                               surface_depth=out.depth[..., 0].detach(),
-                                                               planes=mirror_planes)
+                near_color, near_alpha = self.near_reflection(camera, wanted[..., 0], raster_settings, backend,
+                                                              surface_depth=out.depth[..., 0].detach(),
+                                                              planes=mirror_planes)
                 if self.uses_opacity:  # a mirror of the glass: weighed by how see-through the surface is
                     clear = (1.0 - g["opacity"] / alpha_safe).clamp(0, 1)
                     near_color, near_alpha = clear * near_color, clear * near_alpha
@@ -268,9 +268,9 @@ class RTModel(nn.Module):
         value = 1.0 if self.settings.background == "white" else 0.0
         return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
-    def _near_reflection(self, camera: Camera, wanted: Tensor, raster_settings: RasterSettings | None,
-                         backend: str, surface_depth: Tensor | None = None,
-                         planes: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def near_reflection(self, camera: Camera, wanted: Tensor, raster_settings: RasterSettings | None,
+                        backend: str, surface_depth: Tensor | None = None,
+                        planes: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """C_near [H,W,3] (premultiplied) and its coverage A_near [H,W,1]: for the ``wanted`` pixels [H,W]
         whose ray hits a mirror plane, the volume colour of the surfels on the camera's side of the
         first plane hit, reflected in it (:mod:`rtsplat.model.mirror`); zero elsewhere. At most

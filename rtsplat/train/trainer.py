@@ -291,8 +291,8 @@ class Trainer:
         covered, pixels = 0.0, 0
         try:
             for camera, wanted, surface_depth in views:
-                _, alpha = self.model._near_reflection(camera, wanted, self.cfg.raster, self.cfg.backend,
-                                                       surface_depth=surface_depth)
+                _, alpha = self.model.near_reflection(camera, wanted, self.cfg.raster, self.cfg.backend,
+                                                      surface_depth=surface_depth)
                 covered += float(alpha[..., 0][wanted].sum())
                 pixels += int(wanted.sum())
         finally:
