@@ -473,8 +473,8 @@ class PipelineConfig:
         help="methods trained, rendered and evaluated per scene: name -> trainer config overrides "
         "(e.g. 2dgs: {role: baseline, effects: {transmission: 'off', specular: 'off'}}) plus the method's "
         "role in the report: main (one method; default: the first listed), baseline (the default), "
-        "ablation (compared with the main method), repeat (a rerun of the method named by 'of', same or "
-        "another seed: the report's noise measurement)",
+        "ablation (compared with the main method), repeat (a rerun of the method named by 'of', with that "
+        "method's options and the same or another seed: the report's noise measurement)",
         factory=lambda: {"rtsplat": {"role": "main"}},
         minProperties=1,
         additionalProperties={
@@ -482,7 +482,8 @@ class PipelineConfig:
             "properties": {
                 "role": {"type": "string", "enum": list(typing.get_args(MethodRoleName)),
                          "description": "the method's role in the report and the workflow"},
-                "of": {"type": "string", "description": "role repeat: the method this one reruns"},
+                "of": {"type": "string", "description": "role repeat: the method this one reruns; the repeat "
+                       "trains that method's options with its own keys (a seed) merged over them"},
             },
             "additionalProperties": True,
         },
@@ -612,8 +613,9 @@ def discover_scenes(cfg: PipelineConfig) -> list[str]:
 
 def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, Any]:
     """The trainer config tree of ``method`` on ``scene``: the scene's ``train.options`` and
-    ``iterations``, the method's overrides merged over them (a method's own ``schedule.iterations``
-    wins), ``backend`` and ``device``; then a method's ``budget: F`` scales every iteration count by F
+    ``iterations``, the method's overrides (:func:`method_overrides`) merged over them (a method's own
+    ``schedule.iterations`` wins), ``backend`` and ``device``; then a method's ``budget: F`` scales every
+    iteration count by F
     (:func:`rtsplat.train_config.scale_budget`). Validated: an unknown or bad key is a ConfigError."""
     from rtsplat.train_config import TrainConfig as TrainerConfig
     from rtsplat.train_config import scale_budget
@@ -621,10 +623,8 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
     if method not in cfg.methods:
         raise ConfigError(f"unknown method {method!r}", fix=f"add it under 'methods' (known: {sorted(cfg.methods)})")
     train = scene_config(cfg, scene).train
-    overrides = dict(cfg.methods[method] or {})
+    overrides = method_overrides(cfg, method)
     budget = overrides.pop("budget", None)
-    for key in ROLE_KEYS:  # the method's role (method_roles), not a trainer key
-        overrides.pop(key, None)
     tree = copy.deepcopy(train.options)
     if train.iterations is not None:
         tree = deep_merge(tree, {"schedule": {"iterations": train.iterations}})
@@ -664,6 +664,18 @@ def slurm_resources(cfg: PipelineConfig, rule: str, scene: str | None = None, me
     partition = own.partition or (gpus and slurm.gpu_partition) or slurm.partition or ""
     return {"runtime": int(minutes), "slurm_partition": partition, "slurm_account": own.account or slurm.account or "",
             "gpu": int(gpus)}
+
+
+def method_overrides(cfg: PipelineConfig, method: str) -> dict[str, Any]:
+    """The trainer overrides of ``method`` (its keys less the role keys, ``budget`` included). A repeat
+    reruns the method it names with ``of``: its own keys are merged over that method's, so ``{role: repeat,
+    of: 2dgs, seed: 1}`` trains 2DGS's config with seed 1."""
+    own = {key: value for key, value in (cfg.methods[method] or {}).items() if key not in ROLE_KEYS}
+    role = method_roles(cfg)[method]
+    if role.role != "repeat":
+        return own
+    rerun = {key: value for key, value in (cfg.methods[role.of] or {}).items() if key not in ROLE_KEYS}
+    return deep_merge(rerun, own)
 
 
 def train_json(cfg: PipelineConfig, scene: str, method: str, quote: bool = True) -> str:

@@ -120,6 +120,33 @@ def test_the_ablations_at_4x_layer_builds_each_ablation_at_the_budget_of_its_ful
         assert ablation_reference(m, cfg.methods, roles) == "rtsplat_x4"
 
 
+def test_a_repeat_trains_the_options_of_the_method_it_reruns():
+    """benchmarks/family.yaml's `2dgs_seed1: {role: repeat, of: 2dgs, seed: 1}` is 2DGS with seed 1, not the
+    default model with seed 1: a repeat takes the options of its `of` method (budget too), its own keys merged
+    over them."""
+    from rtsplat.config import trainer_options
+
+    cfg = load_config(ROOT / "benchmarks" / "family.yaml")
+    scene = cfg.scenes[0]
+    plain, repeat = trainer_options(cfg, scene, "2dgs"), trainer_options(cfg, scene, "2dgs_seed1")
+    assert TrainConfig.from_dict(repeat).effects.transmission == "off"
+    assert TrainConfig.from_dict(repeat).effects.specular == "off"
+    assert repeat["seed"] == 1 and TrainConfig.from_dict(plain).seed != 1
+    assert {k: v for k, v in repeat.items() if k != "seed"} == {k: v for k, v in plain.items() if k != "seed"}
+
+    cfg = load_config_dict({"methods": {
+        "rtsplat": {"role": "main"},
+        "narrow_x4": {"budget": 4, "model": {"mlp_width": 64, "sh_degree": 2}},
+        "narrow_x4_again": {"role": "repeat", "of": "narrow_x4", "seed": 3, "model": {"mlp_width": 32}},
+    }})
+    base, again = trainer_options(cfg, "any", "narrow_x4"), trainer_options(cfg, "any", "narrow_x4_again")
+    assert again["schedule"]["iterations"] == base["schedule"]["iterations"]  # the budget of narrow_x4
+    plain_iterations = TrainConfig.from_dict(trainer_options(cfg, "any", "rtsplat")).schedule.iterations
+    assert again["schedule"]["iterations"] == 4 * plain_iterations
+    assert again["model"]["mlp_width"] == 32 and again["model"]["sh_degree"] == 2 and again["seed"] == 3
+    assert base["model"]["mlp_width"] == 64  # the rerun method keeps its own
+
+
 def test_schema_also_accepts_what_snakemake_validates():
     import jsonschema
 
