@@ -340,6 +340,25 @@ def test_a_near_reflection_that_does_not_train_the_surfels_gives_the_same_image_
     assert reads.surfels.sh_dc.grad[:30].abs().sum() > 0
 
 
+def test_a_mirrored_pass_with_nothing_to_train_builds_no_autograd_graph():
+    """With the surfels only read and the planes fixed, the mirrored render carries no gradient (the rasterizer
+    runs no backward for it during training); the same image as with a graph. Trained surfels, or planes that
+    are being refined, keep the graph."""
+    camera = _camera()
+    model = _model()
+    wanted = torch.ones(camera.height, camera.width, dtype=torch.bool)
+    trained, _ = model.near_reflection(camera, wanted, None, "reference")
+    assert trained.requires_grad and trained.grad_fn is not None
+    model.settings = dataclasses.replace(model.settings, near_reflection_trains_surfels=False)
+    read, read_alpha = model.near_reflection(camera, wanted, None, "reference")
+    assert not read.requires_grad and not read_alpha.requires_grad
+    torch.testing.assert_close(read, trained.detach(), rtol=0, atol=0)
+    planes = model.mirror_planes.clone().requires_grad_(True)
+    refined, _ = model.near_reflection(camera, wanted, None, "reference", planes=planes)
+    refined.sum().backward()
+    assert planes.grad is not None and torch.isfinite(planes.grad).all() and planes.grad.abs().sum() > 0
+
+
 def test_near_reflection_gradcheck_float64():
     """The mirrored render's colour and coverage against finite differences, with respect to the
     centres, colours and scales of the first surfels above the pane (reference backend, float64)."""

@@ -298,40 +298,44 @@ class RTModel(nn.Module):
         alpha = torch.zeros(H, W, 1, dtype=p.means.dtype, device=p.means.device)
         center = camera.center.to(p.means.dtype)
         bent = (is_bent(planes) & self.settings.near_reflection_bend).tolist()
-        for k in order:
-            if counts[k] == 0:
-                break
-            n, c = normals[k], centres[k]
-            camera_side = signed_distance(center, n, c).detach()  # which side: no gradient
-            if float(camera_side.abs()) <= float(thickness[k]):
-                continue  # the camera is inside the pane's slab: no side to mirror
-            side = signed_distance(p.means.detach(), n.detach(), c.detach()) * torch.sign(camera_side)
-            keep = torch.nonzero(side > thickness[k], as_tuple=False).flatten()
-            if keep.numel() == 0:
-                continue
-            means = p.means[keep]
-            # the view-independent (degree 0) colour, which no direction changes: a reflection sees the
-            # surfels from directions that no view may have seen them from, where higher degrees extrapolate
-            colors = eval_sh(p.sh[keep], F.normalize(means - center, dim=-1), 0)
-            quats, scales = p.quats[keep], p.scales[keep]
-            occupancy = p.occupancy[keep]
-            opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)
-            if not self.settings.near_reflection_trains_surfels:  # the reflection reads the surfels only
-                means, quats, scales, occupancy, opacity, colors = (
-                    t.detach() for t in (means, quats, scales, occupancy, opacity, colors))
-            mirrored = Surfels(mirror_points(means, n, c), mirror_quats(quats, n), scales, occupancy, opacity,
-                               means.new_zeros(keep.numel(), 0), colors)
-            out = rasterize(mirrored, camera, raster_settings, backend=backend)
-            plane_color, plane_alpha = out.color, out.volume_alpha
-            if bent[k]:  # curved glass: each pixel reads the mirrored render where its bent reflection lands
-                plane_distance = torch.where(index == k, distance, torch.full_like(distance, float("inf")))
-                xy, valid = bent_lookup(camera, directions, planes[k].detach(), plane_distance,
-                                        mirrored_distance(out, directions, camera))
-                plane_color = sample_pixels(out.color, xy, valid)
-                plane_alpha = sample_pixels(out.volume_alpha, xy, valid)
-            on_plane = (index == k)[..., None]
-            color = torch.where(on_plane, plane_color, color)
-            alpha = torch.where(on_plane, plane_alpha, alpha)
+        # without a gradient to pass (surfels only read, planes fixed) the mirrored passes build no autograd
+        # graph: the rasterizer would otherwise track its screen-space probe and run a backward for nothing
+        needs_grad = self.settings.near_reflection_trains_surfels or planes.requires_grad
+        with torch.set_grad_enabled(torch.is_grad_enabled() and needs_grad):
+            for k in order:
+                if counts[k] == 0:
+                    break
+                n, c = normals[k], centres[k]
+                camera_side = signed_distance(center, n, c).detach()  # which side: no gradient
+                if float(camera_side.abs()) <= float(thickness[k]):
+                    continue  # the camera is inside the pane's slab: no side to mirror
+                side = signed_distance(p.means.detach(), n.detach(), c.detach()) * torch.sign(camera_side)
+                keep = torch.nonzero(side > thickness[k], as_tuple=False).flatten()
+                if keep.numel() == 0:
+                    continue
+                means = p.means[keep]
+                # the view-independent (degree 0) colour, which no direction changes: a reflection sees the
+                # surfels from directions that no view may have seen them from, where higher degrees extrapolate
+                colors = eval_sh(p.sh[keep], F.normalize(means - center, dim=-1), 0)
+                quats, scales = p.quats[keep], p.scales[keep]
+                occupancy = p.occupancy[keep]
+                opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)
+                if not self.settings.near_reflection_trains_surfels:  # the reflection reads the surfels only
+                    means, quats, scales, occupancy, opacity, colors = (
+                        t.detach() for t in (means, quats, scales, occupancy, opacity, colors))
+                mirrored = Surfels(mirror_points(means, n, c), mirror_quats(quats, n), scales, occupancy, opacity,
+                                   means.new_zeros(keep.numel(), 0), colors)
+                out = rasterize(mirrored, camera, raster_settings, backend=backend)
+                plane_color, plane_alpha = out.color, out.volume_alpha
+                if bent[k]:  # curved glass: each pixel reads the mirrored render where its bent reflection lands
+                    plane_distance = torch.where(index == k, distance, torch.full_like(distance, float("inf")))
+                    xy, valid = bent_lookup(camera, directions, planes[k].detach(), plane_distance,
+                                            mirrored_distance(out, directions, camera))
+                    plane_color = sample_pixels(out.color, xy, valid)
+                    plane_alpha = sample_pixels(out.volume_alpha, xy, valid)
+                on_plane = (index == k)[..., None]
+                color = torch.where(on_plane, plane_color, color)
+                alpha = torch.where(on_plane, plane_alpha, alpha)
         return color, alpha
 
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
