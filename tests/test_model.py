@@ -435,6 +435,54 @@ def test_specular_runs_only_where_the_roi_weighs_and_the_image_and_gradients_do_
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
 
 
+def test_see_through_surfaces_alone_get_the_specular_network():
+    """model.specular_surfaces='see_through': the network shades only where the blended optical opacity says
+    see-through. An opaque pixel (opacity >= 0.8) shows its volume colour alone, a see-through one (<= 0.5) the
+    same colour as with 'all', and the network runs on fewer rows.
+    Without transmission (no optical opacity) every surface is shaded, as with 'all'."""
+    rows = []
+
+    def count_rows(module, inputs, output):
+        rows.append(inputs[0].shape[0])
+
+    results = {}
+    for surfaces in ("all", "see_through"):
+        model = _model(seed=1)
+        model.settings = dataclasses.replace(model.settings, specular_surfaces=surfaces)
+        with torch.no_grad():  # the left half opaque, the right half clear glass
+            left = model.surfels.means[:, 0] < 0
+            model.surfels.opacity_logit.copy_(torch.where(left, torch.tensor(6.0), torch.tensor(-4.0)))
+        model.specular_net.register_forward_hook(count_rows)
+        result = _render(model)
+        result.color.sum().backward()
+        results[surfaces] = (result, model.surfels.opacity_logit.grad.clone())
+    (every, _), (clear, clear_grad) = results["all"], results["see_through"]
+    opacity = every.layers["blended_opacity"] / every.layers["alpha"].clamp_min(1e-6)
+    shaded = every.layers["shade"] > 0
+    opaque, see_through = shaded & (opacity >= 0.8), shaded & (opacity <= 0.5)
+    assert opaque.sum() > 20 and see_through.sum() > 20
+    assert rows[1] < rows[0]  # the network ran on fewer pixels
+    torch.testing.assert_close(clear.color[opaque.expand(-1, -1, 3)], clear.layers["trans"][opaque.expand(-1, -1, 3)],
+                               rtol=0, atol=0)
+    assert (every.color - every.layers["trans"])[opaque.expand(-1, -1, 3)].abs().max() > 1e-3
+    torch.testing.assert_close(clear.color[see_through.expand(-1, -1, 3)], every.color[see_through.expand(-1, -1, 3)])
+    assert torch.isfinite(clear_grad).all()
+    # no transmission: no optical opacity to read, every surface shaded as with 'all'
+    plain = []
+    for surfaces in ("all", "see_through"):
+        model = _model(effects=ActiveEffects(transmission=False), seed=1)
+        model.settings = dataclasses.replace(model.settings, specular_surfaces=surfaces)
+        plain.append(_render(model).color.detach())
+    torch.testing.assert_close(plain[0], plain[1], rtol=0, atol=0)
+
+
+def test_see_through_weight_is_one_below_the_first_opacity_zero_above_the_second_and_passes_no_gradient():
+    opacity = torch.tensor([0.0, 0.5, 0.65, 0.8, 1.0], requires_grad=True)
+    weight = rtmodel.see_through_weight(opacity)
+    torch.testing.assert_close(weight, torch.tensor([1.0, 1.0, 0.5, 0.0, 0.0]))
+    assert not weight.requires_grad
+
+
 def _sh_grad(model, gating, weight):
     model.zero_grad(set_to_none=True)
     result = _render(model, gating=gating)

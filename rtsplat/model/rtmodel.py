@@ -54,7 +54,7 @@ from rtsplat.model.mirror import (
     signed_distance,
     with_bend,
 )
-from rtsplat.model.settings import Ablations, Gating, ModelSettings
+from rtsplat.model.settings import SEE_THROUGH_OPACITY, Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh
 from rtsplat.model.specular import SpecularNetwork
 from rtsplat.model.surfels import SurfelParameters
@@ -218,6 +218,8 @@ class RTModel(nn.Module):
 
         shade = alpha > self.settings.shade_alpha_threshold  # [H,W,1]
         roi = (g["roi"] / alpha_safe).clamp(0, 1)
+        if self.settings.specular_surfaces == "see_through" and self.uses_opacity:
+            roi = roi * see_through_weight(g["opacity"] / alpha_safe)
         specular_on = stage == "full" and self.effects.specular
         if specular_on:
             # a pixel with no region-of-interest weight shows C_trans alone (region_blend and the layers
@@ -415,6 +417,15 @@ def on_plane_surface(index: Tensor, distance: Tensor, directions: Tensor, camera
     plane_depth = torch.where(hit, distance, torch.zeros_like(distance)) * (directions * forward).sum(-1)
     tolerance = thickness.to(directions.dtype)[index.clamp_min(0)] + ON_PLANE_TOLERANCE * plane_depth.abs()
     return hit & ((surface_depth.to(directions.dtype) - plane_depth).abs() <= tolerance)
+
+
+def see_through_weight(opacity: Tensor) -> Tensor:
+    """How much a pixel's surface counts as see-through for ``specular_surfaces="see_through"``, from its
+    blended optical opacity [H,W,1]: 1 up to ``SEE_THROUGH_OPACITY[0]``, 0 from ``SEE_THROUGH_OPACITY[1]``,
+    linear between; without gradient (the opacity learns from the images and the masks, not from where the
+    network shades)."""
+    low, high = SEE_THROUGH_OPACITY
+    return ((high - opacity.detach()) / (high - low)).clamp(0, 1)
 
 
 def schlick_fresnel(normal_reflectance: Tensor, cos_incidence: Tensor) -> Tensor:

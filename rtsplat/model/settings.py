@@ -14,6 +14,8 @@ from typing import Literal
 
 from rtsplat.schema import setting
 
+# specular_surfaces="see_through": a surface is see-through up to the first blended opacity, opaque from the second
+SEE_THROUGH_OPACITY = (0.5, 0.8)
 
 @dataclass
 class Ablations:
@@ -58,6 +60,14 @@ class ModelSettings:
     env_width: int = setting(1024, help="environment map width (finest level)", minimum=2)
     env_levels: int = setting(9, help="mip levels of the environment map (roughness picks the level)", minimum=1)
     mlp_width: int = setting(256, help="hidden width of the specular network", minimum=1)
+    specular_surfaces: Literal["all", "see_through"] = setting(
+        "all", help="which surfaces inside the region of interest the specular network shades. all: every one (the "
+        "paper); see_through: those the mask-trained opacity calls see-through (blended optical opacity up to "
+        f"{SEE_THROUGH_OPACITY[0]}, fading out by {SEE_THROUGH_OPACITY[1]}), where a thin surface reflects over what "
+        "it lets through; an opaque surface then shows its volume colour, view-dependent through its SH degree "
+        "as in 2DGS, and the network's cost follows the glass's share of the image. Only with transmission (the "
+        "optical opacity); without it every surface, as all"
+    )
     specular_view_angle: bool = setting(
         True, help="feed |cos| of the angle between the view ray and the surface normal to the specular network "
         "(with the environment feature), so that C_spec and beta can follow the angle of incidence (Fresnel)"
