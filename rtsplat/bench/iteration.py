@@ -56,6 +56,8 @@ METHODS = {
                             "lr": {"mirror_plane_rotation": 3e-4, "mirror_plane_shift": 1e-4}},
     # the attenuation beta as the specular network's fourth output (the paper's) instead of the material's head
     "rtsplat_paper_beta": {"model": {**DEMO_OPTIONS["model"], "attenuation_from": "network"}},
+    # the specular network on see-through surfaces alone (model.specular_surfaces)
+    "rtsplat_see_through": {"model": {**DEMO_OPTIONS["model"], "specular_surfaces": "see_through"}},
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
 }
 PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",
