@@ -932,6 +932,30 @@ def _run_seed(run_dir: Path):
     return _read_json(path).get("seed") if path.is_file() else None
 
 
+def metrics_commits(scenes: dict) -> dict[str, list[str]]:
+    """The commits whose code computed the runs' metrics (``rtsplat metrics`` records its source commit):
+    commit -> the runs ("scene/method") it computed, the commit of most runs first. Runs whose metrics
+    recorded none are left out."""
+    runs_of: dict[str, list[str]] = {}
+    for scene, runs in scenes.items():
+        for method, run in runs.items():
+            commit = (run.metrics or {}).get("commit")
+            if commit:
+                runs_of.setdefault(commit, []).append(f"{scene}/{method}")
+    return dict(sorted(runs_of.items(), key=lambda item: -len(item[1])))
+
+
+def commits_text(commits: dict[str, list[str]]) -> str:
+    """One sentence for :func:`metrics_commits`: the commit, or every commit with its runs when the runs
+    were measured by different code."""
+    if not commits:
+        return "Commit: not recorded."
+    if len(commits) == 1:
+        return f"Commit: {next(iter(commits))}."
+    parts = "; ".join(f"{commit} ({', '.join(runs)})" for commit, runs in commits.items())
+    return f"Commits (these runs' metrics were computed by different code): {parts}."
+
+
 def build_report(results: str | Path, out: str | Path, *, roles: Roles | None = None,
                  config_file: str | Path | list | None = None, commands: list[str] | None = None) -> Path:
     """Write the report of ``results`` into ``out`` (atomically). ``roles``: the methods' roles (none:
@@ -1064,9 +1088,10 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
         _family_section(doc, family, out)
     any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
     machine = any_metrics.get("machine", {})
+    commits = metrics_commits(scenes)
     doc.paragraph(f"Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
                   f"{machine.get('platform', '?')}; rendering device: {any_metrics.get('render_device', '?')}. "
-                  f"Commit: {any_metrics.get('commit') or 'not recorded'}. "
+                  f"{commits_text(commits)} "
                   f"Packages: {', '.join(f'{k} {v}' for k, v in any_metrics.get('versions', {}).items())}.")
     doc.paragraph("LPIPS: " + str(any_metrics.get("lpips", "not computed")))
     for scene, runs in scenes.items():
@@ -1214,7 +1239,7 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
     (out / "index.html").write_text(page)
     (out / "index.md").write_text(markdown)
     record = {"title": doc.title, "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "commit": any_metrics.get("commit"), "machine": machine,
+              "commit": next(iter(commits), None), "commits": commits, "machine": machine,
               "render_device": any_metrics.get("render_device"), "versions": any_metrics.get("versions", {}),
               "scenes": list(scenes), "tables": doc.tables}
     (out / REPORT_JSON).write_text(json.dumps(record, indent=1) + "\n")

@@ -51,6 +51,16 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
     return lines + [""]
 
 
+def commit_line(record: dict) -> str:
+    """The page's commit line: the report's commit, or each commit with how many runs it measured when the
+    report's runs came from different code (``commits``)."""
+    commits = record.get("commits") or {}
+    if len(commits) > 1:
+        return "- Commits: " + ", ".join(f"`{commit}` ({len(runs)} run{'' if len(runs) == 1 else 's'})"
+                                         for commit, runs in commits.items())
+    return f"- Commit: `{record.get('commit') or 'not recorded'}`"
+
+
 def results_markdown(record: dict, source: str) -> str:
     """The page of one report's ``record`` (its report.json); ``source``: the report folder, as named on the
     page."""
@@ -63,7 +73,7 @@ def results_markdown(record: dict, source: str) -> str:
         "do not edit by hand. What the columns mean, the plots and every other table: the report itself "
         "(`index.html`); what was measured around these numbers and why: [benchmarks.md](benchmarks.md).",
         "",
-        f"- Commit: `{record.get('commit') or 'not recorded'}`",
+        commit_line(record),
         f"- Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
         f"{machine.get('platform', '?')}; rendering device: {record.get('render_device') or '?'}",
         f"- Packages: {versions or '?'}",

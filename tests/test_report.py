@@ -465,6 +465,31 @@ def test_results_page_carries_the_reports_tables_commit_and_machine(results, tmp
     assert "Noise" not in page.split("## Scene toy", 1)[1]  # the noise section is left to the report
 
 
+def test_a_report_over_runs_of_different_code_names_every_commit_with_its_runs(results, tmp_path):
+    """Runs measured by two commits: the report names both, each with its runs, and so does the results page."""
+    import shutil
+
+    from rtsplat.results_page import main as results_page
+
+    copy = tmp_path / "results"
+    shutil.copytree(results, copy)
+    metrics = sorted((copy / "toy" / "metrics").glob("*.json"))
+    assert len(metrics) >= 2
+    record = json.loads(metrics[0].read_text())
+    record["commit"] = "0123456789ab"
+    metrics[0].write_text(json.dumps(record))
+    build_report(copy, tmp_path / "report", roles=Roles.from_dict(ROLES))
+    md = (tmp_path / "report" / "index.md").read_text()
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert f"toy/{metrics[0].stem}" in report["commits"]["0123456789ab"]
+    if _git_head() is not None:  # the other runs' commit is this checkout's
+        assert len(report["commits"]) == 2 and "Commits (these runs' metrics were computed by different code)" in md
+        assert f"0123456789ab (toy/{metrics[0].stem})" in md
+        assert results_page(["--report", str(tmp_path / "report"), "--out", str(tmp_path / "results.md")]) == 0
+        assert "- Commits: `" in (tmp_path / "results.md").read_text()
+        assert "`0123456789ab` (1 run)" in (tmp_path / "results.md").read_text()
+
+
 def test_results_page_of_a_folder_without_report_json_is_a_clear_error(tmp_path, capsys):
     from rtsplat.results_page import main as results_page
 
