@@ -218,8 +218,9 @@ class RTModel(nn.Module):
 
         shade = alpha > self.settings.shade_alpha_threshold  # [H,W,1]
         roi = (g["roi"] / alpha_safe).clamp(0, 1)
+        surface_opacity = g["opacity"] / alpha_safe  # the optical opacity of the surface a pixel shows
         if self.settings.specular_surfaces == "see_through" and self.uses_opacity:
-            roi = roi * see_through_weight(g["opacity"] / alpha_safe)
+            roi = roi * see_through_weight(surface_opacity)
         specular_on = stage == "full" and self.effects.specular
         if specular_on:
             # a pixel with no region-of-interest weight shows C_trans alone (region_blend and the layers
@@ -231,7 +232,7 @@ class RTModel(nn.Module):
                                                               surface_depth=out.depth[..., 0].detach(),
                                                               planes=mirror_planes)
                 if self.uses_opacity:  # a mirror of the glass: weighed by how see-through the surface is
-                    clear = (1.0 - g["opacity"] / alpha_safe).clamp(0, 1)
+                    clear = (1.0 - surface_opacity).clamp(0, 1)
                     near_color, near_alpha = clear * near_color, clear * near_alpha
                 near = (near_color, near_alpha)
                 layers.update(near=near_color, near_alpha=near_alpha)

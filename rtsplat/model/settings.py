@@ -17,6 +17,7 @@ from rtsplat.schema import setting
 # specular_surfaces="see_through": a surface is see-through up to the first blended opacity, opaque from the second
 SEE_THROUGH_OPACITY = (0.5, 0.8)
 
+
 @dataclass
 class Ablations:
     """The paper's ablation switches (all on: the full method)."""
