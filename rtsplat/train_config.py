@@ -45,10 +45,12 @@ class Effects:
         "a region of interest given in the config"
     )
     near_reflection: Literal["auto", "on", "off"] = setting(
-        "auto", help="reflections of the scene's own surfels in planar glass (mirror planes fitted, as the "
-        "reflections start, to the surface depth of the see-through pixels; one more rasterization per plane in "
-        "view); auto: on iff transmission and specular are on and see-through planes explain enough of that "
-        "surface (planar glass)"
+        "off", help="reflections of the scene's own surfels in the glass (mirror planes fitted, as the "
+        "reflections start, to the surface depth of the see-through pixels, bent with curved glass; one more "
+        "rasterization per plane in view); auto: on iff transmission and specular are on, see-through planes "
+        "explain enough of that surface and their mirrored render covers enough of it. Off by default: on the "
+        "glass family it helped curved glass only and cost planar glass both time and accuracy "
+        "(docs/fidelity.md, finding 34)"
     )
     appearance: Literal["auto", "on", "off"] = setting(
         "auto", help="a per-view exposure and white-balance correction (log gain and offset per channel) learnt "

@@ -94,7 +94,7 @@ def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
     assert trees[("cabin", "rtsplat_mlp64")]["model"]["mlp_width"] == 64
     assert trees[("cabin", "rtsplat_init1")]["densify"]["initial_copies"] == 1
     assert trees[("dome", "2dgs_x4")]["effects"] == {"transmission": "off", "specular": "off",
-                                                      "near_reflection": "auto", "appearance": "auto"}
+                                                      "near_reflection": "off", "appearance": "auto"}
 
 
 def test_the_ablations_at_4x_layer_builds_each_ablation_at_the_budget_of_its_full_model():

@@ -536,9 +536,12 @@ def test_effects_auto_decides_from_masks_and_roi():
     effects, why = decide_effects(Effects(), 0.0, "config")
     assert effects == ActiveEffects(False, True) and "config" in why["specular"]
     effects, why = decide_effects(Effects(), transparent_fraction=0.1, roi_source="estimated")
-    # near reflections are asked for with both branches; the glass's planes decide later
+    # near reflections are off unless asked for
+    assert effects == ActiveEffects(True, True, near_reflection=False) and why["near_reflection"] == "config: off"
+    # auto asks for them with both branches; the glass's planes decide later
+    effects, why = decide_effects(Effects(near_reflection="auto"), transparent_fraction=0.1, roi_source="estimated")
     assert effects == ActiveEffects(True, True, near_reflection=True) and "planes decide" in why["near_reflection"]
-    effects, why = decide_effects(Effects(transmission="on", specular="off"), 0.0, "config")
+    effects, why = decide_effects(Effects(transmission="on", specular="off", near_reflection="auto"), 0.0, "config")
     assert effects == ActiveEffects(True, False) and why["specular"] == "config: off"
     assert "needs transmission and specular" in why["near_reflection"]
     assert not decide_effects(Effects(near_reflection="off"), 0.1, None)[0].near_reflection

@@ -56,7 +56,8 @@ def read_log(run: Path) -> list[dict]:
 @pytest.mark.slow
 def test_training_reduces_loss_and_raises_heldout_psnr(tmp_path):
     scene = write_scene(tmp_path / "scene", views=12, width=64, height=48)
-    trainer = Trainer(scene, config(300), tmp_path / "run", progress=False, log=lambda m: None)
+    trainer = Trainer(scene, config(300, effects={"near_reflection": "auto"}), tmp_path / "run", progress=False,
+                      log=lambda m: None)
     before = trainer.evaluate()
     summary = trainer.train()
     log = read_log(tmp_path / "run")
@@ -602,11 +603,14 @@ def test_mirror_planes_are_fitted_once_as_the_reflections_start_and_come_back_on
     resumed.fit_mirror_planes = lambda: refits.append(resumed.iteration)
     resumed.step()
     assert refits == []
-    off = Trainer(glass_scene, config(12, effects={"near_reflection": "off"}), tmp_path / "off", progress=False,
-                  log=lambda m: None)
+    # the default config: the near term is off, so no plane is fitted and no mirrored pass runs
+    off = Trainer(glass_scene, config(12), tmp_path / "off", progress=False, log=lambda m: None)
+    off_fits = []
+    off.fit_mirror_planes = lambda: off_fits.append(off.iteration)
     for _ in range(6):
         off.step()
-    assert off.near_fit is None and not off.model.uses_near_reflection
+    assert off_fits == [] and off.near_fit is None and not off.model.uses_near_reflection
+    assert off.model.effects.transmission and off.model.effects.specular
 
 
 def test_mirror_planes_learnt_from_the_images_move_stay_planes_and_resume(glass_scene, tmp_path):
