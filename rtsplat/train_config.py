@@ -49,7 +49,7 @@ class Effects:
         "reflections start, to the surface depth of the see-through pixels, bent with curved glass; one more "
         "rasterization per plane in view); auto: on iff transmission and specular are on, see-through planes "
         "explain enough of that surface and their mirrored render covers enough of it. Off by default: on the "
-        "glass family it helped curved glass only and cost planar glass both time and accuracy "
+        "glass family it cost flat glass time and accuracy and helped two of three curved scenes "
         "(docs/fidelity.md, finding 34)"
     )
     appearance: Literal["auto", "on", "off"] = setting(
