@@ -163,6 +163,13 @@ class Losses:
         "the learned background is not asked to grow one; docs/fidelity.md, finding 11), or one (the paper: an "
         "opaque surface on every such pixel, the sky included)"
     )
+    mask_coverage_weight: float = setting(
+        0.01, help="BCE of the surface alpha against 1 on the pixels the transparent mask marks (mean over the "
+        "image, as the mask BCE): the mask says a surface covers the pixel, so the glass grows no holes, where "
+        "a pixel would show the volume colour without the glass's reflection (model.shade_coverage). The mask "
+        "BCE alone can clear a see-through pixel by lowering the occupancy as well as the opacity (docs/fidelity.md, "
+        "finding 36; 0: the paper's losses)", minimum=0.0
+    )
     reflection_weight: float = setting(
         0.0, help="L1 of the reflection layer (roi C_spec, mean over the image): among decompositions that give "
         "the same image, prefer the one that leaves view-independent light to C_trans and C_scatter", minimum=0.0

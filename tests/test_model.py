@@ -403,6 +403,34 @@ def test_composite_equation_with_every_branch_on():
     assert L["shade"].sum() > 10  # the test exercises shaded pixels
 
 
+def test_shade_coverage_gives_the_uncovered_part_of_a_pixel_the_volume_colour():
+    """model.shade_coverage: the shaded colour weighs the surface's coverage of the pixel (its alpha) times the
+    normalised region membership, the rest shows C_trans; off: the normalised membership alone. The shaded
+    colour itself (C_spec, beta, tau, C_scatter) is the same either way."""
+    results = {}
+    for on in (False, True):
+        model = _model(seed=2)
+        model.settings = dataclasses.replace(model.settings, shade_coverage=on)
+        result = _render(model)
+        result.color.sum().backward()
+        results[on] = (result, model.surfels.occupancy_logit.grad.clone())
+    (off, _), (on, grad) = results[False], results[True]
+    L = off.layers
+    alpha = L["alpha"].clamp(0, 1)
+    partial = (L["shade"] > 0) & (alpha < 0.9) & (L["roi"] > 0.5)
+    assert partial.sum() > 10  # silhouettes and thin cover: the pixels the setting is about
+    torch.testing.assert_close(on.layers["roi"], L["roi"] * alpha)
+    shaded = L["spec"] + L["beta"] * (L["tau"] * L["trans"] + (1 - L["tau"]) * L["scatter"])
+    weight = L["roi"] * alpha
+    expected = torch.where(L["shade"] > 0, weight * shaded + (1 - weight) * L["trans"], L["trans"])
+    torch.testing.assert_close(on.color, expected)
+    for name in ("spec", "beta", "tau", "scatter", "trans"):
+        torch.testing.assert_close(on.layers[name], L[name], rtol=0, atol=0)
+    gap = (on.color - off.color).abs().amax(-1, keepdim=True)
+    assert gap[partial].max() > 1e-3
+    assert torch.isfinite(grad).all() and grad.abs().max() > 0
+
+
 class _EveryShadedPixel(RTModel):
     """Runs the specular network on every shaded pixel, region of interest or not."""
 
@@ -611,6 +639,24 @@ def test_checkpoint_of_a_model_without_the_extra_specular_inputs_rebuilds_its_ne
     assert rebuilt.specular_net.mlp[0].in_features == SMALL.env_channels * 5
     with torch.no_grad():
         torch.testing.assert_close(_render(rebuilt).color, _render(model).color, rtol=0, atol=0)
+
+
+def test_a_model_written_before_shade_coverage_reads_without_it_and_renders_as_it_was_trained(tmp_path):
+    """A file that names no ``shade_coverage`` (written before the setting) is read with it off, the composite
+    such a model was trained with; one written now keeps the setting it names."""
+    plain = _model_with(shade_coverage=False)
+    write_checkpoint(tmp_path / "old.pt", plain, RasterSettings())
+    state = torch.load(tmp_path / "old.pt", weights_only=False)
+    del state["model"]["settings"]["shade_coverage"]
+    torch.save(state, tmp_path / "old.pt")
+    old = read_checkpoint(tmp_path / "old.pt").build_model()
+    assert old.settings.shade_coverage is False
+    current = _model_with(shade_coverage=True)
+    write_checkpoint(tmp_path / "new.pt", current, RasterSettings())
+    assert read_checkpoint(tmp_path / "new.pt").build_model().settings.shade_coverage is True
+    with torch.no_grad():
+        torch.testing.assert_close(_render(old).color, _render(plain).color, rtol=0, atol=0)
+        assert (_render(current).color - _render(plain).color).abs().max() > 1e-3
 
 
 def test_a_model_with_beta_from_the_material_round_trips_and_one_written_before_reads_as_network(tmp_path):

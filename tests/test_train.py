@@ -178,6 +178,37 @@ def test_mask_loss_asks_a_background_pixel_for_a_surface_only_with_the_paper_tar
                        transparent_mask_loss(alpha * opacity, see_through, alpha))
 
 
+def test_mask_coverage_loss_asks_marked_pixels_for_a_surface_and_leaves_the_others_alone():
+    from rtsplat.train.losses import mask_coverage_loss
+
+    alpha = torch.tensor([0.0, 0.4, 1.0, 0.4], dtype=torch.float64).reshape(1, 4, 1).requires_grad_(True)
+    mask = torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=torch.float64).reshape(1, 4, 1)
+    loss = mask_coverage_loss(alpha, mask)
+    (grad,) = torch.autograd.grad(loss, alpha)
+    assert torch.isfinite(loss) and torch.isfinite(grad).all()  # alpha exactly 0 and exactly 1
+    assert math.isclose(float(loss), -(math.log(1e-6) + math.log(0.4) + math.log(1 - 1e-6)) / 4)
+    assert grad[0, 1, 0] < 0  # descent raises a marked pixel's coverage
+    assert grad[0, 2, 0] == 0 and grad[0, 3, 0] == 0  # covered already; not marked
+    assert mask_coverage_loss(alpha, torch.zeros_like(mask)) == 0
+
+
+def test_the_mask_coverage_term_raises_the_glass_coverage(glass_scene, tmp_path):
+    """With the term the toy pane's marked pixels end up covered more (surface alpha), and the log shows it."""
+    def coverage(weight: float) -> float:
+        cfg = config(12, losses={"mask_coverage_weight": weight})
+        trainer = Trainer(glass_scene, cfg, tmp_path / f"w{weight}", progress=False, log=lambda m: None)
+        trainer.train()
+        assert ("loss_mask_coverage" in read_log(tmp_path / f"w{weight}")[-1]) == (weight > 0)
+        values = []
+        with torch.no_grad():
+            for camera, mask in zip(trainer.train_views.cameras, trainer.train_views.masks, strict=True):
+                alpha = trainer.model.render(camera, raster_settings=cfg.raster, backend=cfg.backend).layers["alpha"]
+                values.append(alpha[mask > 0.5])
+        return float(torch.cat(values).mean())
+
+    assert coverage(1.0) > coverage(0.0) + 0.01
+
+
 def test_the_reflection_prior_dims_the_reflection_layer(glass_scene, tmp_path):
     def mean_reflection(weight: float) -> float:
         cfg = config(16, losses={"reflection_weight": weight}, schedule={"volume_until": 2, "specular_from": 4})

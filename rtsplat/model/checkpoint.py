@@ -162,8 +162,9 @@ def _settings_of_older_models(settings: dict) -> dict:
     * no ``view_independent_roi``, ``near_reflection_on_surface`` or ``near_reflection_trains_surfels``: the
       colour and the near reflections such a model was trained with (no degree-0 region, the near term on every
       pixel whose ray meets a pane, trained through the mirrored pass);
-    * no ``attenuation_from``: beta from the specular network, the only source such a model had."""
-    for name in (*OPTIONAL_SPECULAR_INPUTS, "view_independent_roi", "near_reflection_on_surface"):
+    * no ``attenuation_from``: beta from the specular network, the only source such a model had;
+    * no ``shade_coverage``: the shaded colour over the whole pixel, as such a model was trained."""
+    for name in (*OPTIONAL_SPECULAR_INPUTS, "view_independent_roi", "near_reflection_on_surface", "shade_coverage"):
         settings.setdefault(name, False)
     settings.setdefault("near_reflection_trains_surfels", True)
     settings.setdefault("attenuation_from", "network")

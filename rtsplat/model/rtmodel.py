@@ -10,7 +10,8 @@
   direction, and by default (beyond the paper) with ``|cos|`` of the angle of incidence and the learned
   background's radiance at the reflected direction (no gradient into the background through it).
   Shading happens only where the surface alpha exceeds 0.05; outside the spherical region of interest
-  a pixel shows plain volume radiance (blended by ROI membership).
+  a pixel shows plain volume radiance (blended by ROI membership), and by default (beyond the paper,
+  ``shade_coverage``) so does the part of a pixel that the surface does not cover (a silhouette).
 
 Which branches exist is decided once per scene (:class:`ActiveEffects`): without transmission
 there is one opacity (opacity = 1, so both weight sets coincide) and no tau / C_scatter; without
@@ -218,6 +219,8 @@ class RTModel(nn.Module):
 
         shade = alpha > self.settings.shade_alpha_threshold  # [H,W,1]
         roi = (g["roi"] / alpha_safe).clamp(0, 1)
+        if self.settings.shade_coverage:  # the part of the pixel the surface does not cover shows C_trans
+            roi = roi * alpha.clamp(0, 1)
         surface_opacity = g["opacity"] / alpha_safe  # the optical opacity of the surface a pixel shows
         if self.settings.specular_surfaces == "see_through" and self.uses_opacity:
             roi = roi * see_through_weight(surface_opacity)

@@ -143,6 +143,13 @@ class ModelSettings:
     shade_alpha_threshold: float = setting(
         0.05, help="deferred shading only where the surface alpha exceeds this", minimum=0.0, maximum=1.0
     )
+    shade_coverage: bool = setting(
+        True, help="weigh a pixel's deferred-shaded colour by how much of the pixel the surface covers (the "
+        "surface pass's alpha) as well as by its region-of-interest membership, the rest of the pixel showing the "
+        "volume colour: at a silhouette, where the surface covers part of a pixel, what lies behind it keeps its "
+        "share. Off: the shaded colour (from G-buffers normalised by the alpha) fills the whole pixel, as if the "
+        "surface covered it (docs/fidelity.md, finding 36)"
+    )
     background: Literal["learned", "black", "white", "random"] = setting(
         "learned", help="radiance where the volume transmittance is left (rtsplat/model/background.py), the same "
         "for every method: learned (a direction-indexed RGB map), black, white, or random (a random colour per "

@@ -60,6 +60,13 @@ def transparent_mask_loss(blended_opacity: Tensor, mask: Tensor, surface_alpha: 
     return F.binary_cross_entropy(p, (1.0 - mask.to(p.dtype)) * opaque)
 
 
+def mask_coverage_loss(surface_alpha: Tensor, mask: Tensor) -> Tensor:
+    """Mean over the image of M * BCE(surface alpha, 1): a pixel the transparent mask marks (M = 1) is covered by
+    a surface (the glass), whatever that surface lets through; 0 without marked pixels."""
+    alpha = surface_alpha.clamp(1e-6, 1 - 1e-6)  # no pull on a pixel that is covered already
+    return (mask.to(alpha.dtype) * -torch.log(alpha)).mean()
+
+
 def shading_smoothness(shading: Tensor, alpha: Tensor, mask: Tensor) -> Tensor:
     """Mean absolute difference of the surface's shading parameters between horizontally and vertically
     neighbouring pixels that both lie in the transparent ``mask`` [H,W,1]. ``shading`` [H,W,C] is the

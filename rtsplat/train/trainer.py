@@ -389,6 +389,8 @@ class Trainer:
             surface_alpha = result.layers["alpha"] if L.mask_opaque_target == "surface" else None
             terms["mask"] = L.mask_weight * losses.transparent_mask_loss(
                 result.layers["blended_opacity"], mask, surface_alpha)
+        if cfg.ablations.mask_loss and L.mask_coverage_weight > 0 and mask is not None and self.model.uses_opacity:
+            terms["mask_coverage"] = L.mask_coverage_weight * losses.mask_coverage_loss(result.layers["alpha"], mask)
         if L.shading_smoothness_weight > 0 and mask is not None and "spec" in result.layers:
             g = result.raster.features
             shading = torch.cat([g[..., GBUFFER["reflectance"]], g[..., GBUFFER["roughness"]],
