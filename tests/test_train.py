@@ -192,19 +192,23 @@ def test_mask_coverage_loss_asks_marked_pixels_for_a_surface_and_leaves_the_othe
     assert mask_coverage_loss(alpha, torch.zeros_like(mask)) == 0
 
 
+def _renders_after_training_with(term: str, weight: float, cfg, scene, run_dir):
+    """Train ``cfg`` (whose ``losses.<term>_weight`` is ``weight``) on ``scene``; check that the log has the term
+    exactly when it weighs, and return (render, mask) for every training view of the trained model."""
+    trainer = Trainer(scene, cfg, run_dir, progress=False, log=lambda m: None)
+    trainer.train()
+    assert (f"loss_{term}" in read_log(run_dir)[-1]) == (weight > 0)
+    with torch.no_grad():
+        return [(trainer.model.render(camera, raster_settings=cfg.raster, backend=cfg.backend), mask)
+                for camera, mask in zip(trainer.train_views.cameras, trainer.train_views.masks, strict=True)]
+
+
 def test_the_mask_coverage_term_raises_the_glass_coverage(glass_scene, tmp_path):
     """With the term the toy pane's marked pixels end up covered more (surface alpha), and the log shows it."""
     def coverage(weight: float) -> float:
         cfg = config(12, losses={"mask_coverage_weight": weight})
-        trainer = Trainer(glass_scene, cfg, tmp_path / f"w{weight}", progress=False, log=lambda m: None)
-        trainer.train()
-        assert ("loss_mask_coverage" in read_log(tmp_path / f"w{weight}")[-1]) == (weight > 0)
-        values = []
-        with torch.no_grad():
-            for camera, mask in zip(trainer.train_views.cameras, trainer.train_views.masks, strict=True):
-                alpha = trainer.model.render(camera, raster_settings=cfg.raster, backend=cfg.backend).layers["alpha"]
-                values.append(alpha[mask > 0.5])
-        return float(torch.cat(values).mean())
+        renders = _renders_after_training_with("mask_coverage", weight, cfg, glass_scene, tmp_path / f"w{weight}")
+        return float(torch.cat([result.layers["alpha"][mask > 0.5] for result, mask in renders]).mean())
 
     assert coverage(1.0) > coverage(0.0) + 0.01
 
@@ -260,15 +264,12 @@ def test_the_shading_prior_evens_the_panes_reflectance(glass_scene, tmp_path):
     def spread(weight: float) -> float:
         cfg = config(24, losses={"shading_smoothness_weight": weight},
                      schedule={"volume_until": 2, "specular_from": 4}, lr={"reflectance": 0.05})
-        trainer = Trainer(glass_scene, cfg, tmp_path / f"w{weight}", progress=False, log=lambda m: None)
-        trainer.train()
-        assert ("loss_shading_smoothness" in read_log(tmp_path / f"w{weight}")[-1]) == (weight > 0)
         values = []
-        with torch.no_grad():
-            for camera, mask in zip(trainer.train_views.cameras, trainer.train_views.masks, strict=True):
-                raster = trainer.model.render(camera, raster_settings=cfg.raster, backend=cfg.backend).raster
-                inside = (mask[..., 0] > 0.5) & (raster.alpha[..., 0] > 0.5)
-                values.append((raster.features[..., GBUFFER["reflectance"]] / raster.alpha)[inside])
+        for result, mask in _renders_after_training_with("shading_smoothness", weight, cfg, glass_scene,
+                                                         tmp_path / f"w{weight}"):
+            raster = result.raster
+            inside = (mask[..., 0] > 0.5) & (raster.alpha[..., 0] > 0.5)
+            values.append((raster.features[..., GBUFFER["reflectance"]] / raster.alpha)[inside])
         return float(torch.cat(values).std())
 
     free, held = spread(0.0), spread(5.0)
