@@ -216,13 +216,8 @@ def test_the_mask_coverage_term_raises_the_glass_coverage(glass_scene, tmp_path)
 def test_the_reflection_prior_dims_the_reflection_layer(glass_scene, tmp_path):
     def mean_reflection(weight: float) -> float:
         cfg = config(16, losses={"reflection_weight": weight}, schedule={"volume_until": 2, "specular_from": 4})
-        trainer = Trainer(glass_scene, cfg, tmp_path / f"w{weight}", progress=False, log=lambda m: None)
-        trainer.train()
-        assert ("loss_reflection" in read_log(tmp_path / f"w{weight}")[-1]) == (weight > 0)
-        with torch.no_grad():
-            layers = [trainer.model.render(c, raster_settings=cfg.raster, backend=cfg.backend).layers["reflection"]
-                      for c in trainer.train_views.cameras]
-        return float(torch.stack([x.mean() for x in layers]).mean())
+        renders = _renders_after_training_with("reflection", weight, cfg, glass_scene, tmp_path / f"w{weight}")
+        return float(torch.stack([result.layers["reflection"].mean() for result, _ in renders]).mean())
 
     free, dimmed = mean_reflection(0.0), mean_reflection(5.0)
     assert free > 0.01  # the toy scene's pane does get a reflection without the prior

@@ -385,12 +385,14 @@ class Trainer:
             depth = result.raster.depth_median if L.normal_depth == "median" else result.raster.depth
             terms["normal"] = L.normal_weight * losses.normal_consistency(
                 result.layers["normal"], depth, result.layers["alpha"], camera)
-        if (cfg.ablations.mask_loss and L.mask_weight > 0 and mask is not None and self.model.uses_opacity):
-            surface_alpha = result.layers["alpha"] if L.mask_opaque_target == "surface" else None
-            terms["mask"] = L.mask_weight * losses.transparent_mask_loss(
-                result.layers["blended_opacity"], mask, surface_alpha)
-        if cfg.ablations.mask_loss and L.mask_coverage_weight > 0 and mask is not None and self.model.uses_opacity:
-            terms["mask_coverage"] = L.mask_coverage_weight * losses.mask_coverage_loss(result.layers["alpha"], mask)
+        if cfg.ablations.mask_loss and mask is not None and self.model.uses_opacity:
+            if L.mask_weight > 0:
+                surface_alpha = result.layers["alpha"] if L.mask_opaque_target == "surface" else None
+                terms["mask"] = L.mask_weight * losses.transparent_mask_loss(
+                    result.layers["blended_opacity"], mask, surface_alpha)
+            if L.mask_coverage_weight > 0:
+                terms["mask_coverage"] = L.mask_coverage_weight * losses.mask_coverage_loss(
+                    result.layers["alpha"], mask)
         if L.shading_smoothness_weight > 0 and mask is not None and "spec" in result.layers:
             g = result.raster.features
             shading = torch.cat([g[..., GBUFFER["reflectance"]], g[..., GBUFFER["roughness"]],
