@@ -81,3 +81,26 @@ def test_point_cloud_normals_are_the_surfaces_normals_up_to_sign():
     n = point_cloud_normals(sphere)
     assert float((n * sphere).sum(1).abs().median()) > math.cos(math.radians(3.0))
     assert point_cloud_normals(torch.zeros(2, 3)).tolist() == [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]
+
+
+def test_family_see_through_samples_lie_on_the_members_glass():
+    from rtsplat.synth import family
+
+    p, n = family.see_through_samples("family/shop_window-0", spacing=0.1)
+    params = family.draw_params(family.parse_name("shop_window-0"))
+    assert len(p) > 100
+    np.testing.assert_allclose(p[:, 1], 0.0, atol=1e-5)  # the pane lies in the facade's plane y = 0
+    np.testing.assert_allclose(np.abs(n[:, 1]), 1.0, atol=1e-6)
+    assert p[:, 2].min() >= params["sill"] - 1e-5 and p[:, 2].max() <= params["sill"] + params["pane_height"] + 1e-5
+    assert p[:, 2].max() - p[:, 2].min() > 0.8 * params["pane_height"]  # spread over the pane, not one spot
+
+    p, n = family.see_through_samples("family/curved-1", spacing=0.05)
+    params = family.draw_params(family.parse_name("curved-1"))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+    assert params["section"] == "sphere"
+    # a spherical cap: every sample at the sphere's radius from one centre, its normal along the radius
+    centre = np.linalg.lstsq(np.c_[2 * p, np.ones(len(p))], (p**2).sum(1), rcond=None)[0][:3]
+    radial = p - centre
+    np.testing.assert_allclose(np.linalg.norm(radial, axis=1), params["radius"], rtol=5e-3)  # flat facets
+    cosines = np.abs((radial / np.linalg.norm(radial, axis=1, keepdims=True) * n).sum(1))
+    assert np.median(cosines) > 0.999  # the mesh's vertex normals are the sphere's

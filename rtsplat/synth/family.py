@@ -492,3 +492,31 @@ def _grazing(p: dict, rng: np.random.Generator, workdir: Path, ts: float) -> Sce
 
 
 _BUILDERS = {"shop_window": _shop_window, "curved": _curved, "case": _case, "car": _car, "grazing": _grazing}
+
+
+def see_through_samples(name: str, spacing: float = 0.02, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Points [N, 3] on family member ``name``'s see-through shapes, about ``spacing`` apart on average
+    (uniform random samples, as many as the shapes' area over ``spacing`` squared), and the shapes'
+    unit normals there (up to sign): the member's glass sampled with Mitsuba from the same geometry
+    its images were rendered with, as :func:`rtsplat.synth.scenes.see_through_samples` does for the
+    named scenes."""
+    import tempfile
+
+    import mitsuba as mi
+
+    from rtsplat.synth.render import set_variant
+
+    set_variant()
+    rng = np.random.default_rng(seed)
+    points, normals = [], []
+    with tempfile.TemporaryDirectory() as workdir:  # the curved glass's mesh is written there
+        spec = build_member(name, Path(workdir))
+        glass = mi.load_dict({"type": "scene", **{key: spec.elements[key] for key in spec.transparent}})
+        for shape in glass.shapes():
+            count = max(int(shape.surface_area() / spacing**2), 16)
+            for u, v in rng.random((count, 2)):
+                sample = shape.sample_position(0.0, mi.Point2f(float(u), float(v)))
+                points.append(np.array(sample.p, dtype=np.float64))
+                normals.append(np.array(sample.n, dtype=np.float64))
+    points, normals = np.asarray(points).reshape(-1, 3), np.asarray(normals).reshape(-1, 3)
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
