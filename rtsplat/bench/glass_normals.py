@@ -3,8 +3,8 @@
 
 A reflection leaves the surface at twice the angle its normal is off, so the normals of the glass
 decide whether a reflection can line up with what it reflects. For a scene made by ``rtsplat synth``
-the true surface is known (:func:`rtsplat.synth.scenes.see_through_samples`, and for a member of the
-scene family :func:`rtsplat.synth.family.see_through_samples`). The prepared cameras
+the true surface is known (:func:`rtsplat.synth.catalog.see_through_any`: analytic for the named scenes,
+sampled from the geometry for a member of the scene family). The prepared cameras
 are mapped onto the dataset's ground-truth cameras by the least-squares similarity of their centres
 (:func:`rtsplat.pose_eval.similarity`), which carries the surfels into the scene's world. A surfel
 within ``--tolerance`` (world units) of the true surface counts as glass; its error is the angle
@@ -107,16 +107,11 @@ def main(argv: list[str] | None = None) -> None:
                         help="how close to the true surface a surfel counts as glass (world units, default 0.03)")
     args = parser.parse_args(argv)
 
-    from rtsplat.synth import family
-    from rtsplat.synth.scenes import params_from_dict, see_through_samples
+    from rtsplat.synth.catalog import see_through_any
 
     description = json.loads((args.dataset / "scene.json").read_text())
     name = description["scene"]
-    if family.is_family_name(name):
-        glass_points, glass_normals = family.see_through_samples(name, spacing=args.tolerance / 2)
-    else:
-        glass_points, glass_normals = see_through_samples(name, params_from_dict(name, description["params"]),
-                                                          spacing=args.tolerance / 2)
+    glass_points, glass_normals = see_through_any(name, description["params"], spacing=args.tolerance / 2)
     if not len(glass_points):
         raise PipelineError(f"scene {name!r} has no see-through surface", path=args.dataset / "scene.json")
     s, R, t = to_scene_world(args.prepared, args.dataset)
