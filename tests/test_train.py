@@ -272,6 +272,86 @@ def test_the_shading_prior_evens_the_panes_reflectance(glass_scene, tmp_path):
     assert held < 0.8 * free
 
 
+def _striped_layers(H: int = 24, W: int = 32):
+    """A transmission with two vertical edges, a reflection with one horizontal edge, and that reflection with a
+    tenth of the transmission leaked into it."""
+    transmission = torch.full((H, W, 3), 0.2, dtype=torch.float64)
+    transmission[:, 10:] = 0.7
+    transmission[:, 25:] = 0.4
+    reflection = torch.full((H, W, 3), 0.05, dtype=torch.float64)
+    reflection[12:] = 0.15
+    return reflection, transmission, reflection + 0.1 * transmission
+
+
+def test_layer_exclusion_sees_shared_edges_only_and_stays_finite():
+    from rtsplat.train.losses import layer_exclusion
+
+    reflection, transmission, leaked = _striped_layers()
+    mask = torch.ones(*reflection.shape[:2], 1, dtype=torch.float64)
+    assert layer_exclusion(reflection, transmission, mask) == 0  # their edges cross, none coincides
+    assert layer_exclusion(leaked, transmission, mask) > 0.05
+    half = mask.clone()
+    half[:, 8:] = 0  # the mask ends before the transmission's first edge: no shared edge inside it
+    assert layer_exclusion(leaked, transmission, half) == 0
+    assert layer_exclusion(leaked, transmission, torch.zeros_like(mask)) == 0  # no pair in the mask
+    # hard cases: flat and black layers, saturated values, a mask of one pixel; finite values and gradients
+    cases = [(torch.zeros_like(leaked), transmission, mask), (leaked, torch.ones_like(transmission), mask),
+             (leaked * 1e6, transmission, mask), (leaked, transmission, mask * (torch.rand_like(mask) > 0.99))]
+    for r, t, m in cases:
+        r = r.clone().requires_grad_(True)
+        t = t.clone().requires_grad_(True)
+        value = layer_exclusion(r, t, m)
+        grads = torch.autograd.grad(value, (r, t), allow_unused=True)
+        assert torch.isfinite(value) and 0 <= float(value.detach()) < 1
+        assert all(g is None or torch.isfinite(g).all() for g in grads)
+    # moves="reflection": the same value, no gradient into the transmission
+    r, t = leaked.clone().requires_grad_(True), transmission.clone().requires_grad_(True)
+    value = layer_exclusion(r, t, mask, moves="reflection")
+    assert torch.isclose(value, layer_exclusion(leaked, transmission, mask))
+    grad_r, grad_t = torch.autograd.grad(value, (r, t), allow_unused=True)
+    assert grad_t is None and grad_r.abs().sum() > 0
+
+
+def test_layer_exclusion_takes_the_leaked_edges_out_of_the_reflection():
+    """Descending the prior alone, transmission fixed: the reflection loses the transmission's edges and keeps its
+    own."""
+    from rtsplat.train.losses import layer_exclusion
+
+    reflection, transmission, leaked = _striped_layers()
+    mask = torch.ones(*reflection.shape[:2], 1, dtype=torch.float64)
+    estimate = leaked.clone().requires_grad_(True)
+    optimizer = torch.optim.Adam([estimate], lr=2e-3)
+    for _ in range(200):
+        optimizer.zero_grad()
+        layer_exclusion(estimate, transmission, mask).backward()
+        optimizer.step()
+    result = estimate.detach()
+    leaked_step = float((leaked[:, 10] - leaked[:, 9]).abs().mean())  # 0.05: the transmission's edge, leaked
+    own_step = float((reflection[12] - reflection[11]).abs().mean())  # 0.1: the reflection's edge
+    assert float((result[:, 10] - result[:, 9]).abs().mean()) < 0.3 * leaked_step
+    assert float((result[12] - result[11]).abs().mean()) > 0.9 * own_step
+
+
+def test_the_exclusion_prior_reaches_the_trained_layers(glass_scene, tmp_path):
+    """Trained with the prior, the toy pane's reflection shares fewer edges with what lies behind it."""
+    from rtsplat.model.composite import transmission_with_scatter
+    from rtsplat.train.losses import layer_exclusion
+
+    def shared_edges(weight: float) -> float:
+        cfg = config(24, losses={"layer_exclusion_weight": weight},
+                     schedule={"volume_until": 2, "specular_from": 4})
+        values = []
+        for result, mask in _renders_after_training_with("layer_exclusion", weight, cfg, glass_scene,
+                                                         tmp_path / f"w{weight}"):
+            reflection = result.layers["reflection"]
+            values.append(layer_exclusion(reflection, transmission_with_scatter(result.color, reflection), mask))
+        return float(torch.stack(values).mean())
+
+    free, held = shared_edges(0.0), shared_edges(5.0)
+    assert free > 0
+    assert held < 0.8 * free
+
+
 def test_separate_optimization_freezes_the_background(glass_scene, tmp_path):
     cfg = config(20, ablations={"joint_optimization": False})
     trainer = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)

@@ -82,3 +82,43 @@ def shading_smoothness(shading: Tensor, alpha: Tensor, mask: Tensor) -> Tensor:
     diff_y = (values[1:] - values[:-1]).abs() * pairs_y
     total = (pairs_x.sum() + pairs_y.sum()) * values.shape[-1]
     return (diff_x.sum() + diff_y.sum()) / total.clamp_min(1e-6)
+
+
+def layer_exclusion(reflection: Tensor, transmission: Tensor, mask: Tensor, levels: int = 3,
+                    min_scale: float = 0.01, moves: str = "both") -> Tensor:
+    """The gradient-exclusion prior of reflection separation (Zhang, Ng and Chen, CVPR 2018): a reflection and
+    what lies behind the glass are two unrelated images, so an edge of one is rarely an edge of the other.
+    For each neighbouring pixel pair inside the transparent ``mask`` [H,W,1], per channel, the product
+    ``tanh(|dR| / s_R) tanh(|dT| / s_T)`` of the two layers' differences, each over its mean magnitude on the
+    mask's pairs (``s``, no gradient, at least ``min_scale``: the dim reflection is weighed like the bright
+    transmission, and a flat layer does not blow the ratio up); the mean over the pairs and over ``levels``
+    scales (2x2 means, a pair counted where all four pixels under each of its pixels are masked). In [0, 1);
+    0 when either layer is flat on the mask or no pair lies in it (a level without pairs counts 0).
+    ``reflection`` and ``transmission`` [H,W,C]. ``moves``: "both" (as Zhang et al.), or "reflection" (no
+    gradient into ``transmission``: the reflection gives up the shared edges, and what lies behind the glass is
+    left to the image loss)."""
+    if moves not in ("both", "reflection"):
+        raise ValueError(f"moves must be 'both' or 'reflection', got {moves!r}")
+    if moves == "reflection":
+        transmission = transmission.detach()
+    dtype = reflection.dtype
+    R, T = reflection.permute(2, 0, 1)[None], transmission.permute(2, 0, 1)[None].to(dtype)
+    M = (mask.permute(2, 0, 1)[None] > 0.5).to(dtype)
+    total, count = reflection.new_zeros(()), 0
+    for level in range(levels):
+        if level:
+            if min(R.shape[-2:]) < 4:
+                break
+            R, T, M = F.avg_pool2d(R, 2), F.avg_pool2d(T, 2), (F.avg_pool2d(M, 2) > 1 - 1e-6).to(dtype)
+        for axis in (-1, -2):
+            n = R.shape[axis] - 1
+            dR = (R.narrow(axis, 1, n) - R.narrow(axis, 0, n)).abs()
+            dT = (T.narrow(axis, 1, n) - T.narrow(axis, 0, n)).abs()
+            pair = M.narrow(axis, 1, n) * M.narrow(axis, 0, n)
+            pairs = (pair.sum() * R.shape[1]).clamp_min(1)  # no pair: the sums below are 0
+            with torch.no_grad():
+                s_R = ((dR * pair).sum() / pairs).clamp_min(min_scale)
+                s_T = ((dT * pair).sum() / pairs).clamp_min(min_scale)
+            total = total + (torch.tanh(dR / s_R) * torch.tanh(dT / s_T) * pair).sum() / pairs
+            count += 1
+    return total / max(count, 1)
