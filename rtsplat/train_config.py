@@ -180,16 +180,6 @@ class Losses:
         "with the light it mirrors, not with a texture painted on the glass that the transmission would have to "
         "take back", minimum=0.0
     )
-    layer_exclusion_weight: float = setting(
-        0.0, help="gradient exclusion between the reflection layer and the rest of the colour inside the transparent "
-        "mask (Zhang et al. 2018: an edge of the reflection is rarely an edge of what lies behind the glass), "
-        "from the full stage on: keeps the interior's texture out of the reflection layer "
-        "(rtsplat.train.losses.layer_exclusion)", minimum=0.0
-    )
-    layer_exclusion_moves: Literal["both", "reflection"] = setting(
-        "both", help="which layer the exclusion moves: both (Zhang et al.), or reflection (what lies behind the "
-        "glass gets no gradient from it and is left to the image loss)"
-    )
     distortion_weight: float = setting(0.0, help="2DGS depth distortion", minimum=0.0)
     transmissivity_bce_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)
     occupancy_decay_weight: float = setting(0.0, help="reference extra, off in the paper", minimum=0.0)

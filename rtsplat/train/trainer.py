@@ -40,7 +40,6 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_errors, write_text_atomic
 from rtsplat.model.appearance import apply_appearance, fit_appearance, remove_appearance
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
-from rtsplat.model.composite import transmission_with_scatter
 from rtsplat.model.export import write_surfel_ply
 from rtsplat.model.mirror import empty_planes, fit_planes, is_bent
 from rtsplat.model.rtmodel import GBUFFER, RTModel, image_ray_directions
@@ -400,10 +399,6 @@ class Trainer:
                                  g[..., GBUFFER["material"]]], -1)
             terms["shading_smoothness"] = L.shading_smoothness_weight * losses.shading_smoothness(
                 shading, result.raster.alpha, mask)
-        if L.layer_exclusion_weight > 0 and mask is not None and "spec" in result.layers:
-            reflection = result.layers["reflection"]
-            terms["layer_exclusion"] = L.layer_exclusion_weight * losses.layer_exclusion(
-                reflection, transmission_with_scatter(result.color, reflection), mask, moves=L.layer_exclusion_moves)
         if L.distortion_weight > 0:
             terms["distortion"] = L.distortion_weight * result.raster.distortion.mean()
         if self.perceptual is not None and L.perceptual_weight > 0 and it >= L.perceptual_from:
