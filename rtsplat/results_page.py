@@ -30,7 +30,8 @@ KEPT_HEADINGS = (
     "Ablations (transparent-region PSNR)",
     "Decomposition against the ground-truth layers (PSNR in the transparent region, test views)",
 )
-COMMAND = "python -m rtsplat.results_page --report REPORT_DIR --out docs/results.md"
+COMMAND = "python -m rtsplat.results_page --report REPORT_DIR --out {page}"
+DEFAULT_PAGE = "docs/results.md"
 
 
 def read_report(report: Path) -> dict:
@@ -61,15 +62,16 @@ def commit_line(record: dict) -> str:
     return f"- Commit: `{record.get('commit') or 'not recorded'}`"
 
 
-def results_markdown(record: dict, source: str) -> str:
+def results_markdown(record: dict, source: str, page: str = DEFAULT_PAGE) -> str:
     """The page of one report's ``record`` (its report.json); ``source``: the report folder, as named on the
-    page."""
+    page; ``page``: the path the page is written to, as its command to write it again names it."""
     machine = record.get("machine") or {}
     versions = ", ".join(f"{k} {v}" for k, v in (record.get("versions") or {}).items())
     lines = [
         "# Results",
         "",
-        f"Written by `{COMMAND}` from the report in `{source}` (written {record.get('written', '?')}): "
+        f"Written by `{COMMAND.format(page=page)}` from the report in `{source}` "
+        f"(written {record.get('written', '?')}): "
         "do not edit by hand. What the columns mean, the plots and every other table: the report itself "
         "(`index.html`); what was measured around these numbers and why: [benchmarks.md](benchmarks.md).",
         "",
@@ -103,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="the page to write (default: print it)")
     args = parser.parse_args(argv)
     try:
-        text = results_markdown(read_report(args.report), str(args.report))
+        text = results_markdown(read_report(args.report), str(args.report), str(args.out or DEFAULT_PAGE))
     except PipelineError as exc:
         print(f"rtsplat.results_page: error: {exc}", file=sys.stderr)
         return 1

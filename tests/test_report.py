@@ -454,6 +454,7 @@ def test_results_page_carries_the_reports_tables_commit_and_machine(results, tmp
 
     assert results_page(["--report", str(tmp_path / "report"), "--out", str(tmp_path / "results.md")]) == 0
     page = (tmp_path / "results.md").read_text()
+    assert f"--out {tmp_path / 'results.md'}`" in page  # the command that writes this page again
     assert f"- Commit: `{record['commit'] or 'not recorded'}`" in page
     assert f"({record['machine']['cpus']} CPUs)" in page and record["machine"]["processor"] in page
     # the kept tables are the report's own rows, under the scene's heading
