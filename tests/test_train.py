@@ -71,8 +71,8 @@ def test_training_reduces_loss_and_raises_heldout_psnr(tmp_path):
 
 
 def test_a_rerun_with_the_same_seed_trains_the_same_model_and_another_seed_does_not(glass_scene, tmp_path):
-    # through every stage (volume, subsurface, full model) and two density steps: benchmarks compare runs
-    # against runs of the default, which holds only if a rerun is exact
+    # through every stage (volume, subsurface, full model) and two density steps: an option's run minus the
+    # default's is the option's effect only if a rerun of one config is exact
     def trained(name: str, seed: int) -> dict:
         trainer = Trainer(glass_scene, config(24, seed=seed, schedule={"eval_every": 0}), tmp_path / name,
                           progress=False, log=lambda m: None)
