@@ -521,6 +521,7 @@ class FamilyScene:
     half: str
     gap: dict  # FAMILY_KEYS key -> dPSNR (None where a run lacks it)
     noise: dict  # key -> largest |dPSNR| of a repeat of either run with another seed (None: not measured)
+    no_reflection_psnr: float | None = None  # how little the glass reflects (see scene_no_reflection_psnr)
 
     def verdict(self, key: str) -> str:
         """``better``, ``worse`` (beyond :data:`FAMILY_SIGNIFICANCE` x the seed noise), ``within noise``,
@@ -556,19 +557,48 @@ def family_scenes(scenes: dict[str, dict[str, Run]], roles: Roles, results: Path
             gap[key] = _difference(runs[main].mean.get(key), runs[PLAIN_2DGS].mean.get(key))
             measured = [d[key] for d in repeats if d.get(key) is not None]
             noise[key] = max(measured) if measured else None
-        found.append(FamilyScene(scene, member.kind, member.seed, member.half, gap, noise))
+        test_views = set(runs[main].metrics.get("views") or {}) or None
+        found.append(FamilyScene(scene, member.kind, member.seed, member.half, gap, noise,
+                                 scene_no_reflection_psnr(results / scene / "prepared", test_views)))
     return found
 
 
+def scene_no_reflection_psnr(prepared: Path, names: set[str] | None) -> float | None:
+    """How strongly a synthetic scene's glass reflects, as a reflection-layer score: the PSNR of no reflection
+    at all against the true reflection inside the mask, over the test views ``names`` (the ``zero`` reference of
+    :mod:`rtsplat.layer_references`). The lower, the more of the glass's light is reflection; None without
+    ground-truth layers."""
+    try:
+        views = read_views(prepared, names)
+    except PipelineError:
+        return None
+    return ceilings(views, sigmas=())["zero"]
+
+
+def family_reflection_correlation(family: list[FamilyScene]) -> tuple[int, float, float] | None:
+    """(scenes, Spearman's rho, its p-value) between the scenes' no-reflection PSNR and their gap on the
+    transparent region; None with fewer than three scenes that have both."""
+    pairs = [(f.no_reflection_psnr, f.gap["psnr_transparent"]) for f in family
+             if f.no_reflection_psnr is not None and f.gap.get("psnr_transparent") is not None]
+    if len(pairs) < 3:
+        return None
+    from scipy.stats import spearmanr
+
+    psnrs, gaps = zip(*pairs, strict=True)
+    rho, p = spearmanr(psnrs, gaps)
+    return (len(pairs), float(rho), float(p)) if np.isfinite(rho) else None
+
+
 def family_scene_rows(family: list[FamilyScene]) -> list[list[str]]:
-    """One row per scene: kind, seed, half, then per key the gap, its seed noise and the verdict."""
+    """One row per scene: kind, seed, half, then per key the gap, its seed noise and the verdict, then the
+    scene's no-reflection PSNR."""
     rows = []
     for f in family:
         row = [f.scene, f.kind, str(f.seed), f.half.replace("_", " ")]
         for key, _ in FAMILY_KEYS:
             gap = f.gap.get(key)
             row += ["-" if gap is None else f"{gap:+.2f}", _fmt(f.noise.get(key), 3), f.verdict(key)]
-        rows.append(row)
+        rows.append(row + [_fmt(f.no_reflection_psnr)])
     return rows
 
 
@@ -649,7 +679,18 @@ def _family_section(doc: Document, family: list[FamilyScene], out: Path) -> None
     header = ["scene", "kind", "seed", "half"]
     for _, label in FAMILY_KEYS:
         header += [f"d {label}", "noise", "verdict"]
-    doc.table(header, family_scene_rows(family))
+    doc.table(header + ["no-reflection PSNR"], family_scene_rows(family))
+    correlation = family_reflection_correlation(family)
+    if correlation:
+        doc.paragraph(
+            "How strongly each scene's glass reflects: 'no-reflection PSNR' is the PSNR of no reflection at all "
+            "against the true reflection inside the mask (test views); the lower, the more of the glass's light is "
+            "reflection, which plain 2DGS can only bake into view-dependent colour. Below, the rank correlation "
+            "(Spearman) between it and the transparent region's gap over the scenes with ground-truth layers: a "
+            "negative rho means that the scenes whose glass reflects more gain more.")
+        scenes, rho, p = correlation
+        doc.table(["scenes", "rho (no-reflection PSNR, d transparent)", "p"], [[str(scenes), f"{rho:+.2f}",
+                                                                                f"{p:.3f}"]])
 
 
 def _noise_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[list[str]]:

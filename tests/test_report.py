@@ -505,6 +505,8 @@ def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_half
     copy = tmp_path / "results"
     # scene: (gap on the transparent region, seed noise or None for no repeat)
     built = {"shop_window-0": (2.0, 0.3), "curved-2": (-1.0, 0.2), "shop_window-1": (0.1, 0.3), "car-3": (0.5, None)}
+    # the true reflection's 8-bit value on three scenes: the larger the gap, the stronger the reflection
+    reflected = {"shop_window-0": 204, "shop_window-1": 102, "curved-2": 51}
     shutil.copytree(results / "toy", copy / "toy")  # not a family name: not in the section
     for scene, (gap, noise) in built.items():
         shutil.copytree(results / "toy", copy / scene)
@@ -521,6 +523,12 @@ def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_half
             (copy / scene / "runs" / "rtsplat_seed1" / "config.json").write_text(json.dumps({**config, "seed": 1}))
             ours["mean"]["psnr_transparent"] += noise
             (copy / scene / "metrics" / "rtsplat_seed1.json").write_text(json.dumps(ours))
+        if scene in reflected:  # true layers: a flat reflection of a known strength over the test views
+            for view in ours["views"]:
+                image = read_image(copy / scene / "prepared" / "images" / f"{view}.png")[..., :3]
+                layers = copy / scene / "prepared" / "gt_layers"
+                write_png(layers / "reflection" / f"{view}.png", np.full_like(image, reflected[scene] / 255))
+                write_png(layers / "transmission" / f"{view}.png", np.zeros_like(image))
     roles = Roles.from_dict({**ROLES, "rtsplat_seed1": {"role": "repeat", "of": "rtsplat"}})
     report = build_report(copy, tmp_path / "report", roles=roles)
     md = report.with_suffix(".md").read_text()
@@ -536,6 +544,12 @@ def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_half
         assert float(row[4]) == pytest.approx(gap, abs=0.005)
         assert row[5] == ("-" if noise is None else f"{noise:.3f}") and row[6] == verdicts[scene]
         assert float(row[10]) == pytest.approx(gap, abs=0.005)  # the reflection layer's gap
+        strength = row[-1]  # PSNR of no reflection against the true (flat) one: -20 log10(value)
+        if scene in reflected:
+            assert float(strength) == pytest.approx(-20 * np.log10(reflected[scene] / 255), abs=0.01)
+        else:
+            assert strength == "-"
+    assert _md_row(section, "| 3 | ") == ["3", "-1.00", "0.000"]  # stronger reflection, larger gap, in rank
     tuning = _md_row(section, "| tuning (even seeds) | transparent |")
     assert tuning[2:] == ["2", "+0.50", "-1.00 (curved-2)", "1", "1", "0", "0"]
     held = _md_row(section, "| held out (odd seeds) | transparent |")
