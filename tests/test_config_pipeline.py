@@ -93,6 +93,8 @@ def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
     assert trees[("dome", "rtsplat_x4")]["schedule"]["iterations"] == 4 * demo_iterations
     assert trees[("cabin", "rtsplat_mlp64")]["model"]["mlp_width"] == 64
     assert trees[("cabin", "rtsplat_init1")]["densify"]["initial_copies"] == 1
+    if layer == "targets.yaml":
+        assert trees[("dome", "rtsplat_densify_more")]["densify"]["grad_threshold"] == 1e-4
     assert trees[("dome", "2dgs_x4")]["effects"] == {"transmission": "off", "specular": "off",
                                                       "near_reflection": "off", "appearance": "auto"}
 
