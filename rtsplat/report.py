@@ -680,14 +680,15 @@ def _family_section(doc: Document, family: list[FamilyScene], out: Path) -> None
     for _, label in FAMILY_KEYS:
         header += [f"d {label}", "noise", "verdict"]
     doc.table(header + ["no-reflection PSNR"], family_scene_rows(family))
-    correlation = family_reflection_correlation(family)
-    if correlation:
+    if any(f.no_reflection_psnr is not None for f in family):
         doc.paragraph(
             "How strongly each scene's glass reflects: 'no-reflection PSNR' is the PSNR of no reflection at all "
             "against the true reflection inside the mask (test views); the lower, the more of the glass's light is "
-            "reflection, which plain 2DGS can only bake into view-dependent colour. Below, the rank correlation "
-            "(Spearman) between it and the transparent region's gap over the scenes with ground-truth layers: a "
-            "negative rho means that the scenes whose glass reflects more gain more.")
+            "reflection, which plain 2DGS can only bake into view-dependent colour. Below (from three such scenes "
+            "on), the rank correlation (Spearman) between it and the transparent region's gap over the scenes with "
+            "ground-truth layers: a negative rho means that the scenes whose glass reflects more gain more.")
+    correlation = family_reflection_correlation(family)
+    if correlation:
         scenes, rho, p = correlation
         doc.table(["scenes", "rho (no-reflection PSNR, d transparent)", "p"], [[str(scenes), f"{rho:+.2f}",
                                                                                 f"{p:.3f}"]])
