@@ -521,7 +521,7 @@ class FamilyScene:
     half: str
     gap: dict  # FAMILY_KEYS key -> dPSNR (None where a run lacks it)
     noise: dict  # key -> largest |dPSNR| of a repeat of either run with another seed (None: not measured)
-    no_reflection_psnr: float | None = None  # how little the glass reflects (see scene_no_reflection_psnr)
+    no_reflection_psnr: float | None = None  # how little the glass reflects (see family_scenes)
 
     def verdict(self, key: str) -> str:
         """``better``, ``worse`` (beyond :data:`FAMILY_SIGNIFICANCE` x the seed noise), ``within noise``,
@@ -536,9 +536,13 @@ class FamilyScene:
         return "within noise"
 
 
-def family_scenes(scenes: dict[str, dict[str, Run]], roles: Roles, results: Path) -> list[FamilyScene]:
+def family_scenes(scenes: dict[str, dict[str, Run]], roles: Roles, results: Path,
+                  references: dict[str, dict[str, float] | None]) -> list[FamilyScene]:
     """The scenes of the generated family (:mod:`rtsplat.synth.family`; dataset folders named
-    ``<kind>-<seed>``) on which the main method and plain 2DGS both ran, in name order."""
+    ``<kind>-<seed>``) on which the main method and plain 2DGS both ran, in name order. ``references``: each
+    scene's :func:`scene_layer_references`, whose ``zero`` row tells how strongly its glass reflects (the PSNR of no
+    reflection at all against the true reflection inside the mask; the lower, the more of the glass's light is
+    reflection)."""
     from rtsplat.synth.family import parse_name
 
     main, found = roles.main, []
@@ -557,22 +561,10 @@ def family_scenes(scenes: dict[str, dict[str, Run]], roles: Roles, results: Path
             gap[key] = _difference(runs[main].mean.get(key), runs[PLAIN_2DGS].mean.get(key))
             measured = [d[key] for d in repeats if d.get(key) is not None]
             noise[key] = max(measured) if measured else None
-        test_views = set(runs[main].metrics.get("views") or {}) or None
+        reference = references.get(scene)
         found.append(FamilyScene(scene, member.kind, member.seed, member.half, gap, noise,
-                                 scene_no_reflection_psnr(results / scene / "prepared", test_views)))
+                                 reference["zero"] if reference else None))
     return found
-
-
-def scene_no_reflection_psnr(prepared: Path, names: set[str] | None) -> float | None:
-    """How strongly a synthetic scene's glass reflects, as a reflection-layer score: the PSNR of no reflection
-    at all against the true reflection inside the mask, over the test views ``names`` (the ``zero`` reference of
-    :mod:`rtsplat.layer_references`). The lower, the more of the glass's light is reflection; None without
-    ground-truth layers."""
-    try:
-        views = read_views(prepared, names)
-    except PipelineError:
-        return None
-    return ceilings(views, sigmas=())["zero"]
 
 
 def family_reflection_correlation(family: list[FamilyScene]) -> tuple[int, float, float] | None:
@@ -728,14 +720,26 @@ def _planes_moved(moved) -> str:
     return f"up to {turn:.1f} deg, {shift:.3g}"
 
 
-def layer_reference_rows(prepared: Path, names: set[str] | None) -> tuple[list[list[str]], str]:
-    """Rows of the references made from the ground truth itself (:mod:`rtsplat.layer_references`) on the
-    test views ``names``, for the decomposition table, and a sentence on what they mean; none without layers."""
+def scene_test_views(runs: dict[str, Run]) -> set[str] | None:
+    """The test views a scene's runs were scored on (the first run whose metrics name them); None: unknown."""
+    return next((set(r.metrics["views"]) for r in runs.values() if r.metrics.get("views")), None)
+
+
+def scene_layer_references(prepared: Path, names: set[str] | None) -> dict[str, float] | None:
+    """The references made from a synthetic scene's ground truth itself (:func:`rtsplat.layer_references.ceilings`
+    with the truth blurred 2 px) over the test views ``names``; None without ground-truth layers."""
     try:
         views = read_views(prepared, names)
     except PipelineError:
+        return None
+    return ceilings(views, sigmas=(2.0,))
+
+
+def layer_reference_rows(ref: dict[str, float] | None) -> tuple[list[list[str]], str]:
+    """Rows of a scene's :func:`scene_layer_references` for the decomposition table, and a sentence on what
+    they mean; none without layers."""
+    if ref is None:
         return [], ""
-    ref = ceilings(views, sigmas=(2.0,))
     rows = [["(reference) the true reflection's mean colour, flat", _fmt(ref["truth's mean"]), "-"],
             ["(reference) the true reflection blurred 2 px", _fmt(ref["truth blurred 2 px"]), "-"]]
     text = ("The reference rows are made from the ground truth itself: its reflection painted flat in its mean "
@@ -1125,7 +1129,9 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                    "noise from"], summary)
     else:
         doc.paragraph(f"No scene has both the main method and the baseline {PLAIN_2DGS!r}, so there is no summary.")
-    family = family_scenes(scenes, roles, results)
+    references = {scene: scene_layer_references(results / scene / "prepared", scene_test_views(runs))
+                  for scene, runs in scenes.items()}
+    family = family_scenes(scenes, roles, results, references)
     if family:
         _family_section(doc, family, out)
     any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
@@ -1176,11 +1182,10 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                       for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]
         if layer_rows:
             doc.heading("Decomposition against the ground-truth layers (PSNR in the transparent region, test views)", 3)
-            test_views = next((set(r.metrics["views"]) for r in runs.values() if r.metrics.get("views")), None)
-            references, text = layer_reference_rows(results / scene / "prepared", test_views)
+            reference_rows, text = layer_reference_rows(references[scene])
             if text:
                 doc.paragraph(text)
-            doc.table(["method", "reflection", "transmission"], layer_rows + references)
+            doc.table(["method", "reflection", "transmission"], layer_rows + reference_rows)
 
         near_rows = near_reflection_rows(runs)
         reach = scene_reflection_reach(results / scene / "prepared")

@@ -79,11 +79,11 @@ def test_a_scene_without_layers_is_refused(tmp_path):
 
 
 def test_the_report_adds_the_references_of_its_test_views(tmp_path):
-    from rtsplat.report import layer_reference_rows
+    from rtsplat.report import layer_reference_rows, scene_layer_references
 
     write_prepared(tmp_path, views=3)
-    rows, text = layer_reference_rows(tmp_path, {"0001", "0002"})
+    rows, text = layer_reference_rows(scene_layer_references(tmp_path, {"0001", "0002"}))
     expected = layer_ceiling.ceilings(layer_ceiling.read_views(tmp_path, names={"0001", "0002"}), sigmas=(2.0,))
     assert [row[1] for row in rows] == [f"{expected[k]:.2f}" for k in ("truth's mean", "truth blurred 2 px")]
     assert f"{expected[layer_ceiling.LAYERS_SUM]:.2f} dB against the image" in text
-    assert layer_reference_rows(tmp_path / "nothing", None) == ([], "")
+    assert layer_reference_rows(scene_layer_references(tmp_path / "nothing", None)) == ([], "")
