@@ -83,6 +83,16 @@ class Schedule:
     sh_degree_every: int = setting(
         1000, help="the volume colour's SH degree grows by one every N iterations (up to model.sh_degree)", minimum=1
     )
+    coarse_downsample: int = setting(
+        1, help="progressive resolution: the training views start box-filtered by this factor (a power of two, "
+        "cameras scaled to match), which halves at evenly spaced iterations up to full_resolution_from; from "
+        "there on they are at the training resolution (train_downsample). Every per-pixel cost (rasterizer, "
+        "specular network, SSIM) shrinks early in the run; 1: the training resolution throughout", minimum=1
+    )
+    full_resolution_from: int = setting(
+        0, help="progressive resolution: the training views are at the training resolution from this iteration on",
+        minimum=0
+    )
     log_every: int = setting(10, help="a train_log.jsonl line every N iterations (a logging rate, not scaled by "
                              "budget)", minimum=1)
     checkpoint_every: int = setting(500, help="write checkpoints/last.pt every N iterations (0: never)", minimum=0)
@@ -102,6 +112,23 @@ class Schedule:
     def background_phase_end(self) -> int:
         """The last iteration of the background-only phase (joint optimization off)."""
         return self._or_half_run(self.separate_background_until)
+
+    def downsample_at(self, iteration: int) -> int:
+        """The progressive-resolution factor of ``iteration`` (1: the training resolution): the coarse
+        factor halves ``log2(coarse_downsample)`` times at evenly spaced iterations of
+        ``[0, full_resolution_from)``."""
+        if self.coarse_downsample <= 1 or iteration >= self.full_resolution_from:
+            return 1
+        steps = self.coarse_downsample.bit_length() - 1  # the levels coarser than full size
+        level = min(steps - 1, (max(iteration - 1, 0) * steps) // max(self.full_resolution_from - 1, 1))
+        return self.coarse_downsample >> level
+
+    def downsample_levels(self) -> list[int]:
+        """Every factor :meth:`downsample_at` gives over the run, coarsest first."""
+        if self.coarse_downsample <= 1 or self.full_resolution_from <= 1:
+            return [1]
+        return sorted({self.downsample_at(it) for it in range(1, min(self.full_resolution_from, self.iterations) + 1)}
+                      | {1}, reverse=True)
 
 
 @dataclass
@@ -341,6 +368,11 @@ class TrainConfig:
                 "train.schedule: need volume_until <= specular_from "
                 f"(got {s.volume_until}, {s.specular_from})"
             )
+        if s.coarse_downsample & (s.coarse_downsample - 1):
+            raise ConfigError(
+                f"{source}: train.schedule.coarse_downsample must be a power of two (1, 2, 4, 8, ...), got "
+                f"{s.coarse_downsample}: the factor halves at each step of the progressive resolution"
+            )
         if not self.ablations.joint_optimization and s.background_phase_end() >= s.iterations:
             raise ConfigError(
                 f"{source}: train.schedule.separate_background_until ({s.background_phase_end()}) must be below "
@@ -370,8 +402,8 @@ def resume_differences(checkpoint_config: dict[str, Any], cfg: TrainConfig) -> l
 # Every setting counted in iterations, by section (log_every stays: it is a logging rate).
 ITERATION_COUNTS = {
     "schedule": ("iterations", "volume_until", "specular_from", "separate_background_until", "densify_from",
-                 "densify_until", "densify_every", "reset_every", "sh_degree_every", "checkpoint_every",
-                 "eval_every"),
+                 "densify_until", "densify_every", "reset_every", "sh_degree_every", "full_resolution_from",
+                 "checkpoint_every", "eval_every"),
     "lr": ("position_max_steps",),
     "losses": ("perceptual_from", "normal_from"),
     "cameras": ("refine_from",),

@@ -419,6 +419,39 @@ def test_train_downsample_trains_small_and_evaluates_at_the_prepared_size(glass_
         config(6, train_downsample=0).validate()
 
 
+def test_progressive_resolution_renders_each_step_at_its_levels_size(glass_scene, tmp_path):
+    # coarse_downsample 4 up to iteration 8 of 12: iterations 1-4 at a quarter, 5-7 at half, 8-12 at full size
+    cfg = config(12, schedule={"coarse_downsample": 4, "full_resolution_from": 8, "eval_every": 0})
+    trainer = Trainer(glass_scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
+    full = glass_scene.train_cameras[0].to_camera()
+    sizes, render = [], trainer.model.render
+    def recording(camera, **kwargs):
+        sizes.append((camera.width, camera.height))
+        return render(camera, **kwargs)
+    trainer.model.render = recording
+    summary = trainer.train()
+    quarter, half, whole = ((full.width // f, full.height // f) for f in (4, 2, 1))
+    assert sizes[:12] == [quarter] * 4 + [half] * 3 + [whole] * 5
+    # the coarse levels are the training views box-filtered, with the same names and order
+    level = trainer.train_levels[4]
+    assert level.names == trainer.train_views.names
+    from rtsplat.io.images import area_downsample
+    np.testing.assert_allclose(level.images[0].numpy(), area_downsample(glass_scene.load_image(level.names[0]), 4))
+    logged = {r["iteration"]: r.get("downsample") for r in read_log(tmp_path / "run")}
+    assert logged[5] == 2 and logged[10] == 1
+    assert np.isfinite(summary["test_psnr"])
+
+
+def test_progressive_resolution_refuses_bad_factors(glass_scene, tmp_path):
+    with pytest.raises(ConfigError, match="power of two"):
+        config(6, schedule={"coarse_downsample": 3, "full_resolution_from": 4}).validate()
+    # 36-pixel-high views at 1/8 would be 4 pixels high
+    from rtsplat.errors import PipelineError
+    with pytest.raises(PipelineError, match="coarse_downsample 8 leaves training views of 4 pixels"):
+        Trainer(glass_scene, config(6, schedule={"coarse_downsample": 8, "full_resolution_from": 4}), tmp_path / "r",
+                progress=False, log=lambda m: None)
+
+
 def test_sh_degree_grows_every_sh_degree_every_iterations(glass_scene, tmp_path):
     trainer = Trainer(glass_scene, config(5, schedule={"sh_degree_every": 2}), tmp_path / "run", progress=False,
                       log=lambda m: None)

@@ -81,6 +81,7 @@ from rtsplat.train_config import TrainConfig, resume_differences
 from rtsplat.usage import Usage, UsageClock, compute_threads
 
 PLANE_TOLERANCE = 0.01  # mirror planes: thickness tolerance, a fraction of the glass points' diagonal
+MIN_COARSE_SIDE = 8  # progressive resolution: the coarsest training views keep at least this many pixels a side
 MAX_PLANE_POINTS = 50_000  # glass points the mirror planes are fitted to (a random subset beyond)
 
 
@@ -147,6 +148,8 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.rng = torch.Generator().manual_seed(cfg.seed)
         self.train_views = load_views(scene, "train", self.device, cfg.train_downsample)
+        # the progressive resolution's coarser copies of the training views, by factor (1: train_views)
+        self.train_levels = {factor: self._coarse_views(factor) for factor in cfg.schedule.downsample_levels()}
         self.test_views = load_views(scene, "test", self.device)
         self.extent = scene_extent(self.train_views.cameras)
         roi = getattr(scene, "roi", None)
@@ -336,6 +339,19 @@ class Trainer:
             roi_center=roi.center, roi_radius=roi.radius,
         ).to(self.device)
 
+    def _coarse_views(self, factor: int) -> ViewSet:
+        """The training views box-filtered by ``factor`` more than the training resolution (the progressive
+        resolution's levels, ``schedule.coarse_downsample``), read once when the trainer starts."""
+        if factor == 1:
+            return self.train_views
+        smallest = min(min(int(image.shape[0]), int(image.shape[1])) for image in self.train_views.images)
+        if smallest // factor < MIN_COARSE_SIDE:
+            raise PipelineError(
+                f"train.schedule.coarse_downsample {self.cfg.schedule.coarse_downsample} leaves training views of "
+                f"{smallest // factor} pixels on their short side (fewer than {MIN_COARSE_SIDE})",
+                path=self.scene.root, fix="lower train.schedule.coarse_downsample (1 trains at full size throughout)")
+        return load_views(self.scene, "train", self.device, self.cfg.train_downsample * factor)
+
     # -- one iteration -----------------------------------------------------------------------
     def _next_view(self) -> int:
         if not self.order:
@@ -356,11 +372,11 @@ class Trainer:
             if group.get("name") == "means":
                 group["lr"] = position_lr(it, cfg.lr, self.extent)
         idx = self._next_view()
-        camera, target = self.train_views.cameras[idx], self.train_views.images[idx]
+        views = self.train_levels[cfg.schedule.downsample_at(it)]
+        camera, target, mask = views.cameras[idx], views.images[idx], views.masks[idx]
         refine_pose = self.poses is not None and it > cfg.cameras.refine_from
         if refine_pose:
             camera = self.poses.camera(idx, camera)
-        mask = self.train_views.masks[idx]
         if (self.effects.near_reflection and self.near_fit is None and stage_at(it, cfg) == "full"
                 and not self._background_phase()):
             self.fit_mirror_planes()  # once, as the reflections start: the glass has its shape by then
@@ -748,6 +764,8 @@ class Trainer:
                     record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4),
                               "cpu_seconds": _rounded(self.cpu_elapsed, 4), **numbers,
                               "surfels": len(self.model.surfels), "stage": step.stage}
+                    if cfg.schedule.coarse_downsample > 1:  # the progressive resolution's factor of this step
+                        record["downsample"] = cfg.schedule.downsample_at(step.iteration)
                     if step.density:
                         record["density"] = step.density
                     if evaluate_now:
