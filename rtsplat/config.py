@@ -26,6 +26,7 @@ import copy
 import dataclasses
 import json
 import math
+import re
 import shlex
 import sys
 import typing
@@ -615,8 +616,8 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
     """The trainer config tree of ``method`` on ``scene``: the scene's ``train.options`` and
     ``iterations``, the method's overrides (:func:`method_overrides`) merged over them (a method's own
     ``schedule.iterations`` wins), ``backend`` and ``device``; then a method's ``budget: F`` scales every
-    iteration count by F
-    (:func:`rtsplat.train_config.scale_budget`). Validated: an unknown or bad key is a ConfigError."""
+    iteration count by F (:func:`rtsplat.train_config.scale_budget`), and ``budget: 300s`` sets the time budget
+    ``schedule.seconds`` (:func:`budget_seconds`). Validated: an unknown or bad key is a ConfigError."""
     from rtsplat.train_config import TrainConfig as TrainerConfig
     from rtsplat.train_config import scale_budget
 
@@ -636,19 +637,42 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
     try:
         trainer = TrainerConfig.from_dict(tree).validate()
         if budget is not None:
-            if isinstance(budget, bool) or not isinstance(budget, (int, float)):
-                raise ConfigError(f"budget must be a number (a factor on every iteration count), got {budget!r}")
-            tree = scale_budget(trainer, float(budget)).validate().to_dict()
+            seconds = budget_seconds(budget)
+            if seconds is not None:
+                tree = dataclasses.replace(trainer, schedule=dataclasses.replace(trainer.schedule, seconds=seconds))
+                tree = tree.validate().to_dict()
+            else:
+                tree = scale_budget(trainer, float(budget)).validate().to_dict()
     except ConfigError as exc:
-        raise ConfigError(f"{where}: {exc}", fix="use the trainer's keys (rtsplat/train_config.py) and a budget > 0") \
-            from exc
+        raise ConfigError(f"{where}: {exc}", fix="use the trainer's keys (rtsplat/train_config.py) and a budget > 0: "
+                          "a factor (budget: 2) or a time (budget: 300s, budget: 5min)") from exc
     return tree
+
+
+BUDGET_TIME = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(s|min|h)\s*$")
+BUDGET_UNITS = {"s": 1.0, "min": 60.0, "h": 3600.0}
+
+
+def budget_seconds(budget: Any) -> float | None:
+    """A method's ``budget`` as seconds when it is a time (``300s``, ``5min``, ``1.5h``: the trainer's
+    ``schedule.seconds``), None when it is a factor on every iteration count (a number); anything else is a
+    ConfigError."""
+    if isinstance(budget, str):
+        match = BUDGET_TIME.match(budget)
+        if match is None or float(match.group(1)) <= 0:
+            raise ConfigError(f"budget {budget!r} is not a time: write a number of seconds, minutes or hours with "
+                              "its unit, e.g. 300s, 5min or 1.5h")
+        return float(match.group(1)) * BUDGET_UNITS[match.group(2)]
+    if isinstance(budget, bool) or not isinstance(budget, (int, float)):
+        raise ConfigError(f"budget must be a number (a factor on every iteration count) or a time such as 300s, got "
+                          f"{budget!r}")
+    return None
 
 
 def slurm_resources(cfg: PipelineConfig, rule: str, scene: str | None = None, method: str | None = None) -> dict:
     """The SLURM resources of a job of ``rule`` (the executor plugin's names): ``runtime`` in minutes (a
-    training job's from its method's iterations on ``scene``), ``slurm_partition`` and ``slurm_account``
-    ("" leaves the choice to the cluster) and ``gpu`` (0 for the rules that do not use one)."""
+    training job's from its method's iterations, or its time budget, on ``scene``), ``slurm_partition`` and
+    ``slurm_account`` ("" leaves the choice to the cluster) and ``gpu`` (0 for the rules that do not use one)."""
     from rtsplat.train_config import TrainConfig as TrainerConfig
 
     slurm = cfg.slurm
@@ -657,8 +681,12 @@ def slurm_resources(cfg: PipelineConfig, rule: str, scene: str | None = None, me
     if own.minutes is not None:
         minutes = own.minutes
     elif rule == "train":
-        iterations = TrainerConfig.from_dict(trainer_options(cfg, scene, method)).schedule.iterations
-        minutes = slurm.train_minutes + math.ceil(slurm.train_minutes_per_1000_iterations * iterations / 1000)
+        schedule = TrainerConfig.from_dict(trainer_options(cfg, scene, method)).schedule
+        if schedule.seconds is not None:  # a time budget: twice it (evaluations and checkpoints are not in it)
+            minutes = slurm.train_minutes + math.ceil(2 * schedule.seconds / 60)
+        else:
+            minutes = slurm.train_minutes + math.ceil(slurm.train_minutes_per_1000_iterations * schedule.iterations
+                                                      / 1000)
     else:
         minutes = SLURM_MINUTES[rule]
     partition = own.partition or (gpus and slurm.gpu_partition) or slurm.partition or ""

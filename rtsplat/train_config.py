@@ -63,7 +63,15 @@ class Effects:
 class Schedule:
     """Iteration counts of the training schedule."""
 
-    iterations: int = setting(3000, help="training iterations", minimum=1)
+    iterations: int = setting(3000, help="training iterations (with seconds: the length of the plan the other "
+                              "counts place their events in)", minimum=1)
+    seconds: float | None = setting(
+        None, help="a time budget: train for this many wall seconds of training steps (evaluations, test-view fits "
+        "and checkpoints not counted), each step placed in the plan of `iterations` iterations by the share of the "
+        "budget spent, so that every stage, density step and resolution step takes its share of the time "
+        "(rtsplat/train/clock.py; not bit-reproducible); null: train for `iterations` iterations",
+        exclusiveMinimum=0.0
+    )
     volume_until: int = setting(300, help="stage 1 (volume colour only) up to this iteration", minimum=0)
     specular_from: int = setting(
         600, help="stage 3 (full model) after this iteration; stage 2 (no specular) in between", minimum=0
@@ -382,11 +390,11 @@ class TrainConfig:
         return self
 
 
-# Settings a resumed run may change without --resume-with-new-config: the run's length (to train
-# longer or stop sooner; with schedule.densify_until null, density control follows the new length),
+# Settings a resumed run may change without --resume-with-new-config: the run's length or time budget (to
+# train longer or stop sooner; with schedule.densify_until null, density control follows the new length),
 # how often it logs, evaluates and writes checkpoints, and where it runs (device, rasterizer backend).
 RESUME_MAY_CHANGE = frozenset({
-    "schedule.iterations", "schedule.log_every", "schedule.eval_every", "schedule.checkpoint_every",
+    "schedule.iterations", "schedule.seconds", "schedule.log_every", "schedule.eval_every", "schedule.checkpoint_every",
     "device", "backend",
 })
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -280,10 +281,32 @@ def test_budget_method_scales_every_iteration_count_and_bad_methods_fail_at_load
     assert x4.schedule.log_every == base.schedule.log_every and x4.lr.position_init == base.lr.position_init
     assert (x4.schedule.densify_stop(), base.schedule.densify_stop()) == (1200, 300)
     assert fixed.schedule.iterations == 200  # the method's own iterations win over train.iterations, then scale
-    for bad, match in (({"budget": 0}, "budget factor must be > 0"), ({"budget": "x"}, "budget must be a number"),
+    for bad, match in (({"budget": 0}, "budget factor must be > 0"), ({"budget": "x"}, "'x' is not a time"),
+                       ({"budget": "0s"}, "'0s' is not a time"), ({"budget": True}, "budget must be a number"),
                        ({"schedule": {"iteration": 3}}, "train.schedule.iteration")):
         with pytest.raises(ConfigError, match=match):
             load_config_dict({"methods": {"bad": bad}})
+
+
+def test_a_time_budget_sets_the_seconds_and_keeps_the_plan():
+    from rtsplat.config import slurm_resources
+    from rtsplat.train_config import TrainConfig
+
+    cfg = load_config_dict({
+        "methods": {"rtsplat": {}, "five": {"budget": "5min"}, "quick": {"budget": " 90.5 s"},
+                    "long": {"budget": "2h"}},
+        "defaults": {"train": {"iterations": 600}},
+    })
+    base, five, quick, long = (TrainConfig.from_dict(json.loads(train_json(cfg, "s", m, quote=False)))
+                               for m in ("rtsplat", "five", "quick", "long"))
+    assert (base.schedule.seconds, five.schedule.seconds, quick.schedule.seconds, long.schedule.seconds) == (
+        None, 300.0, 90.5, 7200.0)
+    five.schedule.seconds = None
+    assert five == base  # only the time budget differs: the plan's iteration counts are the method's own
+    # a SLURM job of a time-budget training asks for the fixed minutes plus twice the budget
+    fixed = slurm_resources(cfg, "train", "s", "rtsplat")["runtime"] - math.ceil(
+        cfg.slurm.train_minutes_per_1000_iterations * 600 / 1000)
+    assert slurm_resources(cfg, "train", "s", "long")["runtime"] == fixed + 240
 
 
 def test_method_roles_are_explicit_validated_and_not_trainer_keys():

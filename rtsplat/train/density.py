@@ -24,6 +24,7 @@ from torch import Tensor
 from rtsplat.model.surfels import PARAMETERS, SurfelParameters, logit
 from rtsplat.raster import RasterOutput
 from rtsplat.raster.projection import quat_to_rotmat
+from rtsplat.train.clock import passed
 from rtsplat.train.optim import append_rows, keep_rows, reset_rows
 from rtsplat.train_config import Densification, Schedule
 
@@ -90,9 +91,11 @@ class DensityControl:
 
     @torch.no_grad()
     def step(self, iteration: int, surfels: SurfelParameters, optimizer, generator: torch.Generator,
-             frozen: Tensor | None = None) -> tuple[DensityEvents, Tensor]:
-        """Run the scheduled density operations after ``iteration`` (1-based). Returns the events
-        and the new ``frozen`` mask (frozen surfels are never cloned, split or pruned)."""
+             frozen: Tensor | None = None, previous: int | None = None) -> tuple[DensityEvents, Tensor]:
+        """Run the density operations scheduled in ``(previous, iteration]`` of the plan (1-based;
+        ``previous`` defaults to ``iteration - 1``; :func:`rtsplat.train.clock.passed`: each at most once
+        per step). Returns the events and the new ``frozen`` mask (frozen surfels are never cloned, split or
+        pruned)."""
         s = self.schedule
         n = len(surfels)
         device = surfels.means.device
@@ -100,9 +103,12 @@ class DensityControl:
         frozen = torch.zeros(n, dtype=torch.bool, device=device) if frozen is None else frozen
         events = DensityEvents()
         stop = s.densify_stop()
-        if s.densify_from <= iteration < stop and iteration % s.densify_every == 0:
+        previous = iteration - 1 if previous is None else previous
+        densify_at = passed(previous, iteration, s.densify_every)
+        if densify_at is not None and s.densify_from <= densify_at < stop:
             frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events)
-        if s.reset_every > 0 and iteration % s.reset_every == 0 and iteration < stop:
+        reset_at = passed(previous, iteration, s.reset_every)
+        if reset_at is not None and reset_at < stop:
             self._reset(surfels, optimizer, events)
         return events, frozen
 

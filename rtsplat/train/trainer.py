@@ -64,6 +64,7 @@ from rtsplat.train.appearance import (
     view_log_gains,
 )
 from rtsplat.train.cameras import PoseCorrections, fit_corrections
+from rtsplat.train.clock import ScheduleClock, passed
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
@@ -91,6 +92,7 @@ class StepResult:
     waits for the device, so the loop reads them only on logging steps."""
 
     iteration: int
+    positions: tuple[int, int]  # the plan's position before and at this step (rtsplat.train.clock)
     loss: Tensor
     psnr: Tensor
     terms: dict[str, Tensor]
@@ -192,6 +194,7 @@ class Trainer:
         self.frozen = torch.zeros(len(self.model.surfels), dtype=torch.bool, device=self.device)
         self.any_frozen = False  # kept on the host: the step tests it without reading the device
         self.iteration = 0
+        self.clock = ScheduleClock(cfg.schedule.iterations, cfg.schedule.seconds)
         self.elapsed = 0.0  # wall seconds of the training steps
         self.cpu_elapsed: float | None = 0.0  # CPU seconds of the same steps (None: resumed from a run without)
         self.usage_before: Usage | None = Usage(threads=compute_threads())  # the resumed parts' run usage
@@ -360,13 +363,14 @@ class Trainer:
 
     def _background_phase(self) -> bool:
         return (not self.cfg.ablations.joint_optimization
-                and self.iteration <= self.cfg.schedule.background_phase_end())
+                and self.clock.position <= self.cfg.schedule.background_phase_end())
 
     def step(self) -> StepResult:
         cfg = self.cfg
         self.iteration += 1
-        it = self.iteration
-        if not cfg.ablations.joint_optimization and it == cfg.schedule.background_phase_end() + 1:
+        # it: the plan's iteration this step stands at (the run's iteration without a time budget)
+        previous, it = self.clock.advance(self.elapsed)
+        if not cfg.ablations.joint_optimization and previous <= cfg.schedule.background_phase_end() < it:
             self._freeze_background()
         for group in self.optimizer.param_groups:
             if group.get("name") == "means":
@@ -439,12 +443,13 @@ class Trainer:
             self.model.set_mirror_planes(self.plane_refinement.step())
         if learn_appearance:
             self.appearance.step()
-        events, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen)
-        self.watch.record(it, loss, gradients, self.optimizer)
+        events, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen,
+                                                previous=previous)
+        self.watch.record(self.iteration, loss, gradients, self.optimizer)
         with torch.no_grad():
             value = psnr(color.detach().clamp(0, 1), target)
-        return StepResult(it, loss.detach(), value, {k: v.detach() for k, v in terms.items()}, stage,
-                          events.to_dict() if events.any() else {})
+        return StepResult(self.iteration, (previous, it), loss.detach(), value,
+                          {k: v.detach() for k, v in terms.items()}, stage, events.to_dict() if events.any() else {})
 
     def _optimizer_step(self) -> Tensor:
         """Adam on the unfrozen rows; returns the gradients' group sums for the divergence watch."""
@@ -479,7 +484,7 @@ class Trainer:
 
     # -- evaluation --------------------------------------------------------------------------
     def _render_for_evaluation(self, camera):
-        return self.model.render(camera, stage=stage_at(max(self.iteration, 1), self.cfg),
+        return self.model.render(camera, stage=stage_at(max(self.clock.position, 1), self.cfg),
                                  raster_settings=self.cfg.raster, backend=self.cfg.backend)
 
     def fit_test_cameras(self, steps: int) -> None:
@@ -605,6 +610,7 @@ class Trainer:
         """What resumes the run besides the model: iteration, config, optimizer, density, RNGs."""
         return {
             "iteration": self.iteration,
+            "position": self.clock.position,
             "elapsed": self.elapsed,
             "cpu_elapsed": self.cpu_elapsed,
             "run_usage": None if (usage := self.run_usage()) is None else usage.to_dict(),
@@ -696,6 +702,7 @@ class Trainer:
         self.rng.set_state(state["rng"].cpu())
         torch.set_rng_state(state["torch_rng"].cpu())
         self.iteration = int(state["iteration"])
+        self.clock.position = int(state.get("position", self.iteration))
         self.elapsed = float(state["elapsed"])
         self.cpu_elapsed = None if state.get("cpu_elapsed") is None else float(state["cpu_elapsed"])
         self.usage_before = None if state.get("run_usage") is None else Usage.from_dict(state["run_usage"])
@@ -729,25 +736,29 @@ class Trainer:
         self.log(f"starting surfels: {self.starting.surfels} ({self.starting.reason})")
         backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
         self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
-        total = cfg.schedule.iterations
+        if cfg.schedule.seconds is not None:
+            self.log(f"time budget: {cfg.schedule.seconds:g} s of training steps, the plan of "
+                     f"{cfg.schedule.iterations} iterations placed by the share spent")
         # reading the divergence record waits for the device: on a CPU that costs nothing, elsewhere it
         # is read where the loop reads the device anyway (logging steps) and before every write
         watch_every_step = self.device.type == "cpu"
-        bar = _progress(total, self.iteration, self.progress)
+        bar = _progress(cfg.schedule.iterations, self.clock.position, self.progress)
         with write_errors(log_path), open(log_path, "a") as log_file:
             if cfg.schedule.eval_every > 0 and self.iteration == 0:  # the initialisation, for comparison
                 log_file.write(json.dumps({"iteration": 0, "seconds": 0.0, "cpu_seconds": 0.0,
                                            "surfels": len(self.model.surfels),
                                            **self.evaluate()}) + "\n")
-            while self.iteration < total:
+            last = self.clock.done(self.iteration, self.elapsed)  # a resumed run may be done already
+            while not last:
                 start, cpu_start = time.perf_counter(), time.process_time()
                 try:
                     step = self.step()
                 except Exception:  # a diverged state can break the step itself: name the divergence
                     self.stop_if_diverged()
                     raise
-                last = step.iteration == total
-                evaluate_now = cfg.schedule.eval_every > 0 and (step.iteration % cfg.schedule.eval_every == 0 or last)
+                last = self.clock.done(step.iteration, self.elapsed + time.perf_counter() - start)
+                evaluate_now = cfg.schedule.eval_every > 0 and (
+                    last or passed(*step.positions, cfg.schedule.eval_every) is not None)
                 logging = step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now or bool(step.density)
                 # the loop reads the device only on logging steps; that read waits for the queued work,
                 # so the seconds logged there include it
@@ -757,15 +768,17 @@ class Trainer:
                 self.elapsed += time.perf_counter() - start
                 if self.cpu_elapsed is not None:
                     self.cpu_elapsed += time.process_time() - cpu_start
-                bar.update(1)
+                bar.update(step.positions[1] - step.positions[0])
                 if numbers is not None:
                     bar.set_postfix(loss=f"{numbers['loss']:.4f}", psnr=f"{numbers['psnr']:.2f}",
                                     surfels=len(self.model.surfels))
                     record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4),
                               "cpu_seconds": _rounded(self.cpu_elapsed, 4), **numbers,
                               "surfels": len(self.model.surfels), "stage": step.stage}
+                    if cfg.schedule.seconds is not None:  # the plan's iteration this step stood at
+                        record["position"] = step.positions[1]
                     if cfg.schedule.coarse_downsample > 1:  # the progressive resolution's factor of this step
-                        record["downsample"] = cfg.schedule.downsample_at(step.iteration)
+                        record["downsample"] = cfg.schedule.downsample_at(step.positions[1])
                     if step.density:
                         record["density"] = step.density
                     if evaluate_now:
@@ -774,13 +787,12 @@ class Trainer:
                     log_file.write(json.dumps(record) + "\n")
                     log_file.flush()
                 stop = self.stop_signal
-                if stop is not None or (cfg.schedule.checkpoint_every > 0
-                                        and step.iteration % cfg.schedule.checkpoint_every == 0):
+                if stop is not None or passed(*step.positions, cfg.schedule.checkpoint_every) is not None:
                     log_file.flush()
                     if self.kept_log_path is not None:  # before the checkpoint: never older than it
                         write_text_atomic(self.kept_log_path, log_path.read_text())
                     self.save_checkpoint()
-                if stop is not None and self.iteration < total:
+                if stop is not None and not last:
                     bar.close()
                     raise TrainingStopped(stop, self.iteration, self.checkpoint_path)
         bar.close()
@@ -809,7 +821,8 @@ class Trainer:
         share = (self.cpu_elapsed / (self.elapsed * threads)
                  if self.cpu_elapsed is not None and self.elapsed > 0 else None)
         usage = self.run_usage()
-        summary = {"iterations": self.iteration, "train_seconds": round(self.elapsed, 3),
+        summary = {"iterations": self.iteration, "time_budget_seconds": self.cfg.schedule.seconds,
+                   "train_seconds": round(self.elapsed, 3),
                    "train_cpu_seconds": _rounded(self.cpu_elapsed, 3), "threads": threads,
                    "cpu_share": _rounded(share, 3), "device": str(self.device),
                    "run_usage": None if usage is None else usage.to_dict(),

@@ -1,0 +1,70 @@
+"""The schedule clock: plan positions by iterations or by the share of a time budget spent, and events
+that recur every N plan iterations happening once per multiple passed."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from rtsplat.train.clock import ScheduleClock, passed
+
+
+def test_passed_finds_the_multiple_a_step_moves_over():
+    assert passed(49, 50, 50) == 50
+    assert passed(50, 51, 50) is None
+    assert passed(47, 103, 50) == 100  # two multiples in one step: the event happens once
+    assert passed(50, 50, 50) is None  # a step that does not move the plan passes nothing
+    assert passed(0, 10, 0) is None  # 0: never
+    # one step at a time, it is the usual `iteration % every == 0`
+    assert [i for i in range(1, 40) if passed(i - 1, i, 7) is not None] == [7, 14, 21, 28, 35]
+
+
+def test_an_iteration_budget_steps_the_plan_one_iteration_at_a_time():
+    clock = ScheduleClock(iterations=5)
+    assert [clock.advance(spent=123.0) for _ in range(5)] == [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)]
+    assert not clock.done(4, 1e9) and clock.done(5, 0.0)
+
+
+@pytest.mark.parametrize("seconds_per_step", [0.3, 1.0, 7.0])
+def test_a_time_budget_places_each_step_by_the_share_spent(seconds_per_step):
+    # a 100-iteration plan in 10 s: every plan iteration is reached in order, never passed backwards, the
+    # last ones at the end of the budget, whether a step takes a fraction of a plan iteration or several
+    clock = ScheduleClock(iterations=100, seconds=10.0)
+    spent, steps, positions = 0.0, 0, []
+    while not clock.done(steps, spent):
+        previous, current = clock.advance(spent)
+        assert previous <= current <= 100
+        assert current - 1 <= 100 * spent / 10.0 + 1e-9 and (current == 100 or 100 * spent / 10.0 < current + 1e-9)
+        positions.append(current)
+        spent += seconds_per_step
+        steps += 1
+    assert spent >= 10.0 and spent - seconds_per_step < 10.0
+    assert positions[0] == 1 and positions == sorted(positions)
+    assert positions[-1] >= 100 * (spent - seconds_per_step) / 10.0 - 1e-9  # the last step is at the budget's end
+
+
+def test_training_with_a_time_budget_stops_at_it_and_keeps_the_plans_order(tmp_path):
+    from rtsplat.bench.toy_scene import write_scene
+    from rtsplat.train.trainer import Trainer, stage_at
+    from rtsplat.train_config import TrainConfig
+
+    scene = write_scene(tmp_path / "scene", views=6, width=32, height=24)
+    cfg = TrainConfig.from_dict({
+        "schedule": {"iterations": 400, "seconds": 3.0, "volume_until": 100, "specular_from": 200,
+                     "densify_from": 50, "densify_every": 100, "reset_every": 0, "log_every": 1, "eval_every": 100,
+                     "checkpoint_every": 0},
+        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32}})
+    summary = Trainer(scene, cfg, tmp_path / "run", progress=False, log=lambda m: None).train()
+    log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
+    steps = [r for r in log if r["iteration"] > 0]
+    assert summary["time_budget_seconds"] == 3.0 and summary["iterations"] == len(steps)
+    assert summary["train_seconds"] >= 3.0 and steps[-2]["seconds"] < 3.0  # stopped once the budget was spent
+    positions = [r["position"] for r in steps]
+    assert positions == sorted(positions) and positions[-1] <= 400
+    assert all(r["stage"] == stage_at(r["position"], cfg) for r in steps)
+    # density steps at the steps that passed a multiple of 100 in [50, 200): at most once each
+    densified = [r["position"] for r in steps if r.get("density")]
+    assert densified == sorted({(p // 100) * 100 for p in densified}) and all(100 <= p < 200 for p in densified)
+    # evaluations where a multiple of 100 was passed, and at the last step
+    assert "test_psnr" in steps[-1]
