@@ -51,6 +51,7 @@ import argparse
 import collections
 import datetime
 import html
+import itertools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -486,10 +487,36 @@ def _repeat_differences(scene: str, runs: dict[str, Run], roles: Roles, results:
     return found
 
 
+def psnr_at_time(run: Run, seconds: float, key: str, measure: TimeMeasure) -> float | None:
+    """The run's test PSNR ``key`` (``test_psnr``, ``test_psnr_transparent``) after ``seconds`` of training by
+    ``measure``, read from its log's evaluations (iteration 0: the initialisation), linearly between the two
+    around it; the last one from its time on. None without evaluations up to that time."""
+    points = sorted((float(r[measure.log_key]), float(r[key])) for r in run.log
+                    if isinstance(r.get(key), (int, float)) and isinstance(r.get(measure.log_key), (int, float)))
+    if not points or points[0][0] > seconds:
+        return None
+    for (t0, v0), (t1, v1) in itertools.pairwise(points):
+        if t0 <= seconds <= t1:
+            return v0 if t1 == t0 else v0 + (v1 - v0) * (seconds - t0) / (t1 - t0)
+    return points[-1][1]
+
+
+def equal_time_gap(ours: Run, theirs: Run, key: str, measure: TimeMeasure) -> float | None:
+    """Test PSNR ``key`` of ``ours`` minus that of ``theirs``, both read from their logs
+    (:func:`psnr_at_time`) at the training time of the shorter run: the gap a user with that much time sees."""
+    times = [ours.seconds(measure), theirs.seconds(measure)]
+    if None in times:
+        return None
+    at = min(times)
+    return _difference(psnr_at_time(ours, at, key, measure), psnr_at_time(theirs, at, key, measure))
+
+
 def summary_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) -> list[list[str]]:
     """One row per :func:`comparison_pairs` pair of the scene: the PSNR gaps (transparent region, entire
-    image) and beside them the largest |dPSNR| of a repeat of either method with another seed."""
+    image), beside them the largest |dPSNR| of a repeat of either method with another seed, then the gaps
+    at equal training time (:func:`equal_time_gap`) and the ratio of the two runs' training times."""
     repeats = [d for d in _repeat_differences(scene, runs, roles, results) if not d["same_seed"]]
+    measure = time_measure(runs)
     rows = []
     for ours, theirs in comparison_pairs(runs, roles):
         noise = [d for d in repeats if d["of"] in (ours, theirs)]
@@ -501,6 +528,11 @@ def summary_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) 
             measured = [d[key] for d in noise if d[key] is not None]
             row.append(_fmt(max(measured), 3) if measured else "not measured")
         row.append(", ".join(d["method"] for d in noise) or "-")
+        for key in ("test_psnr_transparent", "test_psnr"):
+            gap = equal_time_gap(runs[ours], runs[theirs], key, measure)
+            row.append("-" if gap is None else f"{gap:+.2f}")
+        a, b = runs[ours].seconds(measure), runs[theirs].seconds(measure)
+        row.append(f"{a / b:.2f}x" if a and b else "-")
         rows.append(row)
     return rows
 
@@ -1124,9 +1156,13 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                       "Beside each gap, the seed noise: the largest |dPSNR| between either run of the pair and "
                       "its repeat with another seed (Noise section; 'noise from' names the repeats). A gap "
                       "smaller than twice the seed noise is not significant; where the noise was not measured, "
-                      "no gap can be called significant.")
+                      "no gap can be called significant. At equal time: the same gaps read from the two runs' "
+                      "test evaluations during training (train_log.jsonl, linearly between evaluations) at the "
+                      "training time of the shorter run, what a user with that much time gets; time ratio: the "
+                      "first run's training time over the second's (both by the measure of the scene's speed "
+                      "table).")
         doc.table(["scene", "pair", "dPSNR transp.", "dPSNR", "seed noise transp.", "seed noise",
-                   "noise from"], summary)
+                   "noise from", "dPSNR transp. at equal time", "dPSNR at equal time", "time ratio"], summary)
     else:
         doc.paragraph(f"No scene has both the main method and the baseline {PLAIN_2DGS!r}, so there is no summary.")
     references = {scene: scene_layer_references(results / scene / "prepared", scene_test_views(runs))

@@ -266,6 +266,7 @@ def test_summary_rows_are_the_metric_gaps_with_the_seed_noise_beside_them(result
         a, b = _mean(copy, ours), _mean(copy, theirs)
         assert float(row[2]) == pytest.approx(a["psnr_transparent"] - b["psnr_transparent"], abs=0.005)
         assert float(row[3]) == pytest.approx(a["psnr"] - b["psnr"], abs=0.005)
+        assert row[9].endswith("x") and float(row[9][:-1]) > 0  # the time ratio
         if ours == "rtsplat":  # 2dgs_seed3 reran 2dgs with another seed: 0.15 dB transparent, 0.3 dB entire
             assert (float(row[4]), float(row[5]), row[6]) == (pytest.approx(0.15, abs=5e-4),
                                                               pytest.approx(0.3, abs=5e-4), "2dgs_seed3")
@@ -276,6 +277,25 @@ def test_summary_rows_are_the_metric_gaps_with_the_seed_noise_beside_them(result
     assert gap == pytest.approx(1.25, abs=0.011)
     plain = build_report(copy, tmp_path / "plain").with_suffix(".md").read_text()
     assert "so there is no summary" in plain  # without roles there is no main method
+
+
+def test_the_equal_time_gap_reads_both_logs_at_the_shorter_runs_time():
+    from rtsplat.report import Run, equal_time_gap, psnr_at_time
+
+    def run(points, cpu_seconds):
+        log = [{"iteration": 10 * i, "cpu_seconds": t, "test_psnr": v} for i, (t, v) in enumerate(points)]
+        log.insert(1, {"iteration": 5, "cpu_seconds": 1.0, "loss": 0.1})  # a step without an evaluation
+        return Run("s", "m", summary={"train_cpu_seconds": cpu_seconds}, log=log)
+
+    slow = run([(0.0, 10.0), (40.0, 20.0), (100.0, 26.0)], 100.0)  # twice as long, better in the end
+    fast = run([(0.0, 10.0), (25.0, 22.0), (50.0, 24.0)], 50.0)
+    assert psnr_at_time(slow, 50.0, "test_psnr", CPU_TIME) == pytest.approx(21.0)  # 20 + 6 x 10 / 60
+    assert psnr_at_time(fast, 80.0, "test_psnr", CPU_TIME) == 24.0  # past its last evaluation: its last value
+    assert psnr_at_time(fast, 10.0, "test_psnr_transparent", CPU_TIME) is None  # no such evaluations
+    # at the fast run's 50 s, the slow run is 3 dB behind, although its final PSNR is 2 dB ahead
+    assert equal_time_gap(slow, fast, "test_psnr", CPU_TIME) == pytest.approx(-3.0)
+    assert equal_time_gap(fast, slow, "test_psnr", CPU_TIME) == pytest.approx(3.0)
+    assert equal_time_gap(slow, Run("s", "x", summary={}), "test_psnr", CPU_TIME) is None
 
 
 def _zero_colour() -> np.ndarray:
