@@ -39,7 +39,7 @@ import torch
 from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
-from rtsplat.io.outputs import check_output_dir, check_output_file, output_dir
+from rtsplat.io.outputs import check_output_dir, check_output_file, check_png_output, output_dir
 from rtsplat.render import (
     Edits,
     add_run_arguments,
@@ -58,22 +58,15 @@ MAX_SIDE = 16384  # the largest frame side the H.264 encoder (libx264) opens; al
 
 
 def check_frame_size(width: int, height: int | None, panels: int) -> None:
-    """Refuse frames the encoder cannot take before anything is rendered: ``panels`` frames of ``width`` x
-    ``height`` pixels side by side (``height`` None: not known yet)."""
-    if width < 2:
-        raise PipelineError(f"video frames {width} pixels wide are too small", fix="pass a --width of 2 or more")
+    """Refuse frames larger than the encoder takes, before anything is rendered: ``panels`` frames of
+    ``width`` x ``height`` pixels side by side (``height`` None: not known yet). Frames too small are
+    :func:`rtsplat.camera_path.path_intrinsics`'s to refuse."""
     if width * panels > MAX_SIDE or (height or 0) > MAX_SIDE:
         size = f"{width * panels}x{height}" if height else f"{width * panels} pixels wide"
         side_by_side = f" ({panels} panels side by side)" if panels > 1 else ""
         raise PipelineError(f"video frames of {size}{side_by_side} are larger than the H.264 encoder takes "
                             f"({MAX_SIDE} pixels a side)",
                             fix=f"pass a --width of at most {MAX_SIDE // panels} (video.width)")
-
-
-def _is_own_poster(path: Path) -> bool:
-    from rtsplat.io.images import png_software
-
-    return png_software(path) == POSTER_SOFTWARE
 
 
 def _is_own_video(path: Path) -> bool:
@@ -88,14 +81,6 @@ def check_video_output(out: Path, inputs: list[Path]) -> None:
         raise PipelineError(f"the video is written as MP4, but --out ends in {out.suffix or 'no extension'!r}",
                             path=out, fix=f"pass a file name ending in .mp4, e.g. {out.with_suffix('.mp4')}")
     check_output_file(out, "video", _is_own_video, inputs=inputs, example="a new <name>.mp4")
-
-
-def check_poster_output(poster: Path, inputs: list[Path]) -> None:
-    """Refuse a ``--poster`` that is not a .png path ``rtsplat video`` may write (see the module docstring)."""
-    if poster.suffix.lower() != ".png":
-        raise PipelineError(f"the poster is written as PNG, but --poster ends in {poster.suffix or 'no extension'!r}",
-                            path=poster, fix=f"pass a file name ending in .png, e.g. {poster.with_suffix('.png')}")
-    check_output_file(poster, "video", _is_own_poster, inputs=inputs, example="a new <name>.png", flag="--poster")
 
 
 def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, path: str = "orbit",
@@ -126,7 +111,7 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
     check_video_output(out, inputs)
     if poster is not None:
         poster = Path(poster)
-        check_poster_output(poster, inputs)
+        check_png_output(poster, POSTER_SOFTWARE, inputs=inputs, flag="--poster")
     if keep_frames is not None:
         check_output_dir(keep_frames, "video", inputs=inputs, flag="--keep-frames")
     layers = PANELS if panels else PANELS[:1]

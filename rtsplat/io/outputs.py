@@ -28,6 +28,7 @@ from pathlib import Path
 
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import atomic_dir, write_json_atomic, write_text_atomic
+from rtsplat.io.images import png_software
 
 MARKER = ".rtsplat-output"
 DATASET_PARTS = ("images", "sparse")
@@ -149,6 +150,19 @@ def check_output_file(out: str | Path, stage: str, is_own: Callable[[Path], bool
     if target.exists() and not is_own(target):
         raise PipelineError(f"the {flag} file exists and is not a result of '{command}'; it is left as it is",
                             path=out, fix=fix + ", or delete that file yourself if you no longer need it")
+
+
+def check_png_output(out: str | Path, command: str, inputs: Iterable[str | Path | None] = (),
+                     flag: str = "--out") -> None:
+    """:func:`check_output_file` for a PNG that ``command`` writes with :func:`rtsplat.io.images.write_png`
+    (``software=command``): the path ends in .png, and a file there is replaced only when its ``Software``
+    text names ``command``."""
+    out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise PipelineError(f"{flag} is written as PNG, but ends in {out.suffix or 'no extension'!r}", path=out,
+                            fix=f"pass a file name ending in .png, e.g. {out.with_suffix('.png')}")
+    check_output_file(out, command, lambda path: png_software(path) == command, inputs=inputs,
+                      example="a new <name>.png", flag=flag, command=command)
 
 
 def text_holds(path: Path, marker: str) -> bool:
