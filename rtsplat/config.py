@@ -34,7 +34,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from rtsplat.devices import DEVICE_PATTERN
-from rtsplat.errors import ConfigError
+from rtsplat.errors import ConfigError, run_command
+from rtsplat.io.atomic import write_text_atomic
 from rtsplat.schema import build, check, dataclass_schema
 from rtsplat.schema import setting as _f
 
@@ -811,18 +812,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--write-schema", action="store_true", help=f"regenerate {SCHEMA_PATH}")
     parser.add_argument("--check", type=Path, help="validate a config.yaml")
     args = parser.parse_args(argv)
-    if args.write_schema:
-        SCHEMA_PATH.parent.mkdir(parents=True, exist_ok=True)
-        SCHEMA_PATH.write_text(json_schema_text())
-        print(f"wrote {SCHEMA_PATH}")
-    if args.check:
-        try:
+
+    def work() -> None:
+        if args.write_schema:  # the project's own file, not a path the user names
+            write_text_atomic(SCHEMA_PATH, json_schema_text())
+            print(f"wrote {SCHEMA_PATH}")
+        if args.check:
             load_config(args.check)
-        except ConfigError as exc:
-            print(exc, file=sys.stderr)
-            return 1
-        print(f"{args.check}: OK")
-    return 0
+            print(f"{args.check}: OK")
+
+    return run_command("rtsplat.config", work)
 
 
 if __name__ == "__main__":
