@@ -263,8 +263,9 @@ class MasksConfig:
         "glass that fills the view covers most of each photo), with a warning when white covers more than "
         "max_coverage of the photos on average"
     )
-    max_coverage: float = _f(0.5, help="polarity auto: a larger mean coverage of the mask files is flagged (log, "
-                             "masks/summary.json's polarity_warning, the report); the masks are kept as given",
+    max_coverage: float = _f(0.5, help="a larger mean coverage is flagged (log, masks/summary.json, the report): "
+                             "of the mask files under polarity auto (polarity_warning), of segmented masks "
+                             "(coverage_warning); the masks are kept as given",
                              exclusiveMinimum=0.0, maximum=1.0)
     marks: dict[str, MaskMark] = _f(
         help="marked views drawn in the config, by photo name (e.g. IMG_0001.jpg: {box: [x0, y0, x1, y1]}, "

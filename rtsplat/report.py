@@ -911,8 +911,9 @@ def _masks_section(doc: Document, scene_dir: Path, out: Path) -> None:
     summary = _read_json(masks_dir / "summary.json")
     doc.heading("Transparent masks", 3)
     doc.paragraph(" ".join(t for t in (masks_paragraph(summary), polarity_text(summary)) if t))
-    if summary.get("polarity_warning"):
-        doc.paragraph(f"Warning: {summary['polarity_warning']}.")
+    for key in ("polarity_warning", "coverage_warning"):
+        if summary.get(key):
+            doc.paragraph(f"Warning: {summary[key]}.")
     roi_warning = roi_warning_text(scene_dir.name, scene_dir / "prepared")
     if roi_warning:
         doc.paragraph(roi_warning)
