@@ -29,7 +29,6 @@ from rtsplat.masks.marks import check_marks, marks_to_masks
 from rtsplat.masks.onnx import OnnxSegmenter, logit_threshold, segment_masks
 from rtsplat.masks.polarity import PolarityDecision, decide_polarity
 
-
 NEARLY_EMPTY = 0.001  # masks that cover less than this share of the photos on average are flagged
 
 
