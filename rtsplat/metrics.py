@@ -13,8 +13,9 @@ Definitions (METHOD.md section 7), images in [0,1]:
   pixels. Without weights the value is the string ``"n/a (weights not found)"``.
 
 Views are the renders of ``rtsplat render`` (``<renders>/color/<name>.png``) against the prepared
-scene's images and masks; a grey render of a colour photo is refused (:func:`check_colour`). The JSON records the split the renders are of (``split``: ``test``, or
-``train`` / ``all``, which include training views: said when printed, labelled in the report),
+scene's images and masks; a grey render of a colour photo is refused (:func:`check_colour`). The JSON
+records the split the renders are of (``split``: ``test``, or ``train`` / ``all``, which include
+training views: said when printed, labelled in the report),
 per-view values, means, the run's config hash, package versions and the machine. Synthetic scenes
 also get the decomposition scored (:func:`layer_metrics`) against the ground-truth layers that
 ``rtsplat prepare`` carries into ``<data>/gt_layers`` (or ``--gt-layers DIR`` with
