@@ -225,7 +225,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.worker:
         return _worker(args)
     from rtsplat.bench.workers import CheckoutWorker  # the parent only: a worker's checkout may lack it
+    from rtsplat.errors import run_command
     from rtsplat.io.outputs import check_output_dir, mark_output
+
+    if args.state_dir is not None:  # a folder of its own: created with the marker, reused when it has it
+        status = run_command(parser.prog, lambda: check_output_dir(args.state_dir, "bench.iteration",
+                                                                   flag="--state-dir"))
+        if status:
+            return status
     options = json.loads(args.options)
     if any(key in options for key in ("schedule", "model")):
         merged = {k: {**DEMO_OPTIONS.get(k, {}), **v} if isinstance(v, dict) else v for k, v in options.items()}
@@ -238,8 +245,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.state_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="rtsplat_bench_state_")
         args.state_dir = Path(tmp.name)
-    else:  # a folder of its own: created with the marker, reused when it has it, never a folder of the user's
-        check_output_dir(args.state_dir, "bench.iteration", flag="--state-dir")
     args.state_dir.mkdir(parents=True, exist_ok=True)
     mark_output(args.state_dir, "bench.iteration")
     try:
