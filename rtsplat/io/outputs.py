@@ -142,8 +142,8 @@ def check_output_file(out: str | Path, stage: str, is_own: Callable[[Path], bool
             continue
         inp = _resolved(given)
         if target == inp or inp in target.parents:
-            raise PipelineError(f"the {flag} file is or lies inside the input {given} of '{command}'; writing it "
-                                "would change that input", path=out, fix=fix)
+            raise PipelineError(f"the {flag} file is or lies inside the {stage} input {given}; writing it would "
+                                "change that input", path=out, fix=fix)
     if target.is_dir():
         raise PipelineError(f"the {flag} path is a folder; '{command}' writes one file there", path=out,
                             fix=f"pass the path of a file, e.g. {example or Path(out) / (stage + '.json')}")
