@@ -482,6 +482,8 @@ WRITE_CASES = {
     "fps onto the metrics JSON": Case([*FPS, "{R}/res/metrics.json"],
                                       ["{R}/res/metrics.json", "not a result of 'rtsplat fps'"]),
     "fps onto a folder": Case([*FPS, "{R}/user"], ["{R}/user", "is a folder"]),
+    "metrics into the sfm output": Case([*METRICS, "{R}/res/sfm/m.json"],
+                                        ["{R}/res/sfm/m.json", "lies inside the output of 'rtsplat sfm'"]),
     "train --checkpoint-dir is another stage's output": Case(
         [*TRAIN, "{R}/res/new", "--checkpoint-dir", "{R}/res/sfm"],
         ["{R}/res/sfm", "the --checkpoint-dir folder was written by 'rtsplat sfm'", "pass a --checkpoint-dir"]),

@@ -125,7 +125,7 @@ def test_every_output_option_has_a_test_that_refuses_a_users_file(option):
 
 def test_synth_replaces_only_with_overwrite(tmp_path, capsys):
     """``rtsplat synth --out`` writes a dataset (images/, sparse/): an existing folder is replaced only when
-    the user says so with --overwrite."""
+    the user says so with --overwrite, and then only one that synth wrote."""
     from rtsplat.cli import main
 
     (tmp_path / "mine").mkdir()
@@ -135,5 +135,7 @@ def test_synth_replaces_only_with_overwrite(tmp_path, capsys):
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert f"{tmp_path / 'mine'}: the output exists" in err and "--overwrite" in err
+    assert main([*argv, "--overwrite"]) == 1
+    assert "was not written by 'rtsplat synth'" in capsys.readouterr().err
     assert [p.name for p in (tmp_path / "mine").iterdir()] == ["notes.txt"]
     assert (tmp_path / "mine/notes.txt").read_text() == "the user's own file"

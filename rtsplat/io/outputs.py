@@ -85,10 +85,7 @@ def check_output_dir(out: str | Path, stage: str, inputs: Iterable[str | Path | 
         if is_dataset_dir(folder):
             raise PipelineError(f"{folder_is} lies inside the dataset folder {folder}", path=out,
                                 fix=fix + "; dataset folders are never written")
-        other = output_stage(folder)
-        if other is not None:
-            raise PipelineError(f"{folder_is} lies inside the output of 'rtsplat {other}' ({folder}), "
-                                "which would delete it when it runs again", path=out, fix=fix)
+    _check_outside_outputs(target, out, folder_is, fix)
     if not target.exists():
         return
     if not target.is_dir():
@@ -107,6 +104,16 @@ def check_output_dir(out: str | Path, stage: str, inputs: Iterable[str | Path | 
         raise PipelineError(f"{folder_is} exists, is not empty and was not written by 'rtsplat {stage}' "
                             f"(it has no {MARKER} file)", path=out,
                             fix=fix + ", or delete that folder yourself if you no longer need it")
+
+
+def _check_outside_outputs(target: Path, out: str | Path, what: str, fix: str) -> None:
+    """Refuse ``target`` (``out`` resolved) inside a folder a stage wrote: that stage replaces the whole
+    folder when it runs again, and ``what`` (the output, for the message) would go with it."""
+    for folder in target.parents:
+        other = output_stage(folder)
+        if other is not None:
+            raise PipelineError(f"{what} lies inside the output of 'rtsplat {other}' ({folder}), "
+                                "which would delete it when it runs again", path=out, fix=fix)
 
 
 def mark_output(folder: str | Path, stage: str) -> None:
@@ -130,7 +137,8 @@ def check_output_file(out: str | Path, stage: str, is_own: Callable[[Path], bool
                       inputs: Iterable[str | Path | None] = (), example: str | None = None, flag: str = "--out",
                       command: str | None = None) -> None:
     """Raise :class:`PipelineError` unless ``stage`` may write (and replace) the file ``out``: it is no
-    folder, none of ``inputs`` nor inside one of them, and a file already there is one ``stage`` wrote
+    folder, none of ``inputs`` nor inside one of them nor inside a folder a stage wrote (which that stage
+    replaces whole), and a file already there is one ``stage`` wrote
     (``is_own`` says so from its content), never another file of the user's or of a stage. ``example``: the
     kind of path to suggest instead (default: a new JSON file); ``flag``: the option that named ``out``;
     ``command``: the command as the messages name it (default ``rtsplat <stage>``)."""
@@ -144,6 +152,7 @@ def check_output_file(out: str | Path, stage: str, is_own: Callable[[Path], bool
         if target == inp or inp in target.parents:
             raise PipelineError(f"the {flag} file is or lies inside the {stage} input {given}; writing it would "
                                 "change that input", path=out, fix=fix)
+    _check_outside_outputs(target, out, f"the {flag} file", fix)
     if target.is_dir():
         raise PipelineError(f"the {flag} path is a folder; '{command}' writes one file there", path=out,
                             fix=f"pass the path of a file, e.g. {example or Path(out) / (stage + '.json')}")
