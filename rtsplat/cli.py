@@ -14,7 +14,8 @@ Exit statuses, the same for every stage:
 * 0: done;
 * 1: bad input. A stage's ``run`` raises :class:`rtsplat.errors.PipelineError` (or a subclass such
   as :class:`~rtsplat.errors.ConfigError`) and never catches it; :func:`main` prints it once as
-  ``rtsplat <stage>: error: <message>`` on stderr;
+  ``rtsplat <stage>: error: <message>`` on stderr (:func:`rtsplat.errors.run_command`, which the
+  ``python -m rtsplat.*`` commands use too);
 * 2: a command-line usage error (argparse's own status);
 * 3: the stage is not implemented;
 * 130: interrupted (ctrl-C); stages write their outputs atomically, so nothing partial is left.
@@ -27,11 +28,9 @@ import importlib
 import sys
 from dataclasses import dataclass
 
-from rtsplat.errors import PipelineError
+from rtsplat.errors import BAD_INPUT_EXIT, INTERRUPTED_EXIT, run_command  # noqa: F401 (the exit statuses)
 
-BAD_INPUT_EXIT = 1
 NOT_IMPLEMENTED_EXIT = 3
-INTERRUPTED_EXIT = 130
 
 
 @dataclass(frozen=True)
@@ -108,14 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         return NOT_IMPLEMENTED_EXIT
     args = stage_parser(stage, module).parse_args(argv[1:])
-    try:
-        return int(module.run(args) or 0)
-    except PipelineError as exc:
-        print(f"rtsplat {stage.name}: error: {exc}", file=sys.stderr)
-        return BAD_INPUT_EXIT
-    except KeyboardInterrupt:
-        print(f"rtsplat {stage.name}: interrupted; its outputs were left as they were", file=sys.stderr)
-        return INTERRUPTED_EXIT
+    return run_command(f"rtsplat {stage.name}", lambda: module.run(args))
 
 
 if __name__ == "__main__":

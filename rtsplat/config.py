@@ -35,7 +35,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from rtsplat.devices import DEVICE_PATTERN
-from rtsplat.errors import ConfigError
+from rtsplat.errors import ConfigError, run_command
+from rtsplat.io.atomic import write_text_atomic
 from rtsplat.schema import build, check, dataclass_schema
 from rtsplat.schema import setting as _f
 
@@ -263,8 +264,9 @@ class MasksConfig:
         "glass that fills the view covers most of each photo), with a warning when white covers more than "
         "max_coverage of the photos on average"
     )
-    max_coverage: float = _f(0.5, help="polarity auto: a larger mean coverage of the mask files is flagged (log, "
-                             "masks/summary.json's polarity_warning, the report); the masks are kept as given",
+    max_coverage: float = _f(0.5, help="a larger mean coverage is flagged (log, masks/summary.json, the report): "
+                             "of the mask files under polarity auto (polarity_warning), of segmented masks "
+                             "(coverage_warning); the masks are kept as given",
                              exclusiveMinimum=0.0, maximum=1.0)
     marks: dict[str, MaskMark] = _f(
         help="marked views drawn in the config, by photo name (e.g. IMG_0001.jpg: {box: [x0, y0, x1, y1]}, "
@@ -839,18 +841,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--write-schema", action="store_true", help=f"regenerate {SCHEMA_PATH}")
     parser.add_argument("--check", type=Path, help="validate a config.yaml")
     args = parser.parse_args(argv)
-    if args.write_schema:
-        SCHEMA_PATH.parent.mkdir(parents=True, exist_ok=True)
-        SCHEMA_PATH.write_text(json_schema_text())
-        print(f"wrote {SCHEMA_PATH}")
-    if args.check:
-        try:
+
+    def work() -> None:
+        if args.write_schema:  # the project's own file, not a path the user names
+            write_text_atomic(SCHEMA_PATH, json_schema_text())
+            print(f"wrote {SCHEMA_PATH}")
+        if args.check:
             load_config(args.check)
-        except ConfigError as exc:
-            print(exc, file=sys.stderr)
-            return 1
-        print(f"{args.check}: OK")
-    return 0
+            print(f"{args.check}: OK")
+
+    return run_command("rtsplat.config", work)
 
 
 if __name__ == "__main__":

@@ -17,10 +17,13 @@ from pathlib import Path
 from typing import Any
 
 from rtsplat.config import json_schema
-from rtsplat.io.atomic import print_or_write
+from rtsplat.errors import run_command
+from rtsplat.io.outputs import write_page
 
 OUTPUT = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
-COMMAND = "python -m rtsplat.config_reference --out docs/configuration.md"
+PROGRAM = "python -m rtsplat.config_reference"
+COMMAND = PROGRAM + " --out docs/configuration.md"
+MARKER = f"Written by `{PROGRAM} "  # in the page's introduction: how --out knows a page of its own
 TRAINER_OPTIONS = "defaults.train.options"  # the trainer's config tree inside the pipeline config
 
 INTRO = f"""# Configuration reference
@@ -125,9 +128,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, help="write the page here (default: print it)")
     args = parser.parse_args(argv)
-    text = markdown()
-    print_or_write(text, args.out)
-    return 0
+    return run_command("rtsplat.config_reference", lambda: write_page(markdown(), args.out, PROGRAM, MARKER))
 
 
 if __name__ == "__main__":

@@ -4,7 +4,8 @@
 the surface alpha/volume alpha and the expected depth of a scene made of an opaque textured
 "floor", a ring of coloured surfels and a glass-like pane: surfels with full occupancy but
 low opacity, which appear in the surface G-buffers (normal, alpha) but let the volume color
-through. Until the full pipeline exists this is what ``make demo`` runs.
+through. The folder is written atomically and replaced only when this command wrote it
+(:func:`rtsplat.io.outputs.output_dir`).
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from rtsplat.camera import camera_from_fov
+from rtsplat.errors import run_command
+from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.raster import RasterOutput, Surfels, rasterize
 
 
@@ -55,18 +57,10 @@ def demo_scene(n_floor: int = 3000, n_ring: int = 600, n_pane: int = 400, seed: 
     return Surfels(means, quats, scales, occupancy, opacity, is_glass, colors)
 
 
-def _to_png(path: Path, image: np.ndarray) -> None:
-    import cv2
-
-    image8 = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    if image8.shape[-1] == 3:
-        image8 = image8[..., ::-1]  # RGB -> BGR for OpenCV
-    if not cv2.imwrite(str(path), image8):
-        raise OSError(f"could not write {path}")
-
-
 def write_buffers(out: RasterOutput, out_dir: Path) -> list[Path]:
-    out_dir.mkdir(parents=True, exist_ok=True)
+    """The buffers of ``out`` as PNGs in the existing folder ``out_dir``; returns their names."""
+    from rtsplat.io.images import write_png
+
     depth = out.depth[..., 0]
     valid = out.alpha[..., 0] > 0.5
     d = depth[valid]
@@ -81,14 +75,14 @@ def write_buffers(out: RasterOutput, out_dir: Path) -> list[Path]:
     }
     paths = []
     for name, image in images.items():
-        path = out_dir / name
-        _to_png(path, image.detach().cpu().numpy())
-        paths.append(path)
+        write_png(out_dir / name, image.detach().cpu().numpy())
+        paths.append(Path(name))
     return paths
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("demo_out"), help="output directory (created)")
+    parser.add_argument("--out", type=Path, default=Path("demo_out"), help="output directory (created; replaced "
+                        "only when this command wrote it)")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--backend", default="auto", help="rasterizer backend: auto, reference, ...")
@@ -96,23 +90,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_dir(args.out, "demo")
     surfels = demo_scene(seed=args.seed)
     camera = camera_from_fov((0.0, -3.2, 1.4), (0.0, 0.0, 0.3), width=args.width, height=args.height)
     start = time.perf_counter()
     with torch.no_grad():
         out = rasterize(surfels, camera, backend=args.backend)
     elapsed = time.perf_counter() - start
-    paths = write_buffers(out, args.out)
+    with output_dir(args.out, "demo") as tmp:
+        names = write_buffers(out, tmp)
     print(f"rendered {len(surfels)} surfels at {args.width}x{args.height} in {elapsed:.2f} s")
-    for path in paths:
-        print(f"  wrote {path}")
+    for name in names:
+        print(f"  wrote {args.out / name}")
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m rtsplat.demo", description=__doc__.splitlines()[0])
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    args = parser.parse_args(argv)
+    return run_command("rtsplat.demo", lambda: run(args))
 
 
 if __name__ == "__main__":

@@ -6,6 +6,8 @@ the CLI can print it as-is and exit with status 1 instead of showing a traceback
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -24,3 +26,21 @@ class PipelineError(Exception):
 
 class ConfigError(PipelineError):
     """A config file or override that does not match the schema."""
+
+
+BAD_INPUT_EXIT = 1
+INTERRUPTED_EXIT = 130
+
+
+def run_command(prog: str, work: Callable[[], int | None]) -> int:
+    """The exit status of a command's ``work``: its return value (None: 0); a :class:`PipelineError` is
+    printed once as ``<prog>: error: <message>`` on stderr (status 1) and ctrl-C as one line (status 130),
+    never as a traceback. ``rtsplat <stage>`` and every ``python -m rtsplat.*`` command run through it."""
+    try:
+        return int(work() or 0)
+    except PipelineError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return BAD_INPUT_EXIT
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted; its outputs were left as they were", file=sys.stderr)
+        return INTERRUPTED_EXIT

@@ -13,8 +13,9 @@ Definitions (METHOD.md section 7), images in [0,1]:
   pixels. Without weights the value is the string ``"n/a (weights not found)"``.
 
 Views are the renders of ``rtsplat render`` (``<renders>/color/<name>.png``) against the prepared
-scene's images and masks. The JSON records the split the renders are of (``split``: ``test``, or
-``train`` / ``all``, which include training views: said when printed, labelled in the report),
+scene's images and masks; a grey render of a colour photo is refused (:func:`check_colour`). The JSON
+records the split the renders are of (``split``: ``test``, or ``train`` / ``all``, which include
+training views: said when printed, labelled in the report),
 per-view values, means, the run's config hash, package versions and the machine. Synthetic scenes
 also get the decomposition scored (:func:`layer_metrics`) against the ground-truth layers that
 ``rtsplat prepare`` carries into ``<data>/gt_layers`` (or ``--gt-layers DIR`` with
@@ -158,6 +159,19 @@ def environment() -> dict:
     return {"versions": versions, "commit": source_commit(), "machine": machine}
 
 
+def check_colour(render: Path, target: Tensor) -> None:
+    """Refuse a grey render (one channel, or grey and alpha) of a colour photo: scored as colour, its grey would
+    be compared with the photo's colours, a number that means neither. ``rtsplat render`` writes colour."""
+    from rtsplat.io.images import read_header
+
+    channels = read_header(render).channels
+    if channels in (1, 2) and not bool((target == target[..., :1]).all()):
+        raise PipelineError(f"the render is grey ({channels} channel{'s' if channels > 1 else ''}) but the photo it is "
+                            "scored against is in colour; a grey render cannot be scored as colour", path=render,
+                            fix="score the colour renders that `rtsplat render` wrote (render the run again into a "
+                            "new --out), not a grey copy of them")
+
+
 def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str | Path | None = None,
                     lpips_weights: str = "", gt_layers: str | Path | None = None) -> dict:
     from rtsplat.io.images import read_image
@@ -185,6 +199,7 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
         if render.shape != target.shape:
             raise PipelineError(f"render is {tuple(render.shape)} but the image is {tuple(target.shape)}", path=path,
                                 fix="render from the same prepared scene the metrics use")
+        check_colour(path, target)
         mask = scene.load_mask(name)
         mask_t = None if mask is None else torch.from_numpy(mask)
         values = image_metrics(render, target, mask_t, lpips_model)

@@ -53,6 +53,8 @@ import datetime
 import html
 import itertools
 import json
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,6 +64,7 @@ import torch
 from rtsplat.errors import PipelineError
 from rtsplat.io.images import read_image, write_png
 from rtsplat.io.outputs import check_output_dir, output_dir
+from rtsplat.io.train_log import LOG_NAME, read_log
 from rtsplat.layer_references import LAYERS_SUM, ceilings, read_views
 from rtsplat.model.composite import transmission_with_scatter
 from rtsplat.scene import GT_LAYERS_DIR, REFLECTION_REACH_FILE, SCENE_FILE, PreparedScene
@@ -160,16 +163,21 @@ def _read_json(path: Path) -> dict:
         raise PipelineError(f"cannot read ({exc})", path=path, fix="rerun the stage that writes it") from None
 
 
-def collect(results: Path) -> dict[str, dict[str, Run]]:
-    """{scene: {method: Run}} for every run that has a summary (finished training)."""
+def _note(message: str) -> None:
+    print(f"rtsplat report: {message}", file=sys.stderr)
+
+
+def collect(results: Path, note: Callable[[str], None] = _note) -> dict[str, dict[str, Run]]:
+    """{scene: {method: Run}} for every run that has a summary (finished training); what was dropped from a
+    training log (:func:`rtsplat.io.train_log.read_log`) is said through ``note``."""
     scenes: dict[str, dict[str, Run]] = {}
     for summary in sorted(results.glob("*/runs/*/summary.json")):
         run_dir = summary.parent
         scene, method = run_dir.parent.parent.name, run_dir.name
         run = Run(scene, method, summary=_read_json(summary))
-        log = run_dir / "train_log.jsonl"
+        log = run_dir / LOG_NAME
         if log.is_file():
-            run.log = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+            run.log = [record for record, _ in read_log(log, note)]
         metrics = results / scene / "metrics" / f"{method}.json"
         if metrics.is_file():
             run.metrics = _read_json(metrics)
@@ -935,8 +943,9 @@ def _masks_section(doc: Document, scene_dir: Path, out: Path) -> None:
     summary = _read_json(masks_dir / "summary.json")
     doc.heading("Transparent masks", 3)
     doc.paragraph(" ".join(t for t in (masks_paragraph(summary), polarity_text(summary)) if t))
-    if summary.get("polarity_warning"):
-        doc.paragraph(f"Warning: {summary['polarity_warning']}.")
+    for key in ("polarity_warning", "coverage_warning"):
+        if summary.get(key):
+            doc.paragraph(f"Warning: {summary[key]}.")
     roi_warning = roi_warning_text(scene_dir.name, scene_dir / "prepared")
     if roi_warning:
         doc.paragraph(roi_warning)

@@ -16,8 +16,8 @@ import json
 import sys
 from pathlib import Path
 
-from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import print_or_write
+from rtsplat.errors import PipelineError, run_command
+from rtsplat.io.outputs import write_page
 from rtsplat.report import REPORT_JSON
 
 # the report's headings whose tables the page keeps, in the report's order
@@ -30,7 +30,9 @@ KEPT_HEADINGS = (
     "Ablations (transparent-region PSNR)",
     "Decomposition against the ground-truth layers (PSNR in the transparent region, test views)",
 )
-COMMAND = "python -m rtsplat.results_page --report REPORT_DIR --out {page}"
+PROGRAM = "python -m rtsplat.results_page"
+COMMAND = PROGRAM + " --report REPORT_DIR --out {page}"
+MARKER = f"Written by `{PROGRAM} "  # the page's first line: how --out knows a page of its own
 DEFAULT_PAGE = "docs/results.md"
 
 
@@ -41,9 +43,32 @@ def read_report(report: Path) -> dict:
                             fix="pass the folder that `rtsplat report` wrote (e.g. demo/results/report); "
                                 "a report written before report.json existed needs `rtsplat report` again")
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
+        record = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise PipelineError(f"not valid JSON ({exc})", path=path, fix="write the report again") from None
+    problem = report_shape_problem(record)
+    if problem:
+        raise PipelineError(f"not a report of `rtsplat report`: {problem}", path=path,
+                            fix="pass the folder that `rtsplat report` wrote, or write the report again")
+    return record
+
+
+# the keys of report.json the page reads, with the JSON type each must have when present
+REPORT_KEYS = {"tables": list, "machine": dict, "versions": dict, "commits": dict, "scenes": list}
+TABLE_KEYS = {"headings": list, "header": list, "rows": list}
+
+
+def report_shape_problem(record) -> str | None:
+    """What in ``record`` (a parsed report.json) is not of the shape the page reads, None when all is."""
+    if not isinstance(record, dict):
+        return f"it holds a JSON {type(record).__name__}, not an object"
+    for key, kind in REPORT_KEYS.items():
+        if record.get(key) is not None and not isinstance(record[key], kind):
+            return f"its {key!r} is a JSON {type(record[key]).__name__}, not a {kind.__name__}"
+    for number, table in enumerate(record.get("tables") or [], 1):
+        if not isinstance(table, dict) or not all(isinstance(table.get(k), t) for k, t in TABLE_KEYS.items()):
+            return f"its table {number} is not an object with the lists {', '.join(TABLE_KEYS)}"
+    return None
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -70,7 +95,7 @@ def results_markdown(record: dict, source: str, page: str = DEFAULT_PAGE) -> str
     lines = [
         "# Results",
         "",
-        f"Written by `{COMMAND.format(page=page)}` from the report in `{source}` "
+        f"{MARKER}{COMMAND.format(page=page).removeprefix(PROGRAM + ' ')}` from the report in `{source}` "
         f"(written {record.get('written', '?')}): "
         "do not edit by hand. What the columns mean, the plots and every other table: the report itself "
         "(`index.html`); what was measured around these numbers and why: [benchmarks.md](benchmarks.md).",
@@ -79,12 +104,12 @@ def results_markdown(record: dict, source: str, page: str = DEFAULT_PAGE) -> str
         f"- Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
         f"{machine.get('platform', '?')}; rendering device: {record.get('render_device') or '?'}",
         f"- Packages: {versions or '?'}",
-        f"- Scenes: {', '.join(record.get('scenes', [])) or '?'}",
+        f"- Scenes: {', '.join(map(str, record.get('scenes') or [])) or '?'}",
         "",
     ]
     current_scene, current_headings = None, None
-    for table in record.get("tables", []):
-        headings = table.get("headings", [])
+    for table in record.get("tables") or []:
+        headings = table["headings"]
         if not headings or headings[-1] not in KEPT_HEADINGS:
             continue
         scene = headings[0] if len(headings) > 1 else None
@@ -104,13 +129,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--report", type=Path, required=True, help="a folder written by rtsplat report")
     parser.add_argument("--out", type=Path, help="the page to write (default: print it)")
     args = parser.parse_args(argv)
-    try:
+
+    def work() -> None:
         text = results_markdown(read_report(args.report), str(args.report), str(args.out or DEFAULT_PAGE))
-    except PipelineError as exc:
-        print(f"rtsplat.results_page: error: {exc}", file=sys.stderr)
-        return 1
-    print_or_write(text, args.out)
-    return 0
+        write_page(text, args.out, PROGRAM, MARKER, inputs=[args.report])
+
+    return run_command("rtsplat.results_page", work)
 
 
 if __name__ == "__main__":

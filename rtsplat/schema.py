@@ -156,11 +156,28 @@ def error_message(error: Any, source: str, root: tuple[str, ...] = ()) -> str:
         return "\n".join(lines)
     if error.validator == "enum":
         options = error.validator_value
-        return f"{source}: config key '{where}' is {error.instance!r}. Fix: use one of {options}"
+        return (f"{source}: config key '{where}' is {error.instance!r}. Fix: use one of {options}"
+                + _yaml_boolean_hint(error.instance, where, options))
     if error.validator in ("type", "anyOf"):
-        expected = error.schema.get("type") or " or ".join(str(s.get("type")) for s in error.schema.get("anyOf", []))
-        return f"{source}: config key '{where}' is {error.instance!r}. Fix: it must be of type {expected}"
+        kinds = ([error.schema["type"]] if "type" in error.schema
+                 else [s.get("type") for s in error.schema.get("anyOf", [])])
+        expected = " or ".join(str(k) for k in kinds)
+        hint = _yaml_boolean_hint(error.instance, where, error.schema.get("enum", [])) if "string" in kinds else ""
+        return f"{source}: config key '{where}' is {error.instance!r}. Fix: it must be of type {expected}{hint}"
     return f"{source}: config key '{where}': {error.message}. Fix: see the description in config.yaml"
+
+
+YAML_BOOLEANS = {True: ("on", "yes", "true"), False: ("off", "no", "false")}  # what YAML 1.1 reads as booleans
+
+
+def _yaml_boolean_hint(value: Any, where: str, options) -> str:
+    """For a boolean where text is expected: that YAML reads unquoted on/off/yes/no/true/false as booleans,
+    and the value quoted (the option among ``options`` that the boolean was probably written as)."""
+    if not isinstance(value, bool):
+        return ""
+    meant = next((word for word in YAML_BOOLEANS[value] if word in options), "the text")
+    return (f"; YAML reads an unquoted on, off, yes, no, true or false as a boolean, so write the text in quotes: "
+            f"{where.rsplit('.', 1)[-1]}: \"{meant}\"")
 
 
 @functools.cache
@@ -178,7 +195,9 @@ def check(cls: type, data: Any, *, source: str = "config", root: str = "") -> No
     non_finite = dict(_non_finite(data, ()))
     lines = [f"{source}: config key '{_key([*prefix, *path])}' is {value!r}. Fix: use a finite number"
              for path, value in non_finite.items()]
-    errors = sorted((e for e in _validator(cls).iter_errors(data) if tuple(e.absolute_path) not in non_finite),
+    errors = [e for e in _validator(cls).iter_errors(data) if tuple(e.absolute_path) not in non_finite]
+    listed = {tuple(e.absolute_path) for e in errors if e.validator == "enum"}  # its options say the type too
+    errors = sorted((e for e in errors if e.validator != "type" or tuple(e.absolute_path) not in listed),
                     key=lambda e: list(map(str, e.absolute_path)))
     lines += [error_message(e, source, prefix) for e in errors]
     if lines:

@@ -18,8 +18,11 @@ The MP4 is written through a temporary file renamed into place at the end
 (:class:`rtsplat.io.video.Mp4Writer`): a failed or interrupted video leaves no partial file and keeps a
 previous one. It replaces only an MP4 that ``rtsplat video`` wrote (its metadata comment says so and
 records the settings). ``--poster`` writes the first frame as a PNG (the report's poster frame), after
-the video; ``--keep-frames DIR`` writes every frame as ``DIR/frame_00000.png``... (a folder replaced
-atomically, like the other stages' outputs).
+the video; it replaces only a PNG whose ``Software`` text says ``rtsplat video`` wrote it.
+``--keep-frames DIR`` writes every frame as ``DIR/frame_00000.png``... (a folder replaced atomically, like
+the other stages' outputs). Frames wider or taller than the encoder takes (:data:`MAX_SIDE`, all panels
+side by side) are refused before anything is rendered; running out of memory while rendering is an error
+that names the frame size.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ import torch
 from rtsplat.config import add_config_arguments, stage_config_from_args
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
-from rtsplat.io.outputs import check_output_dir, check_output_file, output_dir
+from rtsplat.io.outputs import check_output_dir, check_output_file, check_png_output, output_dir
 from rtsplat.render import (
     Edits,
     add_run_arguments,
@@ -50,6 +53,20 @@ from rtsplat.render import (
 from rtsplat.usage import UsageClock
 
 PANELS = ("color", "reflection", "transmission", "normal", "depth")
+POSTER_SOFTWARE = "rtsplat video"  # the poster PNG's Software text: how the stage knows a poster it wrote
+MAX_SIDE = 16384  # the largest frame side the H.264 encoder (libx264) opens; all panels side by side count
+
+
+def check_frame_size(width: int, height: int | None, panels: int) -> None:
+    """Refuse frames larger than the encoder takes, before anything is rendered: ``panels`` frames of
+    ``width`` x ``height`` pixels side by side (``height`` None: not known yet). Frames too small are
+    :func:`rtsplat.camera_path.path_intrinsics`'s to refuse."""
+    if width * panels > MAX_SIDE or (height or 0) > MAX_SIDE:
+        size = f"{width * panels}x{height}" if height else f"{width * panels} pixels wide"
+        side_by_side = f" ({panels} panels side by side)" if panels > 1 else ""
+        raise PipelineError(f"video frames of {size}{side_by_side} are larger than the H.264 encoder takes "
+                            f"({MAX_SIDE} pixels a side)",
+                            fix=f"pass a --width of at most {MAX_SIDE // panels} (video.width)")
 
 
 def _is_own_video(path: Path) -> bool:
@@ -94,10 +111,12 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
     check_video_output(out, inputs)
     if poster is not None:
         poster = Path(poster)
-        check_output_file(poster, "video", lambda p: p.suffix.lower() == ".png", inputs=inputs,
-                          example="a new <name>.png")
+        check_png_output(poster, POSTER_SOFTWARE, inputs=inputs, flag="--poster")
     if keep_frames is not None:
-        check_output_dir(keep_frames, "video", inputs=inputs)
+        check_output_dir(keep_frames, "video", inputs=inputs, flag="--keep-frames")
+    layers = PANELS if panels else PANELS[:1]
+    if width is not None:
+        check_frame_size(width, None, len(layers))
     edits = edits or Edits()
 
     run = load_run(run_dir, data_dir, split="train", edits=edits, backend=backend, device=device)
@@ -108,7 +127,7 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
     poses = camera_path(path, w2c, center, frames)
     K, frame_w, frame_h = path_intrinsics([r.K for r in records], [r.width for r in records],
                                           [r.height for r in records], width)
-    layers = PANELS if panels else PANELS[:1]
+    check_frame_size(frame_w, frame_h, len(layers))
     info = {"path": path, "frames": frames, "fps": fps, "width": frame_w, "height": frame_h,
             "panels": list(layers), "edits": asdict(edits), "backend": backend, "device": device_name(run.device),
             "run": str(run_dir), "data": str(data_dir), "surfels": len(run.model.surfels)}
@@ -117,31 +136,35 @@ def render_video(run_dir: str | Path, data_dir: str | Path, out: str | Path, *, 
     render_seconds = encode_seconds = 0.0
     clock = UsageClock()
     K_device = K.to(device=run.device, dtype=torch.float32)
-    with output_dir(keep_frames, "video", inputs=inputs) if keep_frames is not None else nullcontext() as frames_dir, \
-            Mp4Writer(out, frame_w * len(layers), frame_h, fps, comment=RTSPLAT_COMMENT + json.dumps(info)) as video, \
-            torch.inference_mode():
-        for k, pose in enumerate(tqdm(poses, desc="video", disable=not progress)):
-            start = time.perf_counter()
-            camera = Camera(K_device, pose.to(device=run.device, dtype=torch.float32), frame_w, frame_h)
-            result = run.render(camera)
-            images = decompose(result, edits)
-            if panels:
-                images["normal"] = normal_image(result.layers["normal"])
-                if depth_top is None:  # one scale for the whole video
-                    depth_top = inverse_depth(result.layers["depth"], result.layers["alpha"]).max()
-                images["depth"] = depth_image(result.layers["depth"], result.layers["alpha"], top=depth_top)
-            frame = torch.cat([images[layer].clamp(0, 1) for layer in layers], dim=1).cpu().numpy()
-            render_seconds += time.perf_counter() - start
-            start = time.perf_counter()
-            video.write(frame)
-            encode_seconds += time.perf_counter() - start
-            if first is None:
-                first = frame
-            if frames_dir is not None:
-                write_png(frames_dir / f"frame_{k:05d}.png", frame)
+    try:
+        kept = output_dir(keep_frames, "video", inputs=inputs) if keep_frames is not None else nullcontext()
+        mp4 = Mp4Writer(out, frame_w * len(layers), frame_h, fps, comment=RTSPLAT_COMMENT + json.dumps(info))
+        with kept as frames_dir, mp4 as video, torch.inference_mode():
+            for k, pose in enumerate(tqdm(poses, desc="video", disable=not progress)):
+                start = time.perf_counter()
+                camera = Camera(K_device, pose.to(device=run.device, dtype=torch.float32), frame_w, frame_h)
+                result = run.render(camera)
+                images = decompose(result, edits)
+                if panels:
+                    images["normal"] = normal_image(result.layers["normal"])
+                    if depth_top is None:  # one scale for the whole video
+                        depth_top = inverse_depth(result.layers["depth"], result.layers["alpha"]).max()
+                    images["depth"] = depth_image(result.layers["depth"], result.layers["alpha"], top=depth_top)
+                frame = torch.cat([images[layer].clamp(0, 1) for layer in layers], dim=1).cpu().numpy()
+                render_seconds += time.perf_counter() - start
+                start = time.perf_counter()
+                video.write(frame)
+                encode_seconds += time.perf_counter() - start
+                if first is None:
+                    first = frame
+                if frames_dir is not None:
+                    write_png(frames_dir / f"frame_{k:05d}.png", frame)
+    except (MemoryError, torch.OutOfMemoryError) as exc:
+        raise PipelineError(f"out of memory rendering video frames of {frame_w * len(layers)}x{frame_h} pixels on "
+                            f"{info['device']}", fix="pass a smaller --width (video.width)") from exc
     usage = clock.read()
     if poster is not None:
-        write_png(poster, first)
+        write_png(poster, first, software=POSTER_SOFTWARE)
     info.update({"render_seconds_per_frame": render_seconds / frames, "encode_seconds_per_frame":
                  encode_seconds / frames, "seconds_per_frame": (render_seconds + encode_seconds) / frames,
                  "cpu_seconds_per_frame": usage.cpu_seconds / frames, "timing": usage.to_dict()})

@@ -16,6 +16,9 @@ that photo's appearance correction), and the last frame's render time.
 The model renders on ``--device`` (auto: the GPU when torch sees one), wherever it was trained: the
 checkpoint is moved there when read. ``--data`` defaults to the prepared scene the run recorded. On a
 remote machine, forward the port (``ssh -L 8080:localhost:8080 host``) and open http://localhost:8080.
+The page listens on ``--port`` and nowhere else: a port out of range or one another program holds is an
+error naming it (:func:`check_port`), before the run is loaded, so a forwarded port never reaches another
+program.
 
 Camera convention: viser gives the camera-to-world rotation (quaternion ``wxyz``) and centre of an
 OpenCV-axes camera (x right, y down, z forward, as :mod:`rtsplat.camera`) and its vertical field of
@@ -27,7 +30,9 @@ from __future__ import annotations
 
 import argparse
 import collections
+import errno
 import math
+import socket
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -368,6 +373,24 @@ class ViewerServer:
                                  f"({'full' if resting else 'moving'})")
 
 
+def check_port(host: str, port: int) -> None:
+    """Raise :class:`PipelineError` unless ``port`` is a TCP port (1-65535) this process can listen on at
+    ``host`` now (nothing else holds it)."""
+    if not 1 <= port <= 65535:
+        raise PipelineError(f"--port {port} is not a TCP port (1 to 65535)", fix="pass --port 8080, for example")
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a server binds: a listener blocks it
+            probe.bind((host, port))
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise PipelineError(f"port {port} is in use by another program on {host}", fix="pass another --port "
+                                f"(e.g. --port {port + 1 if port < 65535 else 8080}) and open or forward that one, "
+                                "or stop the program that uses this one") from exc
+        raise PipelineError(f"cannot listen on {host}:{port} ({exc.strerror or exc})",
+                            fix="pass an address of this machine as --host (127.0.0.1 or 0.0.0.0)") from exc
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = __doc__
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -419,12 +442,18 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     settings = replace(ViewerSettings(), preview_size=args.preview_size, max_size=args.max_size,
                        settle_seconds=args.settle, preview_seconds=args.preview_seconds)
+    check_port(args.host, args.port)
     viewer = open_viewer(args.run, args.data, device=args.device, backend=args.backend, settings=settings)
+    check_port(args.host, args.port)  # still free after the run loaded
     try:
         server = ViewerServer(viewer, host=args.host, port=args.port)
     except OSError as exc:
         raise PipelineError(f"cannot listen on {args.host}:{args.port} ({exc})",
-                            fix="choose another --port, or stop what uses this one") from exc
+                            fix="pass another --port, or stop the program that uses this one") from exc
+    if server.port != args.port:  # the server moves to the next free port when its own is taken meanwhile
+        server.stop()
+        raise PipelineError(f"port {args.port} was taken while the viewer started (it would have listened on "
+                            f"{server.port} instead)", fix="run it again, or pass another --port")
     print(f"rtsplat view: {len(viewer.run.model.surfels)} surfels on {device_name(viewer.run.device)}; open "
           f"http://{'localhost' if args.host in ('127.0.0.1', '0.0.0.0') else args.host}:{server.port} "
           f"(remote machine: ssh -L {server.port}:localhost:{server.port} <host>); ctrl-C stops")

@@ -87,6 +87,7 @@ class Case:
     fault: str | None = None  # a key of FAULTS: how writing fails
     fault_at: str = "ro"  # the folder (relative to the root) where it fails
     may_create: str | None = None  # a folder (relative) that may appear: a training run written in place
+    entry: str = "rtsplat"  # the command: "rtsplat" (rtsplat.cli) or a module of `python -m`, e.g. rtsplat.demo
 
 
 def patch(rel: str, offset: int, fmt: str, *values) -> Callable[[Path], None]:
@@ -481,6 +482,8 @@ WRITE_CASES = {
     "fps onto the metrics JSON": Case([*FPS, "{R}/res/metrics.json"],
                                       ["{R}/res/metrics.json", "not a result of 'rtsplat fps'"]),
     "fps onto a folder": Case([*FPS, "{R}/user"], ["{R}/user", "is a folder"]),
+    "metrics into the sfm output": Case([*METRICS, "{R}/res/sfm/m.json"],
+                                        ["{R}/res/sfm/m.json", "lies inside the output of 'rtsplat sfm'"]),
     "train --checkpoint-dir is another stage's output": Case(
         [*TRAIN, "{R}/res/new", "--checkpoint-dir", "{R}/res/sfm"],
         ["{R}/res/sfm", "the --checkpoint-dir folder was written by 'rtsplat sfm'", "pass a --checkpoint-dir"]),
@@ -490,6 +493,94 @@ WRITE_CASES = {
         ["sfm", "--scene-dir", "{R}/two", "--out", "{R}/res/new"],
         ["{R}/two/images", "2 image(s)", "sfm.min_registered_images is 3"],
         lambda root: make_corner_scene(root / "two", n_views=2, width=40, height=30, with_model=True)),
+}
+
+
+def entry_point(entry: str) -> Callable[[list[str]], int]:
+    """The ``main`` of a command: ``rtsplat`` or the module that ``python -m`` runs."""
+    import importlib
+
+    return main if entry == "rtsplat" else importlib.import_module(entry).main
+
+
+def user_png(rel: str) -> Callable[[Path], None]:
+    """A PNG of the user's own (a photo of the scene, written by no rtsplat command) at ``rel``."""
+    def apply(root: Path) -> None:
+        shutil.copy(root / "scene/images/view_000.png", root / rel)
+    return apply
+
+
+def report_json(text: str) -> Callable[[Path], None]:
+    """A report folder ``rep/`` whose report.json holds ``text``."""
+    return write("rep/report.json", text)
+
+
+def grey_renders(root: Path) -> None:
+    import cv2
+
+    for path in (root / "res/renders/color").glob("*.png"):
+        cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+
+
+VIDEO = ["video", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--quiet", "--frames", "2"]
+VIEW = ["view", "--run", "{R}/res/trained", "--data", "{R}/res/prepared"]
+RESULTS_PAGE = "rtsplat.results_page"
+A_REPORT = report_json('{"tables": [], "scenes": ["corner"]}')
+# every file a command writes where the user names it, and every input checked at the edge (issue 71)
+ENTRY_CASES = {
+    "video --poster onto a user's PNG": Case([*VIDEO, "--out", "{R}/res/v.mp4", "--poster", "{R}/user/cover.png"],
+                                             ["{R}/user/cover.png", "--poster file exists and is not a result of "
+                                              "'rtsplat video'"], user_png("user/cover.png")),
+    "video --poster not a PNG": Case([*VIDEO, "--out", "{R}/res/v.mp4", "--poster", "{R}/user/notes.txt"],
+                                     ["{R}/user/notes.txt", "--poster is written as PNG"]),
+    "video --poster inside the run": Case([*VIDEO, "--out", "{R}/res/v.mp4", "--poster", "{R}/res/trained/p.png"],
+                                          ["{R}/res/trained/p.png", "input {R}/res/trained"]),
+    "video --keep-frames a user folder": Case([*VIDEO, "--out", "{R}/res/v.mp4", "--keep-frames", "{R}/user"],
+                                              ["{R}/user", "the --keep-frames folder exists"]),
+    "video --width 100000": Case([*VIDEO, "--out", "{R}/res/v.mp4", "--width", "100000", "--no-panels"],
+                                 ["100000 pixels wide", "larger than the H.264 encoder takes", "--width of at most"]),
+    "view --port 70000": Case([*VIEW, "--port", "70000"], ["--port 70000 is not a TCP port", "--port 8080"]),
+    "view --port 0": Case([*VIEW, "--port", "0"], ["--port 0 is not a TCP port"]),
+    "metrics on grey renders": Case([*METRICS, "{R}/res/new.json"],
+                                    ["{R}/res/renders/color/", "the render is grey (1 channel)", "rtsplat render"],
+                                    grey_renders),
+    "config: near_reflection on unquoted": train_yaml_case(
+        ["train.effects.near_reflection", "YAML reads an unquoted on, off, yes, no", 'near_reflection: "on"'],
+        "  effects: {near_reflection: on}\n"),
+    "config: a device yes": train_yaml_case(["train.device", "YAML reads", 'device: "the text"'],
+                                            "  device: yes\n"),
+    "results_page --out a user's notes": Case(
+        ["--report", "{R}/rep", "--out", "{R}/user/notes.txt"],
+        ["{R}/user/notes.txt", "is not a result of 'python -m rtsplat.results_page'", "a new <name>.md"],
+        A_REPORT, entry=RESULTS_PAGE),
+    "results_page --out its own report.json": Case(
+        ["--report", "{R}/rep", "--out", "{R}/rep/report.json"], ["{R}/rep/report.json", "input {R}/rep"],
+        A_REPORT, entry=RESULTS_PAGE),
+    "results_page --out a folder": Case(["--report", "{R}/rep", "--out", "{R}/user"], ["{R}/user", "is a folder"],
+                                        A_REPORT, entry=RESULTS_PAGE),
+    "results_page of a report.json holding []": Case(
+        ["--report", "{R}/rep", "--out", "{R}/page.md"], ["{R}/rep/report.json", "holds a JSON list"],
+        report_json("[]"), entry=RESULTS_PAGE),
+    "results_page of a report.json with a table of numbers": Case(
+        ["--report", "{R}/rep"], ["{R}/rep/report.json", "table 1 is not an object"],
+        report_json('{"tables": [[1, 2]]}'), entry=RESULTS_PAGE),
+    "config_reference --out a user's notes": Case(
+        ["--out", "{R}/user/notes.txt"], ["{R}/user/notes.txt", "not a result of 'python -m rtsplat.config_reference'"],
+        entry="rtsplat.config_reference"),
+    "demo --out a user folder": Case(["--out", "{R}/user", "--width", "16", "--height", "16"],
+                                     ["{R}/user", "not written by 'rtsplat demo'"], entry="rtsplat.demo"),
+    "rtsplat demo --out a dataset": Case(["demo", "--out", "{R}/scene"], ["{R}/scene", "dataset folder"]),
+    "bench.layer_strip --out a user's PNG": Case(
+        ["--data", "{R}/res/prepared", "--renders", "{R}/res/renders", "--out", "{R}/user/cover.png"],
+        ["{R}/user/cover.png", "not a result of 'python -m rtsplat.bench.layer_strip'"], user_png("user/cover.png"),
+        entry="rtsplat.bench.layer_strip"),
+    "bench.mask_propagation --figure a user's PNG": Case(
+        ["--data", "{R}/scene", "--figure", "{R}/user/cover.png"],
+        ["{R}/user/cover.png", "--figure file exists"], user_png("user/cover.png"),
+        entry="rtsplat.bench.mask_propagation"),
+    "bench.iteration --state-dir a user folder": Case(
+        ["--scene", "{R}/res/prepared", "--state-dir", "{R}/user"], ["{R}/user", "the --state-dir folder exists"],
+        entry="rtsplat.bench.iteration"),
 }
 
 
@@ -512,6 +603,7 @@ CASES = {
     **{f"photos: {k}": v for k, v in PHOTO_CASES.items()},
     **{f"mismatch: {k}": v for k, v in MISMATCH_CASES.items()},
     **{f"write: {k}": v for k, v in WRITE_CASES.items()},
+    **{f"entry: {k}": v for k, v in ENTRY_CASES.items()},
 }
 
 FAULTS = {
@@ -540,7 +632,7 @@ def test_bad_input_is_refused_and_changes_nothing(name, base, tmp_path, capsys, 
         before = tree_state(root)
         restore = FAULTS[case.fault](monkeypatch, root / case.fault_at) or restore
     try:
-        status = main(argv)
+        status = entry_point(case.entry)(argv)
     finally:
         monkeypatch.undo()
         restore()
@@ -653,3 +745,75 @@ def test_results_equal_to_data_is_a_config_error(tmp_path):
             discover_scenes(cfg)
         message = str(info.value)
         assert "'results'" in message and "'data'" in message and words in message, message
+
+
+def test_a_command_replaces_its_own_file_and_its_committed_page(base, tmp_path, capsys):
+    """The other side of the output rule for files: a poster, a results page and the configuration page that
+    their command wrote are replaced by it (also the committed docs pages), and the user's files never."""
+    from rtsplat.config_reference import main as config_reference
+    from rtsplat.results_page import main as results_page
+
+    root = Path(__file__).resolve().parent.parent
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "rep/report.json").write_text('{"tables": [], "scenes": ["corner"]}')
+    for committed in ("results.md", "results_family.md"):  # the placeholder and a page the command wrote
+        page = tmp_path / committed
+        shutil.copy(root / "docs" / committed, page)
+        assert results_page(["--report", str(tmp_path / "rep"), "--out", str(page)]) == 0
+        assert page.read_text().startswith("# Results\n\nWritten by `python -m rtsplat.results_page --report")
+        assert results_page(["--report", str(tmp_path / "rep"), "--out", str(page)]) == 0  # its own, again
+    shutil.copy(root / "docs/configuration.md", tmp_path / "configuration.md")
+    assert config_reference(["--out", str(tmp_path / "configuration.md")]) == 0
+    assert (tmp_path / "configuration.md").read_text() == (root / "docs/configuration.md").read_text()
+    poster = tmp_path / "poster.png"
+    video = [*(a.replace("{R}", str(base)) for a in VIDEO), "--no-panels", "--out", str(tmp_path / "v.mp4"),
+             "--poster", str(poster)]
+    assert main(video) == 0
+    first = poster.read_bytes()
+    poster.write_bytes(first[:33] + first[33:].replace(b"rtsplat video", b"rtsplat viDeo"))  # as if another's
+    assert main(video) == 1 and "--poster file exists" in capsys.readouterr().err
+    poster.write_bytes(first)
+    assert main(video) == 0 and poster.read_bytes() == first  # its own: replaced by the same frame
+
+
+def test_the_report_drops_a_half_written_last_log_line_and_says_so(base, tmp_path, capsys):
+    """A run killed while appending to train_log.jsonl: `rtsplat report` reads its whole records, as a resumed
+    training does, and names the line it dropped."""
+    results = tmp_path / "results"
+    shutil.copytree(base / "results", results)
+    log = results / "corner/runs/rtsplat/train_log.jsonl"
+    whole = len([line for line in log.read_text().splitlines() if line.strip()])
+    log.write_text(log.read_text() + '{"iteration": 3, "seconds": 0.1, "lo')
+    assert main(["report", "--results", str(results), "--out", str(tmp_path / "report")]) == 0
+    err = capsys.readouterr().err
+    assert f"{log}: dropped its half-written last line" in err and "Traceback" not in err
+    assert (tmp_path / "report/index.html").is_file() and whole >= 1
+
+
+def test_view_on_a_busy_port_is_an_error_naming_it(base, tmp_path, capsys):
+    """A port another program listens on: an error naming it, before the run is loaded (never a silent
+    move to the next port, where a forwarded port would reach the other program)."""
+    import socket
+
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        port = other.getsockname()[1]
+        argv = [a.replace("{R}", str(base)) for a in VIEW]
+        assert main([*argv, "--port", str(port)]) == 1
+    err = capsys.readouterr().err
+    assert f"port {port} is in use by another program on 127.0.0.1" in err and "pass another --port" in err
+
+
+def test_a_video_out_of_memory_is_an_error_naming_the_frame_size(base, tmp_path, capsys, monkeypatch):
+    from rtsplat.render import LoadedRun
+
+    def no_memory(self, camera):
+        raise MemoryError
+
+    monkeypatch.setattr(LoadedRun, "render", no_memory)
+    out = tmp_path / "v.mp4"
+    assert main([*(a.replace("{R}", str(base)) for a in VIDEO), "--no-panels", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "out of memory rendering video frames of 40x30 pixels" in err and "smaller --width" in err
+    assert list(tmp_path.iterdir()) == []

@@ -61,3 +61,24 @@ def test_demo_cli_writes_real_images(tmp_path):
     assert color.std() > 10  # a textured render, not a flat image
     # the glass pane is in the surface G-buffer but lets the volume color through
     assert (alpha.astype(int) - volume_alpha.astype(int)).max() > 100
+
+
+# run by the benchmark workers under other checkouts (rtsplat.bench.workers), whose rtsplat may lack run_command
+WORKER_SCRIPTS = {"raster_cpu.py"}
+
+
+def test_every_python_m_command_prints_the_error_type_as_one_line(tmp_path):
+    """Every module a user runs with ``python -m`` turns the project's error type into one line and status 1
+    (rtsplat.errors.run_command), as ``rtsplat <stage>`` does: shown on one of them, required of all."""
+    from pathlib import Path
+
+    package = Path(cli.__file__).parent
+    scripts = [p for p in package.rglob("*.py") if 'if __name__ == "__main__"' in p.read_text()]
+    assert len(scripts) > 10
+    unhandled = [str(p.relative_to(package)) for p in scripts
+                 if "run_command(" not in p.read_text() and p.name not in WORKER_SCRIPTS and p.name != "cli.py"]
+    assert not unhandled, f"python -m commands whose errors would show as a traceback: {unhandled}"
+    result = subprocess.run([sys.executable, "-m", "rtsplat.bench.layer_ceiling", "--data", str(tmp_path),
+                             "--renders", str(tmp_path)], capture_output=True, text=True, check=False)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.startswith(f"python -m rtsplat.bench.layer_ceiling: error: {tmp_path / 'gt_layers'}")

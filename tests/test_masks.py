@@ -401,6 +401,75 @@ def test_inverted_masks_are_flagged_with_the_fix_and_read_inverted_with_polarity
     assert np.array_equal(read_mask(tmp_path / "fixed" / "view_000.png"), WINDOW)
 
 
+class PooledNet(torch.nn.Module):
+    """A valid ONNX model whose output is no mask: the image's mean colour, [1, 3]."""
+
+    def forward(self, image):
+        return image.mean(dim=(2, 3))
+
+
+class EverywhereNet(torch.nn.Module):
+    """Mask logits that call every pixel glass."""
+
+    def forward(self, image):
+        return 0.0 * image[:, :1] + 5.0
+
+
+def _photos(d: Path, count: int = 3) -> Path:
+    (d / "images").mkdir(parents=True)
+    for i in range(count):
+        image = _test_image().copy()
+        image[0, 0] = i / 10  # distinct photos (byte-identical photos are refused)
+        write_png(d / "images" / f"img{i}.png", image)
+    return d
+
+
+def _onnx_config(path: Path, model: str) -> Path:
+    path.write_text(f"defaults:\n  masks:\n    source: onnx\n    onnx: {{model: {model}, kind: plain}}\n")
+    return path
+
+
+def test_a_segmenter_whose_output_is_no_mask_is_an_error_naming_the_model_and_its_shape(tmp_path, capsys):
+    model = _export(PooledNet(), (torch.zeros(1, 3, 32, 32),), ["input"], ["colour"], tmp_path / "pooled.onnx",
+                    {"input": {2: "h", 3: "w"}})
+    d = _photos(tmp_path / "s")
+    config = _onnx_config(tmp_path / "config.yaml", model)
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "out"), "--config", str(config)]) == 1
+    err = capsys.readouterr().err
+    assert f"{model}: the model's output has shape [1, 3], which is no mask" in err
+    assert "Traceback" not in err and not (tmp_path / "out").exists()
+
+
+def test_segmented_masks_that_cover_everything_are_flagged(tmp_path, capsys):
+    model = _export(EverywhereNet(), (torch.zeros(1, 3, 32, 32),), ["input"], ["logits"], tmp_path / "all.onnx",
+                    {"input": {2: "h", 3: "w"}, "logits": {2: "h", 3: "w"}})
+    d = _photos(tmp_path / "s")
+    config = _onnx_config(tmp_path / "config.yaml", model)
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "out"), "--config", str(config)]) == 0
+    err = capsys.readouterr().err
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["mean_coverage"] == 1.0
+    assert "segmented masks cover 100.0% of the photos" in summary["coverage_warning"]
+    assert f"WARNING: {summary['coverage_warning']}" in err
+
+
+def test_given_masks_that_cover_nothing_are_flagged(tmp_path, capsys):
+    black = np.zeros((30, 40), np.uint8)
+    d = _scene_with_masks(tmp_path, {"view_000": black, "view_001": black})
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["mean_coverage"] == 0.0
+    warning = summary["coverage_warning"]
+    assert "given masks cover 0.00% of the photos" in warning and "masks.source: none" in warning
+    assert f"WARNING: {warning}" in err
+    # usual masks: no coverage warning
+    d = _scene_with_masks(tmp_path / "usual", {"view_000": _window(255), "view_001": _window(255)})
+    assert cli_main(["masks", "--scene-dir", str(d), "--out", str(tmp_path / "usual_out")]) == 0
+    assert json.loads((tmp_path / "usual_out" / "summary.json").read_text())["coverage_warning"] == ""
+    assert "WARNING" not in capsys.readouterr().err
+
+
 def test_a_photo_as_a_mask_is_refused(tmp_path):
     import cv2
 

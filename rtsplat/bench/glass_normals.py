@@ -136,4 +136,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from rtsplat.errors import run_command
+
+    raise SystemExit(run_command("python -m rtsplat.bench.glass_normals", main))

@@ -175,4 +175,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from rtsplat.errors import run_command
+
+    raise SystemExit(run_command("python -m rtsplat.bench.gpu", main))

@@ -225,6 +225,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.worker:
         return _worker(args)
     from rtsplat.bench.workers import CheckoutWorker  # the parent only: a worker's checkout may lack it
+    from rtsplat.errors import run_command
+    from rtsplat.io.outputs import check_output_dir, mark_output
+
+    if args.state_dir is not None:  # a folder of its own: created with the marker, reused when it has it
+        status = run_command(parser.prog, lambda: check_output_dir(args.state_dir, "bench.iteration",
+                                                                   flag="--state-dir"))
+        if status:
+            return status
     options = json.loads(args.options)
     if any(key in options for key in ("schedule", "model")):
         merged = {k: {**DEMO_OPTIONS.get(k, {}), **v} if isinstance(v, dict) else v for k, v in options.items()}
@@ -238,6 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         tmp = tempfile.TemporaryDirectory(prefix="rtsplat_bench_state_")
         args.state_dir = Path(tmp.name)
     args.state_dir.mkdir(parents=True, exist_ok=True)
+    mark_output(args.state_dir, "bench.iteration")
     try:
         for method in methods:
             for ci, checkout in enumerate(checkouts):  # warm-ups one at a time: no competition

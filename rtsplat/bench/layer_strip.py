@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from rtsplat.bench.mask_propagation import label_panel
-from rtsplat.errors import PipelineError
-from rtsplat.io.images import read_image
+from rtsplat.errors import PipelineError, run_command
+from rtsplat.io.images import read_image, write_png
+from rtsplat.io.outputs import check_png_output
 from rtsplat.report import error_map
 from rtsplat.scene import GT_LAYERS_DIR
 
@@ -72,22 +73,26 @@ def layer_strip(data: Path, renders: Path, view: str) -> np.ndarray:
     return np.concatenate([top_row, gap, bottom_row], axis=0) & 0xF8
 
 
-def main(argv: list[str] | None = None) -> int:
-    import cv2
+PROGRAM = "python -m rtsplat.bench.layer_strip"  # also the PNG's Software text: --out replaces only its own
 
+
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, required=True, help="prepared scene (rtsplat prepare)")
     parser.add_argument("--renders", type=Path, required=True, help="rtsplat render of a run on that scene")
     parser.add_argument("--view", help="the view to show (default: the first test view with true layers)")
     parser.add_argument("--out", type=Path, required=True, help="PNG to write")
     args = parser.parse_args(argv)
-    view = args.view or default_view(args.data, args.renders)
-    strip = layer_strip(args.data, args.renders, view)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    ok, data = cv2.imencode(".png", strip[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    args.out.write_bytes(data.tobytes())
-    print(f"{args.out}: view {view}, {strip.shape[1]}x{strip.shape[0]}, {len(data) // 1024} KB")
-    return 0
+    return run_command(PROGRAM, lambda: write_strip(args.data, args.renders, args.view, args.out))
+
+
+def write_strip(data: Path, renders: Path, view: str | None, out: Path) -> None:
+    """The strip of ``view`` (None: :func:`default_view`) written to the PNG ``out``."""
+    check_png_output(out, PROGRAM, inputs=[data, renders])
+    view = view or default_view(data, renders)
+    strip = layer_strip(data, renders, view)
+    write_png(out, strip, software=PROGRAM)
+    print(f"{out}: view {view}, {strip.shape[1]}x{strip.shape[0]}, {out.stat().st_size // 1024} KB")
 
 
 if __name__ == "__main__":

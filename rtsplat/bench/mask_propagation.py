@@ -32,10 +32,14 @@ from pathlib import Path
 import numpy as np
 
 from rtsplat.config import MaskPropagationConfig
+from rtsplat.errors import run_command
 from rtsplat.io.colmap import dataset_model_dir, load_model
-from rtsplat.io.images import list_images, read_image, read_mask
+from rtsplat.io.images import list_images, read_image, read_mask, write_png
+from rtsplat.io.outputs import check_png_output
 from rtsplat.masks import match_masks
 from rtsplat.masks.propagation import propagate_masks, suggest_views
+
+PROGRAM = "python -m rtsplat.bench.mask_propagation"  # also the --figure PNG's Software text
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -123,9 +127,7 @@ def draw_figure(model, by_name: dict[str, Path], masks: dict[str, np.ndarray], n
         panels.append(panel)
     gap = np.full((panels[0].shape[0], 4, 3), 255, np.uint8)
     row = np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1) & 0xF8
-    path.parent.mkdir(parents=True, exist_ok=True)
-    ok, data = cv2.imencode(".png", row[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    path.write_bytes(data.tobytes())
+    write_png(path, row, software=PROGRAM)
     print(f"{path}: {first.name} marked with a {mark} ({len(marked)} marked), {', '.join(others)} propagated")
 
 
@@ -143,6 +145,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mark", choices=["file", "polygon", "box"], default="file",
                         help="how the views are marked: their true masks, polygons or boxes drawn around them")
     args = parser.parse_args(argv)
+    return run_command(PROGRAM, lambda: measure(args))
+
+
+def measure(args: argparse.Namespace) -> None:
+    """The figure (``--figure``) or the measures of the command line ``args``."""
+    if args.figure:
+        check_png_output(args.figure, PROGRAM, inputs=[args.data, args.model], flag="--figure")
     model = load_model(args.model or dataset_model_dir(args.data))
     images = list_images(args.data / "images")
     by_name = {p.name: p for p in images}
@@ -154,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = MaskPropagationConfig(grid=args.grid, refine=args.refine.split(",")[0],
                                          occlusion=not args.no_occlusion)
         draw_figure(model, by_name, masks, names, int(args.marked.split(",")[0]), settings, args.figure, args.mark)
-        return 0
+        return
     for refine in args.refine.split(","):
         for count in (int(c) for c in args.marked.split(",")):
             marked = _suggested(model, count, masks)
@@ -173,7 +182,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"refine={refine:8s} marked={count} ({', '.join(marked)}): mean IoU {mean:.3f}, worst "
                   f"{scores[worst]:.3f} ({worst}), {len(scores) - refined['none']}/{len(scores)} refined ({by}), "
                   f"{seconds:.1f} s")
-    return 0
 
 
 if __name__ == "__main__":

@@ -334,4 +334,6 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from rtsplat.errors import run_command
+
+    raise SystemExit(run_command("python -m rtsplat.bench.raster", main))

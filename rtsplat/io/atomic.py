@@ -21,7 +21,6 @@ import errno
 import json
 import os
 import shutil
-import sys
 import tempfile
 import uuid
 from collections.abc import Iterable, Iterator
@@ -276,15 +275,6 @@ def write_text_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file and a rename."""
     with atomic_file(path, "w") as fh:
         fh.write(text)
-
-
-def print_or_write(text: str, out: Path | None) -> None:
-    """A generated page: printed when ``out`` is None, else written to ``out`` in one step."""
-    if out is None:
-        sys.stdout.write(text)
-    else:
-        write_text_atomic(out, text)
-        print(f"wrote {out}")
 
 
 def write_bytes_atomic(path: str | Path, data: bytes) -> None:

@@ -24,6 +24,8 @@ Masks are single-channel: ``read_mask`` returns ``bool [H, W]`` (white = transpa
 
 from __future__ import annotations
 
+import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -235,9 +237,40 @@ def to_uint(image: np.ndarray, bits: int = 8) -> np.ndarray:
     return out.astype(np.uint8 if bits == 8 else np.uint16)
 
 
-def write_png(path: str | Path, image: np.ndarray, bits: int = 8) -> None:
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_SOFTWARE = b"Software"  # the tEXt keyword that names the program that wrote a PNG
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def png_software(path: str | Path) -> str | None:
+    """The ``Software`` text of the PNG ``path`` (what :func:`write_png` records as ``software``), None when
+    it has none or is no readable PNG."""
+    try:
+        with open(path, "rb") as fh:
+            if fh.read(8) != PNG_SIGNATURE:
+                return None
+            while True:
+                head = fh.read(8)
+                if len(head) < 8:
+                    return None
+                length, kind = struct.unpack(">I", head[:4])[0], head[4:]
+                if kind in (b"IDAT", b"IEND"):  # text chunks that name the writer come before the pixels
+                    return None
+                data = fh.read(length + 4)[:length]
+                if kind == b"tEXt" and data.startswith(PNG_SOFTWARE + b"\0"):
+                    return data[len(PNG_SOFTWARE) + 1:].decode("latin-1")
+    except OSError:
+        return None
+
+
+def write_png(path: str | Path, image: np.ndarray, bits: int = 8, software: str | None = None) -> None:
     """Write a float image in [0, 1] (``[H, W]`` or ``[H, W, 3]``), a uint8/uint16 image (as is) or a
-    bool mask as PNG, atomically (:func:`rtsplat.io.atomic.write_bytes_atomic`)."""
+    bool mask as PNG, atomically (:func:`rtsplat.io.atomic.write_bytes_atomic`). ``software``: the
+    command that wrote it, kept as the PNG's ``Software`` text (:func:`png_software` reads it back), so
+    that command can tell its own file from one of the user's."""
     import cv2
 
     path = Path(path)
@@ -253,7 +286,11 @@ def write_png(path: str | Path, image: np.ndarray, bits: int = 8) -> None:
     if not ok:
         raise PipelineError(f"cannot encode a {data.dtype} image of shape {data.shape} as PNG", path=path,
                             fix="pass an [H, W] or [H, W, 3] image")
-    write_bytes_atomic(path, encoded.tobytes())
+    data = encoded.tobytes()
+    if software is not None:  # a tEXt chunk right after the header (IHDR: 8 + 13 + 4 bytes)
+        end = len(PNG_SIGNATURE) + 25
+        data = data[:end] + _png_chunk(b"tEXt", PNG_SOFTWARE + b"\0" + software.encode("latin-1")) + data[end:]
+    write_bytes_atomic(path, data)
 
 
 def write_mask(path: str | Path, mask: np.ndarray) -> None:

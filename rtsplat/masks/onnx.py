@@ -120,8 +120,7 @@ class OnnxSegmenter:
         if self.cfg.normalize == "imagenet":
             x = (x - IMAGENET_MEAN) / IMAGENET_STD
         x = np.ascontiguousarray(x.transpose(2, 0, 1)[None]).astype(_onnx_dtype(inp.type))
-        out = np.asarray(self.decoder.run(None, {inp.name: x})[0], dtype=np.float32)
-        out = out.reshape((-1,) + out.shape[-2:])
+        out = self._mask_output(self.decoder.run(None, {inp.name: x})[0], classes=2)
         logits = out[0] if out.shape[0] == 1 else out[-1] - out[0]  # 2 classes: glass - background
         if logits.shape != (h, w):
             logits = cv2.resize(logits, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -189,6 +188,29 @@ class OnnxSegmenter:
         pts = np.asarray(coords, dtype=np.float32) * scale[None]
         return pts[None], np.asarray(labels, dtype=np.float32)[None]
 
+    def _mask_output(self, output, classes: int | None = None) -> np.ndarray:
+        """The model's mask output as ``[N, H, W]`` logits, or a :class:`PipelineError` naming the model and the
+        shape it produced when that is no mask (fewer than 2 dimensions, a side of 1 pixel, more than ``classes``
+        masks) or holds values that are not numbers."""
+        out = np.asarray(output, dtype=np.float32)
+        count = int(np.prod(out.shape[:-2])) if out.ndim >= 2 else 0
+        if out.ndim < 2 or min(out.shape[-2:]) < 2 or count < 1 or (classes is not None and count > classes):
+            raise PipelineError(
+                f"the model's output has shape {list(out.shape)}, which is no mask (expected [1, H, W] or "
+                f"[1, 1, H, W] mask logits{', or [1, 2, H, W] for background and glass' if classes == 2 else ''})",
+                path=self.cfg.model,
+                fix="use a segmentation model whose first output is per-pixel mask logits (masks.onnx.model), "
+                "or set masks.onnx.kind to what the model is",
+            )
+        if not np.isfinite(out).all():
+            bad = int((~np.isfinite(out)).sum())
+            raise PipelineError(
+                f"the model's output (shape {list(out.shape)}) holds {bad} values that are not finite numbers "
+                "(NaN or infinite)", path=self.cfg.model,
+                fix="check the model's export and masks.onnx.normalize (the input scaling it expects)",
+            )
+        return out.reshape((-1,) + out.shape[-2:])
+
     def _sam(self, image: np.ndarray, box: tuple[float, float, float, float] | None = None) -> np.ndarray:
         import cv2
 
@@ -216,8 +238,7 @@ class OnnxSegmenter:
         outs = self.decoder.run(None, feeds)
         names = [o.name for o in self.decoder.get_outputs()]
         by_name = dict(zip(names, outs, strict=True))
-        masks = np.asarray(by_name.get("masks", outs[0]), dtype=np.float32)
-        masks = masks.reshape((-1,) + masks.shape[-2:])
+        masks = self._mask_output(by_name.get("masks", outs[0]))
         iou = by_name.get("iou_predictions", by_name.get("iou_scores"))
         best = int(np.argmax(np.asarray(iou).reshape(-1))) if iou is not None and masks.shape[0] > 1 else 0
         logits = masks[best]

@@ -29,9 +29,32 @@ from rtsplat.masks.marks import check_marks, marks_to_masks
 from rtsplat.masks.onnx import OnnxSegmenter, logit_threshold, segment_masks
 from rtsplat.masks.polarity import PolarityDecision, decide_polarity
 
+NEARLY_EMPTY = 0.001  # masks that cover less than this share of the photos on average are flagged
+
 
 def _log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
+
+
+def coverage_warning(coverage: dict[str, float], source: str, cfg: MasksConfig) -> str:
+    """The warning for masks of ``source`` that cover almost nothing of the photos (less than
+    :data:`NEARLY_EMPTY` on average), or, segmented by a model, more than ``masks.max_coverage`` (given masks
+    get that one from :func:`rtsplat.masks.polarity.decide_polarity`); "" when they look usual."""
+    if not coverage:
+        return ""
+    mean = float(np.mean(list(coverage.values())))
+    kind = {"ingest": "given", "propagate": "propagated", "onnx": "segmented"}.get(source, source)
+    if mean < NEARLY_EMPTY:
+        fix = {"onnx": "check the model and its prompt (masks.onnx) and masks.threshold",
+               "ingest": "check the mask files (masks.polarity: black if black marks the glass)",
+               "propagate": "check the marked views' masks and marks"}.get(source, "check the masks")
+        return (f"the {kind} masks cover {100 * mean:.2f}% of the photos on average: almost nothing is see-through; "
+                f"{fix}, or set masks.source: none if the photos show no glass")
+    if source == "onnx" and mean > cfg.max_coverage:
+        return (f"the segmented masks cover {100 * mean:.1f}% of the photos on average (more than masks.max_coverage "
+                f"{100 * cfg.max_coverage:g}%): almost everything is see-through; right for glass that fills the "
+                "view, else check the model and its prompt (masks.onnx) and masks.threshold")
+    return ""
 
 
 @dataclass
@@ -45,6 +68,7 @@ class MasksSummary:
     polarity: str = "white"  # ingest, propagate: the mask files' colour read as see-through (decide_polarity)
     polarity_reason: str = ""
     polarity_warning: str = ""  # the masks look unusual (white covers most of the photos): check them; "" if not
+    coverage_warning: str = ""  # the masks cover almost nothing (any source) or, segmented, almost everything
     mask_kinds: dict[str, int] = field(default_factory=dict)  # ingest: how many masks of each kind
     without_mask: list[str] = field(default_factory=list)  # ingest with allow_missing: photos given empty masks
     marked: list[str] = field(default_factory=list)  # propagate: the photos whose masks were given
@@ -237,6 +261,7 @@ def make_masks(
             polarity=polarity.polarity,
             polarity_reason=polarity.reason,
             polarity_warning=polarity.warning,
+            coverage_warning=coverage_warning(coverage, source, cfg),
             mask_kinds=kinds,
             without_mask=missing,
             marked=sorted(n for n, s in sources.items() if s == "given"),
@@ -249,8 +274,9 @@ def make_masks(
             photos=photos,
         )
         write_json_atomic(tmp / "summary.json", asdict(summary))
-    if summary.polarity_warning:
-        _log(f"masks {scene_dir}: WARNING: {summary.polarity_warning}")
+    for warning in (summary.polarity_warning, summary.coverage_warning):
+        if warning:
+            _log(f"masks {scene_dir}: WARNING: {warning}")
     return summary
 
 

@@ -54,15 +54,10 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.dataset / "images").is_dir() or not (args.dataset / "sparse" / "0").is_dir():
         print(f"sfm_check: error: {args.dataset} is not a synth dataset (images/ and sparse/0)", file=sys.stderr)
         return 2
-    from rtsplat.errors import PipelineError
+    from rtsplat.errors import run_command
 
-    try:
-        stats = check_dataset(args.dataset, args.work, max_attempts=args.max_attempts)
-    except PipelineError as exc:
-        print(f"sfm_check: error: {exc}", file=sys.stderr)
-        return 1
-    print(json.dumps(stats, indent=1))
-    return 0
+    return run_command("sfm_check", lambda: print(json.dumps(check_dataset(args.dataset, args.work,
+                                                                          max_attempts=args.max_attempts), indent=1)))
 
 
 if __name__ == "__main__":

@@ -38,6 +38,7 @@ from torch import Tensor
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_errors, write_text_atomic
+from rtsplat.io.train_log import LOG_NAME, read_log
 from rtsplat.model.appearance import apply_appearance, fit_appearance, remove_appearance
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
@@ -604,7 +605,7 @@ class Trainer:
     def kept_log_path(self) -> Path | None:
         """A checkpoint folder outside the run folder keeps a copy of the train log, taken with each
         checkpoint: a resume into a run folder that was deleted restores the log from it."""
-        return None if self.checkpoint_dir == self.out / "checkpoints" else self.checkpoint_dir / "train_log.jsonl"
+        return None if self.checkpoint_dir == self.out / "checkpoints" else self.checkpoint_dir / LOG_NAME
 
     def training_state(self) -> dict:
         """What resumes the run besides the model: iteration, config, optimizer, density, RNGs."""
@@ -717,7 +718,7 @@ class Trainer:
         cfg = self.cfg
         self.run_clock.restart()
         self.out.mkdir(parents=True, exist_ok=True)
-        log_path = self.out / "train_log.jsonl"
+        log_path = self.out / LOG_NAME
         if resume and self.checkpoint_path.exists():
             self.load_checkpoint(self.checkpoint_path, new_config)
             self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
@@ -833,7 +834,7 @@ class Trainer:
                    "mirror_planes_moved": None if self.plane_refinement is None else self.plane_refinement.moved(),
                    **metrics,
                    **self._correction_sizes(),
-                   **best_test_psnr(self.out / "train_log.jsonl", self.iteration, metrics)}
+                   **best_test_psnr(self.out / LOG_NAME, self.iteration, metrics)}
         _write_json(self.out / "summary.json", summary)
         self.log(f"done: {json.dumps(summary)}")
         return summary
@@ -848,10 +849,8 @@ def best_test_psnr(log_path: Path, iteration: int, final: dict[str, float]) -> d
     and the final one, with the iteration it was seen at and the final's distance to it."""
     seen = [(final["test_psnr"], iteration)] if "test_psnr" in final else []
     if log_path.exists():
-        for line in log_path.read_text().splitlines():
-            record = json.loads(line) if line.strip() else {}
-            if "test_psnr" in record:
-                seen.append((record["test_psnr"], record["iteration"]))
+        seen += [(record["test_psnr"], record["iteration"]) for record, _ in read_log(log_path, lambda _: None)
+                 if "test_psnr" in record]
     if not seen:
         return {}
     best, at = max(seen, key=lambda pair: (pair[0], -pair[1]))
@@ -863,30 +862,10 @@ def best_test_psnr(log_path: Path, iteration: int, final: dict[str, float]) -> d
 
 def _truncate_log(path: Path, iteration: int, log: Callable[[str], None]) -> None:
     """Drop log lines written after the checkpoint (they will be written again), and a last line that
-    a killed run or a full disk left half-written (said so through ``log``); a malformed line before
-    the last is an error naming it."""
+    a killed run or a full disk left half-written (:func:`rtsplat.io.train_log.read_log`)."""
     if not path.exists():
         return
-    text = path.read_text()
-    lines = text.splitlines()
-    records = []
-    for number, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
-        try:
-            record = json.loads(line)
-            if not isinstance(record, dict) or not isinstance(record.get("iteration"), int):
-                raise ValueError("no iteration")
-        except ValueError as exc:
-            if number == len(lines):
-                log(f"{path}: dropped its half-written last line ({len(line)} characters; the run that wrote it "
-                    "stopped while writing it)")
-                break
-            raise PipelineError(f"line {number} of the training log is not a log record ({exc})", path=path,
-                                fix="delete that line (or the file) and run again; the log lines after the "
-                                "checkpoint are written again") from exc
-        records.append((record["iteration"], line))
-    kept = [line for it, line in records if it <= iteration]
+    kept = [line for record, line in read_log(path, log) if record["iteration"] <= iteration]
     write_text_atomic(path, "".join(line + "\n" for line in kept))
 
 
