@@ -1,12 +1,16 @@
-"""``docs/results.md`` from a report: the current numbers on one page, with the commit and the machine.
+"""``docs/results.md`` from a report: the current numbers on one page, with the code and the machine that made them.
 
-``rtsplat report`` writes its tables as data (``report.json``: every table with the headings above it,
-the commit of the code that computed the metrics, the machine, the package versions). This module keeps
-the tables a reader of the project asks for first (RT-Splatting against 2DGS, the scene family, quality, speed and
-training time, accuracy against time, ablations, the decomposition) and writes them as one Markdown
-page that says where they come from::
+``rtsplat report`` writes its tables as data (``report.json``: every table with the headings above it, what
+trained each run: commit, uncommitted changes, machine, device, packages, and whether they mix). This module
+keeps the tables a reader of the project asks for first (RT-Splatting against 2DGS, the scene family, quality,
+speed and training time, accuracy against time, ablations, the decomposition) and writes them as one Markdown
+page that says where they come from, with the report's record kept beside it (``docs/results.report.json``
+beside ``docs/results.md``: the page is what that JSON gives, which a test checks)::
 
     python -m rtsplat.results_page --report demo/results/report --out docs/results.md
+    python -m rtsplat.results_page --report docs/results.report.json --out docs/results.md   # the same page again
+
+``make results-page`` runs the benchmark behind ``docs/results.md`` on a clean tree and writes both.
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ import sys
 from pathlib import Path
 
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import print_or_write
+from rtsplat.io.atomic import print_or_write, write_json_atomic
+from rtsplat.provenance import NOT_RECORDED
 from rtsplat.report import REPORT_JSON
 
 # the report's headings whose tables the page keeps, in the report's order
@@ -32,18 +37,28 @@ KEPT_HEADINGS = (
 )
 COMMAND = "python -m rtsplat.results_page --report REPORT_DIR --out {page}"
 DEFAULT_PAGE = "docs/results.md"
+KEPT_SUFFIX = ".report.json"
+
+
+def kept_json(page: Path) -> Path:
+    """The report record kept beside ``page``: ``docs/results.md`` -> ``docs/results.report.json``."""
+    return page.with_name(page.stem + KEPT_SUFFIX)
 
 
 def read_report(report: Path) -> dict:
-    path = report / REPORT_JSON
+    """The record of a report folder (its ``report.json``) or of a kept record (a ``.json`` file), with the
+    report it came from as ``source`` (the folder as named here, unless the record already names one)."""
+    path = report if report.suffix == ".json" else report / REPORT_JSON
     if not path.is_file():
-        raise PipelineError(f"no {REPORT_JSON} in this folder", path=report,
-                            fix="pass the folder that `rtsplat report` wrote (e.g. demo/results/report); "
-                                "a report written before report.json existed needs `rtsplat report` again")
+        raise PipelineError(f"no {REPORT_JSON} in this folder" if path != report else "no such file", path=report,
+                            fix="pass the folder that `rtsplat report` wrote (e.g. demo/results/report) or a "
+                                "kept record (docs/results.report.json); a report written before report.json "
+                                "existed needs `rtsplat report` again")
     try:
-        return json.loads(path.read_text())
+        record = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise PipelineError(f"not valid JSON ({exc})", path=path, fix="write the report again") from None
+    return {**record, "source": record.get("source") or str(report)}
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -52,36 +67,47 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
     return lines + [""]
 
 
-def commit_line(record: dict) -> str:
-    """The page's commit line: the report's commit, or each commit with how many runs it measured when the
-    report's runs came from different code (``commits``)."""
-    commits = record.get("commits") or {}
-    if len(commits) > 1:
-        return "- Commits: " + ", ".join(f"`{commit}` ({len(runs)} run{'' if len(runs) == 1 else 's'})"
-                                         for commit, runs in commits.items())
-    return f"- Commit: `{record.get('commit') or 'not recorded'}`"
+def provenance_lines(record: dict) -> list[str]:
+    """What trained the page's runs: what they mix (the report's ``mixed`` sentences) first, then the one
+    commit and machine, or each group of runs with its commit, machine and device."""
+    groups = record.get("provenance")
+    if not groups:
+        return ["- Commit: not recorded (this report.json records no provenance of its runs)"]
+    lines = ["**Mixed provenance:** " + " ".join(record["mixed"]), ""] if record.get("mixed") else []
+    if len(groups) == 1:
+        only = groups[0]
+        commit = ("not recorded by the runs' training" if only["commit"] == NOT_RECORDED
+                  else f"`{only['commit']}` (trained every run)")
+        return lines + [f"- Commit: {commit}",
+                        f"- Machine: {only['machine']}; training device: {only['device']}; rendering device: "
+                        f"{record.get('render_device') or '?'}",
+                        f"- Packages: {only['packages']}"]
+    lines.append(f"- Trained by {len(groups)} combinations of commit, machine and device "
+                 f"(rendering device: {record.get('render_device') or '?'}):")
+    for group in groups:
+        runs = len(group["runs"])
+        lines.append(f"  - `{group['commit']}` on {group['machine']}, device {group['device']}, "
+                     f"{group['packages']}: {runs} run{'' if runs == 1 else 's'} ({', '.join(group['runs'])})")
+    return lines
 
 
-def results_markdown(record: dict, source: str, page: str = DEFAULT_PAGE) -> str:
-    """The page of one report's ``record`` (its report.json); ``source``: the report folder, as named on the
-    page; ``page``: the path the page is written to, as its command to write it again names it."""
-    machine = record.get("machine") or {}
-    versions = ", ".join(f"{k} {v}" for k, v in (record.get("versions") or {}).items())
+def results_markdown(record: dict, page: str = DEFAULT_PAGE) -> str:
+    """The page of one report's ``record`` (:func:`read_report`); ``page``: the path the page is written to,
+    as its command to write it again names it."""
+    kept = kept_json(Path(page)).name
     lines = [
         "# Results",
         "",
-        f"Written by `{COMMAND.format(page=page)}` from the report in `{source}` "
-        f"(written {record.get('written', '?')}): "
-        "do not edit by hand. What the columns mean, the plots and every other table: the report itself "
-        "(`index.html`); what was measured around these numbers and why: [benchmarks.md](benchmarks.md).",
-        "",
-        commit_line(record),
-        f"- Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
-        f"{machine.get('platform', '?')}; rendering device: {record.get('render_device') or '?'}",
-        f"- Packages: {versions or '?'}",
-        f"- Scenes: {', '.join(record.get('scenes', [])) or '?'}",
+        f"Written by `{COMMAND.format(page=page)}` from the report in `{record.get('source', '?')}` "
+        f"(written {record.get('written', '?')}), whose record is kept beside this page as `{kept}`: "
+        "do not edit by hand (a test checks that this page is what that record gives). What the columns mean, "
+        "the plots and every other table: the report itself (`index.html`); what was measured around these "
+        "numbers and why: [benchmarks.md](benchmarks.md).",
         "",
     ]
+    if record.get("note"):
+        lines += [record["note"], ""]
+    lines += [*provenance_lines(record), f"- Scenes: {', '.join(record.get('scenes', [])) or '?'}", ""]
     current_scene, current_headings = None, None
     for table in record.get("tables", []):
         headings = table.get("headings", [])
@@ -101,15 +127,20 @@ def results_markdown(record: dict, source: str, page: str = DEFAULT_PAGE) -> str
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m rtsplat.results_page", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--report", type=Path, required=True, help="a folder written by rtsplat report")
-    parser.add_argument("--out", type=Path, help="the page to write (default: print it)")
+    parser.add_argument("--report", type=Path, required=True,
+                        help="a folder written by rtsplat report, or a kept record (docs/results.report.json)")
+    parser.add_argument("--out", type=Path, help="the page to write, with the record beside it "
+                        "(<page stem>.report.json; default: print the page)")
     args = parser.parse_args(argv)
     try:
-        text = results_markdown(read_report(args.report), str(args.report), str(args.out or DEFAULT_PAGE))
+        record = read_report(args.report)
+        text = results_markdown(record, str(args.out or DEFAULT_PAGE))
+        if args.out is not None:
+            write_json_atomic(kept_json(args.out), record)
+        print_or_write(text, args.out)
     except PipelineError as exc:
         print(f"rtsplat.results_page: error: {exc}", file=sys.stderr)
         return 1
-    print_or_write(text, args.out)
     return 0
 
 
