@@ -218,6 +218,8 @@ def test_the_held_out_list_is_fixed_in_benchmarks_and_says_it_decides_nothing():
     every tuning and seen seed's), with the family benchmark's settings, under a header that forbids tuning on it."""
     import yaml
 
+    from rtsplat.config import load_config
+
     root = Path(__file__).resolve().parent.parent
     text = (root / "benchmarks" / "heldout.yaml").read_text()
     config = yaml.safe_load(text)
@@ -228,6 +230,7 @@ def test_the_held_out_list_is_fixed_in_benchmarks_and_says_it_decides_nothing():
                                                       ["scenes"])
     family = yaml.safe_load((root / "benchmarks" / "family.yaml").read_text())
     assert {k: v for k, v in config.items() if k != "scenes"} == {k: v for k, v in family.items() if k != "scenes"}
+    assert load_config(root / "benchmarks" / "heldout.yaml").scenes == config["scenes"]  # a valid config of its own
     header = " ".join(line.lstrip("# ") for line in text.splitlines() if line.startswith("#"))
     assert "only when an issue's work is done" in header
     assert "never choose a default, a threshold or a rule from it" in header
