@@ -78,7 +78,7 @@ def versions() -> dict[str, str]:
 
 
 def collect(device: str | None = None) -> dict:
-    """The provenance of work done now by this process, on ``device`` (None: not tied to one)."""
+    """The provenance of the work this process does, on ``device`` (None: not tied to one)."""
     return {**source_tree(), "machine": machine(), "device": device, "versions": versions()}
 
 
