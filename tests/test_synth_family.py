@@ -33,7 +33,7 @@ COVERAGE = {"shop_window": (0.6, 0.95), "curved": (0.1, 0.8), "case": (0.1, 0.8)
             "grazing": (0.2, 0.9)}
 
 
-# one member of each kind, orbits and walks, both halves, every glass, both curved sections
+# one member of each kind, orbits and walks, tuning and seen seeds, every glass, both curved sections
 TINY_SEEDS = {"shop_window": 1, "curved": 2, "case": 3, "car": 0, "grazing": 3}
 
 
