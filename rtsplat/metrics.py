@@ -14,11 +14,12 @@ Definitions (METHOD.md section 7), images in [0,1]:
 
 Views are the renders of ``rtsplat render`` (``<renders>/color/<name>.png``) against the prepared
 scene's images and masks; a grey render of a colour photo is refused (:func:`check_colour`). The JSON
-records the split the renders are of (``split``: ``test``, or ``train`` / ``all``, which include
-training views: said when printed, labelled in the report),
-per-view values, means, the run's config hash, package versions and the machine. Synthetic scenes
-also get the decomposition scored (:func:`layer_metrics`) against the ground-truth layers that
-``rtsplat prepare`` carries into ``<data>/gt_layers`` (or ``--gt-layers DIR`` with
+records the split the renders are of (``split``: ``test``, or ``train`` / ``all``, which include training
+views: said when printed, labelled in the report), per-view values, means, the run's config hash, the
+provenance of the training that ``render.json`` carries (``training_provenance``) and its own
+(``provenance``: the code, machine and packages that computed the metrics; :mod:`rtsplat.provenance`).
+Synthetic scenes also get the decomposition scored (:func:`layer_metrics`) against the ground-truth layers
+that ``rtsplat prepare`` carries into ``<data>/gt_layers`` (or ``--gt-layers DIR`` with
 ``DIR/{reflection,transmission}/<name>.png`` at the prepared resolution).
 """
 
@@ -27,8 +28,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
@@ -41,6 +40,8 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.outputs import check_output_file, json_with_keys
 from rtsplat.model.composite import transmission_with_scatter
+from rtsplat.provenance import collect as collect_provenance
+from rtsplat.provenance import training_record
 from rtsplat.quality import psnr, ssim_map
 from rtsplat.scene import GT_LAYERS_DIR
 
@@ -115,50 +116,6 @@ def config_hash(run_dir: Path) -> str | None:
     return hashlib.sha256(json.dumps(json.loads(path.read_text()), sort_keys=True).encode()).hexdigest()[:16]
 
 
-def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo`` on Linux; ``platform.processor()`` elsewhere)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def source_commit() -> str | None:
-    """The git commit of the rtsplat source tree that is running (``abc123def456``, with ``+changes`` when
-    files differ from it); None outside a git checkout."""
-    import subprocess
-
-    root = Path(__file__).resolve().parent.parent
-    try:
-        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"], capture_output=True,
-                              text=True, timeout=10)
-        if head.returncode != 0:
-            return None
-        changes = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                                 capture_output=True, text=True, timeout=30)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return head.stdout.strip() + ("+changes" if changes.stdout.strip() else "")
-
-
-def environment() -> dict:
-    """Package versions, the machine and the source commit that a metrics file records."""
-    from importlib import metadata
-
-    versions = {}
-    for package in ("rtsplat", "torch", "numpy", "numba", "pycolmap", "mitsuba", "scikit-image"):
-        try:
-            versions[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            continue
-    machine = {"platform": platform.platform(), "processor": cpu_model(), "cpus": os.cpu_count(),
-               "python": platform.python_version()}
-    return {"versions": versions, "commit": source_commit(), "machine": machine}
-
-
 def check_colour(render: Path, target: Tensor) -> None:
     """Refuse a grey render (one channel, or grey and alpha) of a colour photo: scored as colour, its grey would
     be compared with the photo's colours, a number that means neither. ``rtsplat render`` writes colour."""
@@ -216,7 +173,8 @@ def compute_metrics(renders: str | Path, data_dir: str | Path, *, run_dir: str |
         "render_device": info.get("device"), "renders": str(renders), "data": str(data_dir),
         "run": str(run_dir) if run_dir else info.get("run"),
         "config_hash": config_hash(Path(run_dir or info.get("run", ""))),
-        **environment(),
+        "training_provenance": info.get("training_provenance") or training_record(run_dir or info.get("run", "")),
+        "provenance": collect_provenance(),
     }
 
 

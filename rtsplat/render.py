@@ -7,7 +7,8 @@ Writes, for every view of the chosen split, into ``<out>/``:
 * ``transmission/<name>.png``   ``beta * tau * C_trans`` (plus the plain radiance outside the ROI);
 * ``scatter/<name>.png``        the rest, ``beta * (1 - tau) * C_scatter``: the three layers sum to ``color``;
 * ``normal/<name>.png``         world normals mapped to [0,1];  ``depth/<name>.png``: inverse depth;
-* ``render.json``               views and their split, device, backend, edits and frames per second.
+* ``render.json``               views and their split, device, backend, edits, frames per second and the
+                                run's ``training_provenance`` (:mod:`rtsplat.provenance`).
 
 The run must have been trained on a scene prepared from the same photos and SfM model as ``--data``
 (:meth:`rtsplat.scene.PreparedScene.check_run_belongs`); a model with non-finite parameters is refused
@@ -51,6 +52,7 @@ from rtsplat.io.atomic import write_json_atomic
 from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.model.appearance import apply_appearance
 from rtsplat.model.composite import compose_layers, scatter_layer
+from rtsplat.provenance import cpu_model, training_record
 from rtsplat.usage import UsageClock
 
 LAYER_DIRS = ("color", "reflection", "transmission", "scatter", "normal", "depth")
@@ -286,6 +288,7 @@ def render_run(run_dir: str | Path, data_dir: str | Path, out_dir: str | Path, *
             "backend": backend, "edits": asdict(edits), **timed, "surfels": len(run.model.surfels),
             "width": run.records[0].width, "height": run.records[0].height,
             "effects": run.checkpoint.effects.to_dict(), "run": str(run_dir),
+            "training_provenance": training_record(run_dir),
         }
         write_json_atomic(tmp / "render.json", info)
     return info
@@ -299,8 +302,6 @@ def _wait_for(device: torch.device) -> None:
 def device_name(device: torch.device) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
-    from rtsplat.metrics import cpu_model
-
     return f"CPU {cpu_model()}, {torch.get_num_threads()} torch threads"
 
 

@@ -1,5 +1,5 @@
 """``rtsplat report``: the benchmark report, ``index.html`` plus a Markdown twin ``index.md``, and its
-tables as data in ``report.json`` with the commit and the machine they were measured with (from which
+tables as data in ``report.json`` with the code and the machines that trained the runs (from which
 ``python -m rtsplat.results_page`` writes ``docs/results.md``).
 
 It reads what the other stages wrote under ``--results`` (the layout of ``docs/architecture.md``)::
@@ -16,10 +16,13 @@ It reads what the other stages wrote under ``--results`` (the layout of ``docs/a
 
 Each method's role comes from the pipeline config (``methods.<name>.role``, see
 :func:`rtsplat.config.method_roles`), handed over as ``--roles-json``; without it every method is a
-baseline and there is no main method. The report opens with a summary across scenes (the
+baseline and there is no main method. The report opens with what trained the runs: the one commit and
+machine, or, when the runs mix commits, trees with uncommitted changes or machines, sentences that say so
+(:mod:`rtsplat.provenance`, from each run's ``summary.json``). Then a summary across scenes (the
 :func:`comparison_pairs`: the main method minus the baseline ``2dgs``, and ``<main>_<suffix>`` minus
 ``2dgs_<suffix>``, PSNR on the transparent region and the entire image, beside the seed noise that
-repeats with another seed measured), then the machine and the package versions. Per scene: the SfM
+repeats with another seed measured), the scene family when there is one, then the provenance of every run
+(commit, machine, device, packages; and the code that computed the metrics). Per scene: the SfM
 table (registered/total views, reprojection error and time of every attempt, and for scenes whose
 dataset ships reference cameras the rotation and centre errors after a similarity fit), the transparent masks
 (:func:`_masks_section`: where they came from, given, segmented, or propagated from how many marked views, the
@@ -67,10 +70,11 @@ from rtsplat.io.outputs import check_output_dir, output_dir
 from rtsplat.io.train_log import LOG_NAME, read_log
 from rtsplat.layer_references import LAYERS_SUM, ceilings, read_views
 from rtsplat.model.composite import transmission_with_scatter
+from rtsplat.provenance import commit_label, group_runs, mixture_sentences
 from rtsplat.scene import GT_LAYERS_DIR, REFLECTION_REACH_FILE, SCENE_FILE, PreparedScene
 
 ROLES = ("main", "baseline", "ablation", "repeat")
-REPORT_JSON = "report.json"  # the report's tables as data, with the commit and the machine (rtsplat.results_page)
+REPORT_JSON = "report.json"  # the report's tables as data, with what trained the runs (rtsplat.results_page)
 PLAIN_2DGS = "2dgs"  # the plain-2DGS baseline the summary compares the main method with
 
 
@@ -548,7 +552,13 @@ def summary_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) 
 FAMILY_KEYS = (("psnr_transparent", "transparent"), ("psnr", "entire"),
                ("psnr_reflection_layer", "reflection layer"), ("psnr_transmission_layer", "transmission layer"))
 FAMILY_SIGNIFICANCE = 2.0  # a gap is significant beyond this many times its seed noise
-FAMILY_HALVES = (("tuning", "tuning (even seeds)"), ("held_out", "held out (odd seeds)"))
+def _family_splits() -> tuple[tuple[str, str], ...]:
+    """Each split of the family (:attr:`rtsplat.synth.family.Member.split`) with its label."""
+    from rtsplat.synth.family import HELD_OUT_SEEDS, SEEN_SEEDS
+
+    seeds = ", ".join(map(str, SEEN_SEEDS))
+    return (("tuning", "tuning"), ("seen", f"seen (former held-out seeds {seeds})"),
+            ("held_out", f"held out (seeds {HELD_OUT_SEEDS[0]}-{HELD_OUT_SEEDS[-1]})"))
 
 
 @dataclass
@@ -558,7 +568,7 @@ class FamilyScene:
     scene: str
     kind: str
     seed: int
-    half: str
+    split: str  # tuning, seen or held_out (rtsplat.synth.family.Member.split)
     gap: dict  # FAMILY_KEYS key -> dPSNR (None where a run lacks it)
     noise: dict  # key -> largest |dPSNR| of a repeat of either run with another seed (None: not measured)
     no_reflection_psnr: float | None = None  # how little the glass reflects (see family_scenes)
@@ -602,7 +612,7 @@ def family_scenes(scenes: dict[str, dict[str, Run]], roles: Roles, results: Path
             measured = [d[key] for d in repeats if d.get(key) is not None]
             noise[key] = max(measured) if measured else None
         reference = references.get(scene)
-        found.append(FamilyScene(scene, member.kind, member.seed, member.half, gap, noise,
+        found.append(FamilyScene(scene, member.kind, member.seed, member.split, gap, noise,
                                  reference["zero"] if reference else None))
     return found
 
@@ -622,11 +632,11 @@ def family_reflection_correlation(family: list[FamilyScene]) -> tuple[int, float
 
 
 def family_scene_rows(family: list[FamilyScene]) -> list[list[str]]:
-    """One row per scene: kind, seed, half, then per key the gap, its seed noise and the verdict, then the
+    """One row per scene: kind, seed, split, then per key the gap, its seed noise and the verdict, then the
     scene's no-reflection PSNR."""
     rows = []
     for f in family:
-        row = [f.scene, f.kind, str(f.seed), f.half.replace("_", " ")]
+        row = [f.scene, f.kind, str(f.seed), f.split.replace("_", " ")]
         for key, _ in FAMILY_KEYS:
             gap = f.gap.get(key)
             row += ["-" if gap is None else f"{gap:+.2f}", _fmt(f.noise.get(key), 3), f.verdict(key)]
@@ -634,12 +644,12 @@ def family_scene_rows(family: list[FamilyScene]) -> list[list[str]]:
     return rows
 
 
-def family_half_rows(family: list[FamilyScene]) -> list[list[str]]:
-    """Per half and key: how many scenes, the median and the worst gap, and how many are significantly
+def family_split_rows(family: list[FamilyScene]) -> list[list[str]]:
+    """Per split and key: how many scenes, the median and the worst gap, and how many are significantly
     better or worse, within noise, or without measured noise."""
     rows = []
-    for half, label in FAMILY_HALVES:
-        mine = [f for f in family if f.half == half]
+    for split, label in _family_splits():
+        mine = [f for f in family if f.split == split]
         for key, name in FAMILY_KEYS:
             scored = [f for f in mine if f.gap.get(key) is not None]
             if not scored:
@@ -654,8 +664,8 @@ def family_half_rows(family: list[FamilyScene]) -> list[list[str]]:
 
 
 def plot_family(family: list[FamilyScene], out: Path, key: str = "psnr_transparent") -> str | None:
-    """The distribution of the per-scene gaps on ``key``: one column of points per half (colour = kind), each
-    with a bar of +-:data:`FAMILY_SIGNIFICANCE` x its seed noise, and the halves' medians. Returns the PNG's name."""
+    """The distribution of the per-scene gaps on ``key``: one column of points per split (colour = kind), each
+    with a bar of +-:data:`FAMILY_SIGNIFICANCE` x its seed noise, and the splits' medians. Returns the PNG's name."""
     scored = [f for f in family if f.gap.get(key) is not None]
     if not scored:
         return None
@@ -669,8 +679,9 @@ def plot_family(family: list[FamilyScene], out: Path, key: str = "psnr_transpare
     fig, ax = plt.subplots(figsize=(7, 4.5))
     colours = dict(zip(KINDS, plt.get_cmap("tab10").colors, strict=False))
     offsets = np.linspace(-0.25, 0.25, len(KINDS))
-    for x, (half, _) in enumerate(FAMILY_HALVES):
-        mine = [f for f in scored if f.half == half]
+    splits = _family_splits()
+    for x, (split, _) in enumerate(splits):
+        mine = [f for f in scored if f.split == split]
         for f in mine:
             xi = x + offsets[KINDS.index(f.kind)] + 0.02 * (f.seed % 5)
             bar = None if f.noise.get(key) is None else FAMILY_SIGNIFICANCE * f.noise[key]
@@ -679,10 +690,10 @@ def plot_family(family: list[FamilyScene], out: Path, key: str = "psnr_transpare
             ax.hlines(float(np.median([f.gap[key] for f in mine])), x - 0.35, x + 0.35, color="k", lw=1.5)
     for kind in KINDS:
         ax.plot([], [], "o", color=colours[kind], label=kind)
-    ax.plot([], [], "-", color="k", label="median of the half")
+    ax.plot([], [], "-", color="k", label="median of the split")
     ax.axhline(0.0, color="grey", lw=0.8, ls="--")
-    ax.set_xticks(range(len(FAMILY_HALVES)), [label for _, label in FAMILY_HALVES])
-    ax.set_xlim(-0.6, len(FAMILY_HALVES) - 0.4)
+    ax.set_xticks(range(len(splits)), [label for _, label in splits], fontsize=7)
+    ax.set_xlim(-0.6, len(splits) - 0.4)
     ax.set_ylabel(f"dPSNR {dict(FAMILY_KEYS)[key]} (dB), RT-Splatting - 2DGS")
     ax.set_title(f"Scene family: per-scene gap (bars: +-{FAMILY_SIGNIFICANCE:g} x seed noise)")
     ax.grid(alpha=0.3, axis="y")
@@ -694,21 +705,28 @@ def plot_family(family: list[FamilyScene], out: Path, key: str = "psnr_transpare
 
 
 def _family_section(doc: Document, family: list[FamilyScene], out: Path) -> None:
+    from rtsplat.synth.family import HELD_OUT_SEEDS, SEEN_DECISIONS, SEEN_SEEDS
+
+    held, seen = ", ".join(map(str, HELD_OUT_SEEDS)), " and ".join(map(str, SEEN_SEEDS))
     doc.heading("Scene family: RT-Splatting minus plain 2DGS per scene")
     doc.paragraph(
         "The generated glass scenes (`rtsplat synth --scene family/<kind>-<seed>`, docs/synth.md): a scene "
-        "whose dataset folder is named `<kind>-<seed>`. Even seeds are the tuning half (defaults and automatic "
-        "rules are chosen on them), odd seeds the held-out half, reported apart. Per scene, PSNR of the main "
+        "whose dataset folder is named `<kind>-<seed>`, labelled by its split (rtsplat/synth/family.py): "
+        f"'held out' are the seeds {held} of every kind (benchmarks/heldout.yaml), fixed once and reported only "
+        "when an issue's work is done: no default, threshold or rule is chosen from them. 'seen' are the seeds "
+        f"{seen}, which were held out once, but decisions used them: {'; '.join(SEEN_DECISIONS)}; their gaps are "
+        "no unbiased estimate. 'tuning' are the other seeds, on which defaults and rules are chosen. The splits "
+        "are summarised apart. Per scene, PSNR of the main "
         f"method minus PSNR of `{PLAIN_2DGS}` on the test views: the transparent region, the entire image, and "
         "each layer against the ground-truth layers (transparent region). Beside each gap its seed noise: the "
         "largest |dPSNR| between either run and its repeat with another seed. A gap is significant when it is "
         f"larger than {FAMILY_SIGNIFICANCE:g} x that noise: 'better' or 'worse'; otherwise 'within noise'.")
-    doc.table(["half", "metric", "scenes", "median gap", "worst gap (scene)", "better", "worse", "within noise",
-               "noise not measured"], family_half_rows(family))
+    doc.table(["split", "metric", "scenes", "median gap", "worst gap (scene)", "better", "worse", "within noise",
+               "noise not measured"], family_split_rows(family))
     name = plot_family(family, out)
     if name:
-        doc.images([(name, "per-scene dPSNR on the transparent region, by half")])
-    header = ["scene", "kind", "seed", "half"]
+        doc.images([(name, "per-scene dPSNR on the transparent region, by split")])
+    header = ["scene", "kind", "seed", "split"]
     for _, label in FAMILY_KEYS:
         header += [f"d {label}", "noise", "verdict"]
     doc.table(header + ["no-reflection PSNR"], family_scene_rows(family))
@@ -1019,28 +1037,50 @@ def _run_seed(run_dir: Path):
     return _read_json(path).get("seed") if path.is_file() else None
 
 
-def metrics_commits(scenes: dict) -> dict[str, list[str]]:
-    """The commits whose code computed the runs' metrics (``rtsplat metrics`` records its source commit):
-    commit -> the runs ("scene/method") it computed, the commit of most runs first. Runs whose metrics
-    recorded none are left out."""
+def training_records(scenes: dict[str, dict[str, Run]]) -> dict[str, dict | None]:
+    """Each run ("scene/method") with the provenance its training recorded (None: not recorded)."""
+    return {f"{scene}/{method}": run.summary.get("provenance") for scene, runs in scenes.items()
+            for method, run in runs.items()}
+
+
+def metrics_commits(scenes: dict[str, dict[str, Run]]) -> dict[str, list[str]]:
+    """The code that computed the runs' metrics: its commit label -> the runs, the label of most runs first
+    (runs without metrics left out; metrics written without a provenance under "not recorded")."""
     runs_of: dict[str, list[str]] = {}
     for scene, runs in scenes.items():
         for method, run in runs.items():
-            commit = (run.metrics or {}).get("commit")
-            if commit:
-                runs_of.setdefault(commit, []).append(f"{scene}/{method}")
+            if run.metrics:
+                runs_of.setdefault(commit_label(run.metrics.get("provenance")), []).append(f"{scene}/{method}")
     return dict(sorted(runs_of.items(), key=lambda item: -len(item[1])))
 
 
-def commits_text(commits: dict[str, list[str]]) -> str:
-    """One sentence for :func:`metrics_commits`: the commit, or every commit with its runs when the runs
-    were measured by different code."""
-    if not commits:
-        return "Commit: not recorded."
-    if len(commits) == 1:
-        return f"Commit: {next(iter(commits))}."
-    parts = "; ".join(f"{commit} ({', '.join(runs)})" for commit, runs in commits.items())
-    return f"Commits (these runs' metrics were computed by different code): {parts}."
+PROVENANCE_HEADING = "Provenance: the code and the machine that trained each run"
+
+
+def _provenance_first_screen(doc: Document, mixture: list[str], groups: list[dict]) -> None:
+    """The report's opening lines: what mixes in these runs (:func:`rtsplat.provenance.mixture_sentences`),
+    or the one commit and machine that trained them all."""
+    if mixture:
+        doc.paragraph("Mixed provenance, read before comparing numbers: " + " ".join(mixture)
+                      + f" The section '{PROVENANCE_HEADING}' lists every run.")
+    else:
+        only = groups[0]
+        doc.paragraph(f"Every run was trained by commit {only['commit']} (no uncommitted changes) on "
+                      f"{only['machine']}, device {only['device']}.")
+
+
+def _provenance_section(doc: Document, groups: list[dict], scenes: dict[str, dict[str, Run]],
+                        any_metrics: dict) -> None:
+    doc.heading(PROVENANCE_HEADING)
+    doc.paragraph("What each run's training recorded (rtsplat.provenance): the commit, with '+changes' and a hash "
+                  "of the differences when the tree had uncommitted changes, the machine (host name, CPU model, "
+                  "cores), the device and the package versions; a run resumed by other code lists each part.")
+    doc.table(["commit", "machine", "device", "packages", "runs"],
+              [[g["commit"], g["machine"], g["device"], g["packages"], ", ".join(g["runs"])] for g in groups])
+    computed = "; ".join(f"{label} ({len(runs)} run{'' if len(runs) == 1 else 's'})"
+                         for label, runs in metrics_commits(scenes).items())
+    doc.paragraph(f"Metrics computed by: {computed or 'no metrics'}; rendering device: "
+                  f"{any_metrics.get('render_device', '?')}.")
 
 
 def build_report(results: str | Path, out: str | Path, *, roles: Roles | None = None,
@@ -1157,6 +1197,9 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
            commands) -> None:
     main = roles.main
     doc = Document("rtsplat benchmark report")
+    trained_by = training_records(scenes)
+    groups, mixture = group_runs(trained_by), mixture_sentences(trained_by)
+    _provenance_first_screen(doc, mixture, groups)
     doc.heading("Summary: RT-Splatting against plain 2DGS")
     summary = [row for scene, runs in scenes.items() for row in summary_rows(scene, runs, roles, results)]
     if summary:
@@ -1180,12 +1223,7 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
     if family:
         _family_section(doc, family, out)
     any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
-    machine = any_metrics.get("machine", {})
-    commits = metrics_commits(scenes)
-    doc.paragraph(f"Machine: {machine.get('processor') or '?'} ({machine.get('cpus', '?')} CPUs), "
-                  f"{machine.get('platform', '?')}; rendering device: {any_metrics.get('render_device', '?')}. "
-                  f"{commits_text(commits)} "
-                  f"Packages: {', '.join(f'{k} {v}' for k, v in any_metrics.get('versions', {}).items())}.")
+    _provenance_section(doc, groups, scenes, any_metrics)
     doc.paragraph("LPIPS: " + str(any_metrics.get("lpips", "not computed")))
     for scene, runs in scenes.items():
         doc.heading(f"Scene {scene}")
@@ -1330,9 +1368,12 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
     page, markdown = doc.finish()
     (out / "index.html").write_text(page)
     (out / "index.md").write_text(markdown)
+    commits: dict[str, list[str]] = {}
+    for group in groups:
+        commits.setdefault(group["commit"], []).extend(group["runs"])
     record = {"title": doc.title, "written": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "commit": next(iter(commits), None), "commits": commits, "machine": machine,
-              "render_device": any_metrics.get("render_device"), "versions": any_metrics.get("versions", {}),
+              "commit": groups[0]["commit"] if len(commits) == 1 else None, "commits": commits,
+              "provenance": groups, "mixed": mixture, "render_device": any_metrics.get("render_device"),
               "scenes": list(scenes), "tables": doc.tables}
     (out / REPORT_JSON).write_text(json.dumps(record, indent=1) + "\n")
 

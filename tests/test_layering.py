@@ -17,7 +17,8 @@ RULES = [
     (("rtsplat.model",), STAGES + ("rtsplat.cli", "rtsplat.config", "rtsplat.synth", "rtsplat.bench", "rtsplat.demo")),
     (("rtsplat.render", "rtsplat.video", "rtsplat.fps", "rtsplat.metrics", "rtsplat.viewer"), ("rtsplat.train",)),
     (("rtsplat.quality",), ("rtsplat.model", "rtsplat.raster", "rtsplat.train", "rtsplat.config", *STAGES)),
-    (("rtsplat.schema", "rtsplat.errors", "rtsplat.io"), ("rtsplat.model", "rtsplat.train", "rtsplat.config", *STAGES)),
+    (("rtsplat.schema", "rtsplat.errors", "rtsplat.io", "rtsplat.provenance"),
+     ("rtsplat.model", "rtsplat.train", "rtsplat.config", *STAGES)),
 ]
 
 

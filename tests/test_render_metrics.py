@@ -164,8 +164,10 @@ def test_metrics_cli_writes_json_with_both_regions(trained, tmp_path):
     assert data["mean"]["psnr"] == pytest.approx(summary["test_psnr"], abs=0.3)
     assert data["mean"]["psnr_transparent"] == pytest.approx(summary["test_psnr_transparent"], abs=0.3)
     assert data["mean"]["lpips"] == NOT_AVAILABLE and data["lpips"].startswith("off")
-    assert data["config_hash"] and data["versions"]["torch"] == torch.__version__
-    assert data["fps"] > 0 and data["machine"]["cpus"] >= 1
+    assert data["config_hash"] and data["provenance"]["versions"]["torch"] == torch.__version__
+    assert data["fps"] > 0 and data["provenance"]["machine"]["cpus"] >= 1
+    # the training's record, carried by render.json into the metrics
+    assert data["training_provenance"] == summary["provenance"] and summary["provenance"]["device"] == "cpu"
 
 
 def test_metrics_record_and_print_the_split_and_the_report_labels_it(trained, tmp_path, capsys):

@@ -451,32 +451,69 @@ def test_the_near_reflection_section_says_what_share_of_the_true_reflection_is_n
     assert scene_reflection_reach(prepared) == ""
 
 
-def _git_head() -> str | None:
-    from pathlib import Path
-
-    done = subprocess.run(["git", "-C", str(Path(__file__).resolve().parent.parent), "rev-parse", "--short=12",
-                           "HEAD"], capture_output=True, text=True)
+def _git(*args: str) -> str | None:
+    done = subprocess.run(["git", "-C", str(Path(__file__).resolve().parent.parent), *args], capture_output=True,
+                          text=True)
     return done.stdout.strip() if done.returncode == 0 else None
 
 
-def test_results_page_carries_the_reports_tables_commit_and_machine(results, tmp_path):
+def test_every_run_records_the_code_machine_and_device_that_trained_it_and_render_and_metrics_carry_it(results):
+    import os
+    import socket
+
+    import torch
+
+    head = _git("rev-parse", "HEAD")
+    changed = bool(_git("diff", "HEAD", "--name-only"))
+    for method in METHODS:
+        record = json.loads((results / "toy" / "runs" / method / "summary.json").read_text())["provenance"]
+        assert record["commit"] == head and record["dirty"] is (changed if head else None)
+        assert (record["diff_sha256"] is not None) is (changed and head is not None)
+        assert record["machine"]["hostname"] == socket.gethostname() and record["machine"]["cpus"] == os.cpu_count()
+        assert record["device"] == "cpu" and record["versions"]["torch"] == torch.__version__
+        assert record["versions"]["numpy"] == np.__version__ and "earlier_parts" not in record
+        render = json.loads((results / "toy" / "renders" / method / "render.json").read_text())
+        metrics = json.loads((results / "toy" / "metrics" / f"{method}.json").read_text())
+        assert render["training_provenance"] == record and metrics["training_provenance"] == record
+
+
+def _with_provenance(results: Path, copy: Path, change: dict[str, dict]) -> None:
+    """``results`` copied to ``copy`` with every run's training provenance set to one clean commit on one
+    machine, then ``change[method]`` merged into that method's."""
+    shutil.copytree(results, copy)
+    clean = {"commit": "a" * 40, "dirty": False, "diff_sha256": None, "device": "cpu", "versions": {"torch": "2.13.0"},
+             "machine": {"hostname": "bench-1", "processor": "Test CPU", "cpus": 2}}
+    for method in METHODS:
+        path = copy / "toy" / "runs" / method / "summary.json"
+        summary = json.loads(path.read_text())
+        path.write_text(json.dumps({**summary, "provenance": {**clean, **change.get(method, {})}}))
+
+
+def _first_screen(md: str) -> str:
+    """What the report shows before its first section: the lines between the title and the first heading."""
+    return md.split("\n## ", 1)[0]
+
+
+def test_a_report_over_runs_of_one_clean_commit_names_it_on_its_first_screen(results, tmp_path):
     from rtsplat.results_page import main as results_page
 
-    build_report(results, tmp_path / "report", roles=Roles.from_dict(ROLES))
+    _with_provenance(results, tmp_path / "results", {})
+    build_report(tmp_path / "results", tmp_path / "report", roles=Roles.from_dict(ROLES))
     md = (tmp_path / "report" / "index.md").read_text()
+    first = _first_screen(md)
+    assert ("Every run was trained by commit aaaaaaaaaaaa (no uncommitted changes) on bench-1: Test CPU, 2 cores"
+            in first)
+    assert "Mixed provenance" not in md
+    html = (tmp_path / "report" / "index.html").read_text()
+    assert html.index("Every run was trained by commit aaaaaaaaaaaa") < html.index("<h2>")
     record = json.loads((tmp_path / "report" / "report.json").read_text())
-    head = _git_head()
-    if head is None:
-        assert record["commit"] is None
-    else:
-        assert record["commit"].removesuffix("+changes") == head
-    assert record["machine"]["cpus"] >= 1 and record["scenes"] == ["toy"]
+    assert record["commit"] == "aaaaaaaaaaaa" and record["mixed"] == []
+    assert sorted(record["provenance"][0]["runs"]) == sorted(f"toy/{m}" for m in METHODS)
 
     assert results_page(["--report", str(tmp_path / "report"), "--out", str(tmp_path / "results.md")]) == 0
     page = (tmp_path / "results.md").read_text()
     assert f"--out {tmp_path / 'results.md'}`" in page  # the command that writes this page again
-    assert f"- Commit: `{record['commit'] or 'not recorded'}`" in page
-    assert f"({record['machine']['cpus']} CPUs)" in page and record["machine"]["processor"] in page
+    assert "- Commit: `aaaaaaaaaaaa` (trained every run)" in page and "bench-1: Test CPU, 2 cores" in page
     # the kept tables are the report's own rows, under the scene's heading
     for header_start in ("| method | PSNR | SSIM |", "| method | FPS alone |"):
         assert _table_rows(page, header_start) == _table_rows(md, header_start)
@@ -484,31 +521,54 @@ def test_results_page_carries_the_reports_tables_commit_and_machine(results, tmp
     assert "## Scene toy" in page and "### Ablations (transparent-region PSNR)" in page
     assert "Summary: RT-Splatting against plain 2DGS" in page
     assert "Noise" not in page.split("## Scene toy", 1)[1]  # the noise section is left to the report
+    # the record kept beside the page gives the same page again
+    kept = tmp_path / "results.report.json"
+    assert json.loads(kept.read_text())["source"] == str(tmp_path / "report")
+    assert results_page(["--report", str(kept), "--out", str(tmp_path / "again.md")]) == 0
+    again = (tmp_path / "again.md").read_text()
+    assert again == page.replace(f"--out {tmp_path / 'results.md'}`", f"--out {tmp_path / 'again.md'}`").replace(
+        "kept beside this page as `results.report.json`", "kept beside this page as `again.report.json`")
 
 
-def test_a_report_over_runs_of_different_code_names_every_commit_with_its_runs(results, tmp_path):
-    """Runs measured by two commits: the report names both, each with its runs, and so does the results page."""
-    import shutil
-
+def test_a_report_over_runs_of_two_commits_says_so_on_its_first_screen(results, tmp_path):
+    """One run trained by another commit, one from a tree with uncommitted changes on another machine: the
+    report's first screen (before any section) says all three, and so does the results page."""
     from rtsplat.results_page import main as results_page
 
-    copy = tmp_path / "results"
-    shutil.copytree(results, copy)
-    metrics = sorted((copy / "toy" / "metrics").glob("*.json"))
-    assert len(metrics) >= 2
-    record = json.loads(metrics[0].read_text())
-    record["commit"] = "0123456789ab"
-    metrics[0].write_text(json.dumps(record))
-    build_report(copy, tmp_path / "report", roles=Roles.from_dict(ROLES))
+    _with_provenance(results, tmp_path / "results", {
+        "2dgs": {"commit": "b" * 40},
+        "ablation_gating": {"dirty": True, "diff_sha256": "0123456789abcdef",
+                            "machine": {"hostname": "bench-2", "processor": "Other CPU", "cpus": 16}}})
+    build_report(tmp_path / "results", tmp_path / "report", roles=Roles.from_dict(ROLES))
     md = (tmp_path / "report" / "index.md").read_text()
-    report = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert f"toy/{metrics[0].stem}" in report["commits"]["0123456789ab"]
-    if _git_head() is not None:  # the other runs' commit is this checkout's
-        assert len(report["commits"]) == 2 and "Commits (these runs' metrics were computed by different code)" in md
-        assert f"0123456789ab (toy/{metrics[0].stem})" in md
-        assert results_page(["--report", str(tmp_path / "report"), "--out", str(tmp_path / "results.md")]) == 0
-        assert "- Commits: `" in (tmp_path / "results.md").read_text()
-        assert "`0123456789ab` (1 run)" in (tmp_path / "results.md").read_text()
+    first = _first_screen(md)
+    assert "Mixed provenance" in first and "3 different versions of the code" in first
+    for label in ("aaaaaaaaaaaa", "bbbbbbbbbbbb", "aaaaaaaaaaaa+changes (diff 0123456789abcdef)"):
+        assert label in first
+    assert "1 of 3 runs were trained from a tree with uncommitted changes" in first and "toy/ablation_gating" in first
+    assert "trained on 2 machines" in first and "bench-2: Other CPU, 16 cores" in first
+    html = (tmp_path / "report" / "index.html").read_text()
+    assert html.index("Mixed provenance") < html.index("<h2>")
+    # the provenance section lists each group with its runs
+    rows = {row[-1]: row for row in (line.strip("| ").split(" | ") for line in
+                                     md.split("| commit | machine | device | packages | runs |")[1].split("\n\n")[0]
+                                     .splitlines()[2:])}
+    assert rows["toy/2dgs"][0] == "bbbbbbbbbbbb" and rows["toy/rtsplat"][1] == "bench-1: Test CPU, 2 cores"
+    record = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert record["commit"] is None and record["commits"]["bbbbbbbbbbbb"] == ["toy/2dgs"]
+    assert results_page(["--report", str(tmp_path / "report"), "--out", str(tmp_path / "results.md")]) == 0
+    page = (tmp_path / "results.md").read_text()
+    assert page.split("\n## ", 1)[0].count("**Mixed provenance:**") == 1
+    assert "- Trained by 3 combinations of commit, machine and device" in page
+    assert "  - `bbbbbbbbbbbb` on bench-1: Test CPU, 2 cores, device cpu, torch 2.13.0: 1 run (toy/2dgs)" in page
+
+
+def test_a_report_over_runs_that_record_no_provenance_says_so(results, tmp_path):
+    shutil.copytree(results, tmp_path / "results")
+    path = tmp_path / "results" / "toy" / "runs" / "2dgs" / "summary.json"
+    path.write_text(json.dumps({k: v for k, v in json.loads(path.read_text()).items() if k != "provenance"}))
+    md = build_report(tmp_path / "results", tmp_path / "report").with_suffix(".md").read_text()
+    assert "1 of 3 runs do not record the code that trained them: toy/2dgs." in _first_screen(md)
 
 
 def test_results_page_of_a_folder_without_report_json_is_a_clear_error(tmp_path, capsys):
@@ -517,14 +577,19 @@ def test_results_page_of_a_folder_without_report_json_is_a_clear_error(tmp_path,
     assert results_page(["--report", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "no report.json" in err and str(tmp_path) in err and "rtsplat report" in err
+    assert results_page(["--report", str(tmp_path / "missing.json")]) == 1
+    err = capsys.readouterr().err
+    assert "no such file" in err and "missing.json" in err
 
 
-def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_half_its_summary(results, tmp_path):
+def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_split_its_summary(results, tmp_path):
     """Copies of the toy run named as family scenes, with the main method's transparent PSNR set to a known
-    gap over 2dgs and a repeat of rtsplat with another seed at a known distance (the seed noise)."""
+    gap over 2dgs and a repeat of rtsplat with another seed at a known distance (the seed noise). Seeds 0 and 2
+    are tuning scenes, 1 and 3 seen (the former held-out half, which decisions used), 101 held out."""
     copy = tmp_path / "results"
     # scene: (gap on the transparent region, seed noise or None for no repeat)
-    built = {"shop_window-0": (2.0, 0.3), "curved-2": (-1.0, 0.2), "shop_window-1": (0.1, 0.3), "car-3": (0.5, None)}
+    built = {"shop_window-0": (2.0, 0.3), "curved-2": (-1.0, 0.2), "shop_window-1": (0.1, 0.3), "car-3": (0.5, None),
+             "grazing-101": (0.3, 0.2)}
     # the true reflection's 8-bit value on three scenes: the larger the gap, the stronger the reflection
     reflected = {"shop_window-0": 204, "shop_window-1": 102, "curved-2": 51}
     shutil.copytree(results / "toy", copy / "toy")  # not a family name: not in the section
@@ -553,14 +618,16 @@ def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_half
     report = build_report(copy, tmp_path / "report", roles=roles)
     md = report.with_suffix(".md").read_text()
     assert "Scene family: RT-Splatting minus plain 2DGS per scene" in md and "larger than 2 x that noise" in md
-    section = md.split("Scene family")[1].split("Machine:")[0]
+    section = md.split("Scene family")[1].split("## Provenance")[0]
     assert "| toy |" not in section
     verdicts = {"shop_window-0": "better", "curved-2": "worse", "shop_window-1": "within noise",
-                "car-3": "noise not measured"}
+                "car-3": "noise not measured", "grazing-101": "within noise"}
+    splits = {"shop_window-0": "tuning", "curved-2": "tuning", "shop_window-1": "seen", "car-3": "seen",
+              "grazing-101": "held out"}
     for scene, (gap, noise) in built.items():
         row = _md_row(section, f"| {scene} | ")
         kind, seed = scene.rsplit("-", 1)
-        assert row[1:4] == [kind, seed, "tuning" if int(seed) % 2 == 0 else "held out"]
+        assert row[1:4] == [kind, seed, splits[scene]]
         assert float(row[4]) == pytest.approx(gap, abs=0.005)
         assert row[5] == ("-" if noise is None else f"{noise:.3f}") and row[6] == verdicts[scene]
         assert float(row[10]) == pytest.approx(gap, abs=0.005)  # the reflection layer's gap
@@ -570,10 +637,16 @@ def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_half
         else:
             assert strength == "-"
     assert _md_row(section, "| 3 | ") == ["3", "-1.00", "0.000"]  # stronger reflection, larger gap, in rank
-    tuning = _md_row(section, "| tuning (even seeds) | transparent |")
+    tuning = _md_row(section, "| tuning | transparent |")
     assert tuning[2:] == ["2", "+0.50", "-1.00 (curved-2)", "1", "1", "0", "0"]
-    held = _md_row(section, "| held out (odd seeds) | transparent |")
-    assert held[2:] == ["2", "+0.30", "+0.10 (shop_window-1)", "0", "0", "1", "1"]
+    seen = _md_row(section, "| seen (former held-out seeds 1, 3) | transparent |")
+    assert seen[2:] == ["2", "+0.30", "+0.10 (shop_window-1)", "0", "0", "1", "1"]
+    held = _md_row(section, "| held out (seeds 100-103) | transparent |")
+    assert held[2:] == ["1", "+0.30", "+0.30 (grazing-101)", "0", "0", "1", "0"]
+    # the section says which decisions used the seen scenes, and that no decision uses the held-out ones
+    assert "model.shade_coverage came from diagnosing curved-3, car-3 and grazing-1" in section
+    assert "losses.mask_coverage_weight" in section and "checked_mask_roi" in section
+    assert "no default, threshold or rule is chosen from them" in section
     assert (report.parent / "family_psnr_transparent.png").is_file()
     plain = build_report(copy, tmp_path / "plain").with_suffix(".md").read_text()
     assert "Scene family" not in plain  # no main method: nothing to compare

@@ -21,6 +21,7 @@ from rtsplat.synth.family import (  # noqa: E402
     Member,
     build_member,
     draw_params,
+    held_out_members,
     members,
     parse_name,
 )
@@ -32,7 +33,7 @@ COVERAGE = {"shop_window": (0.6, 0.95), "curved": (0.1, 0.8), "case": (0.1, 0.8)
             "grazing": (0.2, 0.9)}
 
 
-# one member of each kind, orbits and walks, both halves, every glass, both curved sections
+# one member of each kind, orbits and walks, tuning and seen seeds, every glass, both curved sections
 TINY_SEEDS = {"shop_window": 1, "curved": 2, "case": 3, "car": 0, "grazing": 3}
 
 
@@ -52,11 +53,12 @@ def _masks(out: Path) -> list[np.ndarray]:
     return [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 127 for p in sorted((out / "transparent_masks").glob("*.png"))]
 
 
-def test_names_seeds_and_halves():
+def test_names_seeds_and_splits():
     m = parse_name("family/shop_window-3")
-    assert (m.kind, m.seed, m.half, m.name, m.dataset_name) == (
-        "shop_window", 3, "held_out", "family/shop_window-3", "shop_window-3")
-    assert parse_name("family/car-10").half == "tuning"
+    assert (m.kind, m.seed, m.split, m.name, m.dataset_name) == (
+        "shop_window", 3, "seen", "family/shop_window-3", "shop_window-3")
+    assert [parse_name(f"family/car-{seed}").split for seed in (0, 1, 2, 3, 5, 10, 99, 100, 103, 104)] == [
+        "tuning", "seen", "tuning", "seen", "tuning", "tuning", "tuning", "held_out", "held_out", "tuning"]
     for bad in ("family/boat-1", "family/car", "family/car-x", "family/car--1", "family/"):
         with pytest.raises(ValueError) as info:
             parse_name(bad)
@@ -85,9 +87,11 @@ def test_parameters_come_from_the_seed():
     family = members(seeds=range(4))
     assert len(family) == 4 * len(KINDS) >= 16
     for kind in KINDS:
-        for half in ("tuning", "held_out"):
-            mine = [m for m in family if m.kind == kind and m.half == half]
-            assert {m.capture for m in mine} == set(CAPTURES), (kind, half)
+        for split in ("tuning", "seen"):
+            mine = [m for m in family if m.kind == kind and m.split == split]
+            assert {m.capture for m in mine} == set(CAPTURES), (kind, split)
+        held = [m for m in held_out_members() if m.kind == kind]
+        assert {m.capture for m in held} == set(CAPTURES) and {m.glass for m in held} == set(GLASS), kind
     assert {m.glass for m in family} == set(GLASS)
     tints = {m.glass: draw_params(m)["tint"] for m in family if m.kind == "case"}
     assert tints["clear"] == (1.0, 1.0, 1.0)
@@ -141,7 +145,7 @@ def test_tiny_renders_have_masks_layers_and_family_records(tiny):
         description = json.loads((out / "scene.json").read_text())
         assert description["scene"] == f"family/{kind}-{seed}"
         family = description["family"]
-        assert (family["kind"], family["seed"], family["half"]) == (kind, seed, ("tuning", "held_out")[seed % 2])
+        assert (family["kind"], family["seed"], family["split"]) == (kind, seed, ("tuning", "seen")[seed % 2])
         assert family["params"] == json.loads(json.dumps(draw_params(Member(kind, seed))))
         captures.add(description["camera_path"]["type"])
         assert description["camera_path"]["type"] == family["params"]["capture"]
@@ -207,3 +211,49 @@ def test_shop_window_pane_fills_most_of_each_view(tmp_path, seed):
     print(f"shop_window-{seed} ({spec.family['params']['capture']}) pane coverage:",
           " ".join(f"{c:.2f}" for c in coverage))
     assert all(0.6 <= c <= 0.95 for c in coverage), coverage
+
+
+def test_the_held_out_list_is_fixed_in_benchmarks_and_says_it_decides_nothing():
+    """benchmarks/heldout.yaml runs exactly the held-out members, each a scene of its own (parameters unlike
+    every tuning and seen seed's), with the family benchmark's settings, under a header that forbids tuning on it."""
+    import yaml
+
+    from rtsplat.config import load_config
+
+    root = Path(__file__).resolve().parent.parent
+    text = (root / "benchmarks" / "heldout.yaml").read_text()
+    config = yaml.safe_load(text)
+    held = held_out_members()
+    assert config["scenes"] == [m.dataset_name for m in held] and len(held) == 4 * len(KINDS)
+    assert {m.split for m in held} == {"held_out"}
+    assert not {m.dataset_name for m in held} & set(yaml.safe_load((root / "benchmarks" / "family.yaml").read_text())
+                                                      ["scenes"])
+    family = yaml.safe_load((root / "benchmarks" / "family.yaml").read_text())
+    assert {k: v for k, v in config.items() if k != "scenes"} == {k: v for k, v in family.items() if k != "scenes"}
+    assert load_config(root / "benchmarks" / "heldout.yaml").scenes == config["scenes"]  # a valid config of its own
+    header = " ".join(line.lstrip("# ") for line in text.splitlines() if line.startswith("#"))
+    assert "only when an issue's work is done" in header
+    assert "never choose a default, a threshold or a rule from it" in header
+    seen = {json.dumps(draw_params(m), sort_keys=True) for m in members(seeds=range(4))}
+    assert not {json.dumps(draw_params(m), sort_keys=True) for m in held} & seen
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_held_out_member_builds_a_scene_whose_cameras_see_its_glass(tmp_path, kind):
+    """The held-out seeds build (geometry, textures, cameras; nothing rendered) and, over pixel rays of four of
+    their cameras at 32x24, the glass covers each view in the share the kind's tiny renders show."""
+    from rtsplat.synth.render import first_hit_mask
+
+    set_variant()
+    lo, hi = COVERAGE[kind]
+    for member in held_out_members():
+        if member.kind != kind:
+            continue
+        workdir = tmp_path / member.dataset_name
+        workdir.mkdir()
+        spec = build_member(member.name, workdir)
+        assert spec.family["split"] == "held_out" and spec.transparent
+        cams = spec.orbit.cameras(4, 32, 24)  # the member's camera path, an orbit or a walk
+        scene = load_scene(spec.elements, cams, spp=1)
+        shares = [float(first_hit_mask(scene, cam).mean()) for cam in cams]
+        assert lo <= float(np.median(shares)) <= hi and min(shares) > 0, (member.name, shares)

@@ -870,3 +870,28 @@ def test_a_stop_signal_checkpoints_at_the_next_iteration_and_the_rerun_resumes_t
     assert a.keys() == b.keys() and len(b["means"]) == len(a["means"])
     for name in a:
         torch.testing.assert_close(b[name], a[name], rtol=1e-4, atol=1e-5, msg=name)
+
+
+def test_a_run_resumed_by_other_code_records_each_part_that_trained_it(glass_scene, tmp_path):
+    """The checkpoint carries what trained each part: a resume from a checkpoint of another commit ends with
+    that part under ``earlier_parts``; a resume by the same code adds none."""
+    run = tmp_path / "run"
+
+    def train_to(iterations: int) -> dict:
+        cfg = config(10, schedule={"checkpoint_every": 5})
+        cfg.schedule.iterations = iterations  # the one setting a resume may change without a word
+        Trainer(glass_scene, cfg, run, progress=False, log=lambda m: None).train(resume=True)
+        return json.loads((run / "summary.json").read_text())["provenance"]
+
+    train_to(10)
+    first = json.loads((run / "summary.json").read_text())["provenance"]
+    assert "earlier_parts" not in first and first["device"] == "cpu"
+    checkpoint = run / "checkpoints" / "last.pt"
+    state = torch.load(checkpoint, weights_only=False)
+    assert state["training"]["provenance"] == [first]
+    other = {**first, "commit": "b" * 40, "dirty": True, "diff_sha256": "0" * 16}
+    state["training"]["provenance"] = [other]
+    torch.save(state, checkpoint)
+    resumed = train_to(15)
+    assert resumed["earlier_parts"] == [other] and {k: v for k, v in resumed.items() if k != "earlier_parts"} == first
+    assert train_to(20)["earlier_parts"] == [other]

@@ -428,6 +428,20 @@ def test_whole_dag_to_the_report(tmp_path):
     md = (results / "report" / "index.md").read_text()
     assert "| rtsplat |" in md and "| 2dgs |" in md and "no-reflections" in md
     assert "FPS alone" in md and "training CPU s" in md
+    # what trained the runs, through the CLIs: recorded by train, carried by render and metrics, on the first screen
+    root = Path(__file__).resolve().parent.parent
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = bool(subprocess.run(["git", "-C", str(root), "diff", "HEAD"], capture_output=True, text=True).stdout)
+    for method in ("rtsplat", "2dgs"):
+        trained = json.loads((results / "glass" / "runs" / method / "summary.json").read_text())["provenance"]
+        assert trained["commit"] == (head or None)
+        metrics = json.loads((results / "glass" / "metrics" / f"{method}.json").read_text())
+        assert metrics["training_provenance"] == trained
+    first_screen = md.split("\n## ", 1)[0]
+    if head and not dirty:
+        assert f"Every run was trained by commit {head[:12]} (no uncommitted changes)" in first_screen
+    elif head:
+        assert "2 of 2 runs were trained from a tree with uncommitted changes" in first_screen
     page = (results / "report" / "index.html").read_text()
     for method in ("rtsplat", "2dgs"):  # the same path for both, embedded with a poster and a download link
         assert (results / "glass" / "videos" / f"{method}.mp4").is_file()

@@ -11,7 +11,9 @@ Run directory layout::
                              with a checkpoint_dir: <checkpoint_dir>/last.pt and a copy of train_log.jsonl
     <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
     <out>/summary.json       written last: a run without it is not finished; its starting_surfels says how
-                             many surfels the SfM points started and why (rtsplat.train.initial)
+                             many surfels the SfM points started and why (rtsplat.train.initial), its
+                             provenance the commit, uncommitted changes, machine, device and packages that
+                             trained it (rtsplat.provenance; earlier_parts when a resume ran other code)
 
 Time, in the log and the summary (:mod:`rtsplat.usage` says what each measure means): ``seconds`` /
 ``train_seconds`` are the wall seconds of the training steps (not the evaluations, test-view pose fits and
@@ -50,6 +52,8 @@ from rtsplat.model.surfels import (
     concat_surfels,
     init_from_points,
 )
+from rtsplat.provenance import collect as collect_provenance
+from rtsplat.provenance import commit_label, machine_label, run_record, same_source
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
 from rtsplat.raster import default_backend, rasterize
@@ -206,6 +210,8 @@ class Trainer:
         self.checkpoint_iteration: int | None = None
         self.perceptual, why = load_lpips(cfg.losses.lpips_weights, self.device)
         self.perceptual_note = why
+        # what trained each part of the run (rtsplat.provenance), one more each time a resume runs other code
+        self.provenance: list[dict] = []
 
     # -- construction ------------------------------------------------------------------------
     def _init_surfels(self) -> SurfelParameters:
@@ -626,6 +632,7 @@ class Trainer:
             "appearance": None if self.appearance is None else self.appearance.state_dict(),
             "appearance_corrections": self.appearance_corrections(),
             "near_fit": self.near_fit,
+            "provenance": self.provenance,
             "plane_refinement": None if self.plane_refinement is None else self.plane_refinement.state_dict(),
             "rng": self.rng.get_state(),
             "torch_rng": torch.get_rng_state(),
@@ -695,6 +702,7 @@ class Trainer:
         self._restore_test_rows(self.test_appearance, state.get("appearance_corrections", {}))
         self.any_frozen = bool(self.frozen.any())
         self.near_fit = state.get("near_fit")
+        self.provenance = list(state.get("provenance") or [])
         self._start_plane_refinement()
         if self.plane_refinement is not None and state.get("plane_refinement") is not None:
             self.plane_refinement.load_state_dict(state["plane_refinement"])
@@ -727,6 +735,10 @@ class Trainer:
             _truncate_log(log_path, self.iteration, self.log)
         else:
             log_path.unlink(missing_ok=True)
+        here = collect_provenance(str(self.device))
+        if not self.provenance or not same_source(self.provenance[-1], here):
+            self.provenance.append(here)
+        self.log(f"trained by: {commit_label(here)} on {machine_label(here)}")
         _write_json(self.out / "config.json", cfg.to_dict())
         self._write_effects()
         self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
@@ -832,6 +844,7 @@ class Trainer:
                    "effects": self.effects.to_dict(),
                    "near_reflection": self.near_fit, "appearance": self.appearance_summary(),
                    "mirror_planes_moved": None if self.plane_refinement is None else self.plane_refinement.moved(),
+                   "provenance": run_record(self.provenance),
                    **metrics,
                    **self._correction_sizes(),
                    **best_test_psnr(self.out / LOG_NAME, self.iteration, metrics)}
