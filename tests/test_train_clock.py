@@ -16,6 +16,9 @@ def test_passed_finds_the_multiple_a_step_moves_over():
     assert passed(47, 103, 50) == 100  # two multiples in one step: the event happens once
     assert passed(50, 50, 50) is None  # a step that does not move the plan passes nothing
     assert passed(0, 10, 0) is None  # 0: never
+    # within a window: a step from 40 to 281 passes 100 and 200; with the window [50, 200) only 100 counts
+    assert passed(40, 281, 100, start=50, stop=200) == 100
+    assert passed(40, 99, 100, start=50, stop=200) is None and passed(40, 281, 100, start=250) is None
     # one step at a time, it is the usual `iteration % every == 0`
     assert [i for i in range(1, 40) if passed(i - 1, i, 7) is not None] == [7, 14, 21, 28, 35]
 
@@ -63,8 +66,8 @@ def test_training_with_a_time_budget_stops_at_it_and_keeps_the_plans_order(tmp_p
     positions = [r["position"] for r in steps]
     assert positions == sorted(positions) and positions[-1] <= 400
     assert all(r["stage"] == stage_at(r["position"], cfg) for r in steps)
-    # density steps at the steps that passed a multiple of 100 in [50, 200): at most once each
-    densified = [r["position"] for r in steps if r.get("density")]
-    assert densified == sorted({(p // 100) * 100 for p in densified}) and all(100 <= p < 200 for p in densified)
-    # evaluations where a multiple of 100 was passed, and at the last step
-    assert "test_psnr" in steps[-1]
+    # density control ran at the one step that passed 100, the only multiple of densify_every in
+    # [densify_from, densify_until) = [50, 200) (every step is logged: log_every 1)
+    passing = [p for q, p in zip([0, *positions], positions, strict=False) if q < 100 <= p]
+    assert len(passing) == 1 and [r["position"] for r in steps if r.get("density")] == passing
+    assert "test_psnr" in steps[-1]  # the last step was evaluated

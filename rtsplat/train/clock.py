@@ -19,13 +19,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 
-def passed(previous: int, current: int, every: int) -> int | None:
-    """The largest multiple of ``every`` in ``(previous, current]``, or None when there is none (or
-    ``every`` <= 0)."""
-    if every <= 0 or current <= previous:
+def passed(previous: int, current: int, every: int, start: int = 1, stop: int | None = None) -> int | None:
+    """The largest multiple of ``every`` in ``(previous, current]`` that lies in ``[start, stop)`` (``stop``
+    None: no end), or None when there is none (or ``every`` <= 0)."""
+    top = current if stop is None else min(current, stop - 1)
+    if every <= 0 or top <= previous:
         return None
-    multiple = (current // every) * every
-    return multiple if multiple > previous else None
+    multiple = (top // every) * every
+    return multiple if multiple > previous and multiple >= start else None
 
 
 @dataclass

@@ -104,11 +104,9 @@ class DensityControl:
         events = DensityEvents()
         stop = s.densify_stop()
         previous = iteration - 1 if previous is None else previous
-        densify_at = passed(previous, iteration, s.densify_every)
-        if densify_at is not None and s.densify_from <= densify_at < stop:
+        if passed(previous, iteration, s.densify_every, start=s.densify_from, stop=stop) is not None:
             frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events)
-        reset_at = passed(previous, iteration, s.reset_every)
-        if reset_at is not None and reset_at < stop:
+        if passed(previous, iteration, s.reset_every, stop=stop) is not None:
             self._reset(surfels, optimizer, events)
         return events, frozen
 
