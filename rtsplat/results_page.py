@@ -41,7 +41,7 @@ COMMAND = PROGRAM + " --report REPORT_DIR --out {page}"
 MARKER = f"Written by `{PROGRAM} "  # the page's first line: how --out knows a page of its own
 DEFAULT_PAGE = "docs/results.md"
 KEPT_SUFFIX = ".report.json"
-REPORT_RECORD_KEYS = ("tables", "written")  # what tells a kept record written here from another JSON file
+REPORT_RECORD_KEYS = ("tables", "source")  # what tells a kept record written here from another JSON file
 
 
 def kept_json(page: Path) -> Path:

@@ -17,3 +17,23 @@ def test_docs_results_is_what_its_kept_record_gives():
     assert results_markdown(record, PAGE) == (ROOT / PAGE).read_text(), (
         "docs/results.md is not what its record gives: write it with `python -m rtsplat.results_page --report "
         "docs/results.report.json --out docs/results.md` (or `make results-page`), never by hand")
+
+
+def test_the_kept_record_is_written_beside_the_page_but_never_over_a_users_json(tmp_path, capsys):
+    from rtsplat.results_page import main
+
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "rep" / "report.json").write_text('{"tables": [], "scenes": ["s"], "written": "today"}')
+    users = tmp_path / "mine.report.json"
+    users.write_text('{"my": "numbers"}')
+    before = users.read_bytes()
+    assert main(["--report", str(tmp_path / "rep"), "--out", str(tmp_path / "mine.md")]) == 1
+    assert "mine.report.json" in capsys.readouterr().err
+    assert users.read_bytes() == before and not (tmp_path / "mine.md").exists()  # neither file written
+    assert main(["--report", str(tmp_path / "rep"), "--out", str(tmp_path / "page.md")]) == 0
+    kept = read_report(tmp_path / "page.report.json")
+    assert kept["scenes"] == ["s"] and kept["source"] == str(tmp_path / "rep")
+    # written again from its kept record, the page is the same and the record stays as it is
+    page, record = (tmp_path / "page.md").read_text(), (tmp_path / "page.report.json").read_bytes()
+    assert main(["--report", str(tmp_path / "page.report.json"), "--out", str(tmp_path / "page.md")]) == 0
+    assert (tmp_path / "page.md").read_text() == page and (tmp_path / "page.report.json").read_bytes() == record
