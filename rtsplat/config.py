@@ -178,7 +178,17 @@ class OnnxSegmenterConfig:
 class MaskPropagationConfig:
     """Masks carried from a few marked views to the others through the SfM cameras (masks.source: propagate)."""
 
+    method: Literal["auto", "hull", "plane"] = _f(
+        "auto", help="how the marks reach the other views: hull: through the marked views' visual hull (views from "
+        "around the object); plane: through the glass's plane, fitted to the SfM points on the marks' outlines (flat "
+        "glass seen from one side, e.g. a walk past a shop window); auto: hull when the marked views' directions "
+        "differ by at least 10 degrees, else plane"
+    )
     grid: int = _f(128, help="voxels along the longest side of the marked object's box (visual hull)", minimum=16)
+    plane_band: float = _f(
+        0.03, help="plane: how far outside a mark its outline's SfM points are looked for, as a fraction of the "
+        "photo's longest side", exclusiveMinimum=0.0, maximum=0.5,
+    )
     refine: Literal["auto", "grabcut", "watershed", "onnx", "none"] = _f(
         "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; watershed: its "
         "outline moved to the image's strongest edges within snap_band (OpenCV watershed); onnx: segmented with "

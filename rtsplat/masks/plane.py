@@ -1,0 +1,250 @@
+"""Marks on flat glass carried through the glass's plane, for marked views that all look from one side.
+
+A visual hull needs marked views from around the object; views from one side (a walk past a shop window)
+leave its depth unbounded. Flat glass is bounded by its plane instead. The plane is fitted to the SfM points
+on the glass's outline (:func:`outline_points`): points just outside a marked view's mask (its frame, the
+wall or mullions around it), within ``plane_band`` of the view's longest side, and not well inside any mark
+(points seen through the glass or in its reflection). Among those, points seen through the glass beside it
+or a floor below it may form planes too, so RANSAC proposes a few planes (:func:`ransac_planes`: the best
+plane, then the best of the points it leaves, and so on) and the one on which the marks agree best is kept
+(:func:`mark_agreement`: each marked view's mask cast onto the plane and seen from each other marked view,
+against that view's mask where the first view's frame reaches, as mean IoU).
+
+Every view then gets the marks cast onto the plane (:func:`cast_marks`): its pixels' rays meet the plane, and
+a pixel is inside when most of the marked views that have its plane point in frame see it inside their masks;
+with occluders (SfM points on a surface) the pixels where those lie clearly in front of the plane are left out.
+The result is refined to the image's edges as a projected hull is (:mod:`rtsplat.masks.propagation`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtsplat.io.colmap import ColmapView
+
+MIN_INLIERS = 12  # a plane on fewer outline points is not trusted
+MIN_AGREEMENT = 0.7  # marks agreeing less on their best plane (mean IoU between marked views) are refused
+RANSAC_ITERATIONS = 400
+RANSAC_TOLERANCE = 0.01  # inlier distance as a fraction of the outline points' median depth
+CANDIDATES = 3  # planes proposed by RANSAC, each from the points the previous ones leave
+INSIDE_MARGIN = 3  # pixels: an SfM point this far inside a mark is seen through the glass, not on its outline
+
+
+@dataclass
+class GlassPlane:
+    """The glass's plane ``normal . x + offset = 0`` (unit normal facing the marked cameras) and its fit."""
+
+    normal: np.ndarray
+    offset: float
+    residual: float  # RMS distance of its inliers to the plane (scene units)
+    relative_residual: float  # the residual over the inliers' median depth in the marked views
+    inliers: int
+    outline_points: int  # SfM points on the marks' outlines it was fitted among
+    agreement: float  # the marks' mean IoU between marked views through the plane (mark_agreement)
+
+    def record(self) -> dict:
+        """The plane as the masks summary records it."""
+        return {"normal": [round(float(x), 6) for x in self.normal], "offset": round(float(self.offset), 6),
+                "residual": float(self.residual), "relative_residual": float(self.relative_residual),
+                "inliers": self.inliers, "outline_points": self.outline_points,
+                "agreement": round(float(self.agreement), 4)}
+
+
+class PlaneFitError(ValueError):
+    """No plane fits the marks; the message says why."""
+
+
+# ----------------------------------------------------------------------------------------------
+# the fit
+
+
+def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares plane (unit normal, offset) through ``points`` [N, 3] (N >= 3)."""
+    centre = points.mean(0)
+    normal = np.linalg.svd(points - centre, full_matrices=False)[2][-1]
+    return normal, float(-normal @ centre)
+
+
+def ransac_planes(points: np.ndarray, tolerance: float, rng: np.random.Generator,
+                  count: int = CANDIDATES) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """Up to ``count`` planes (unit normal, offset, inlier bool [N]) proposed by RANSAC: the plane with the most
+    points within ``tolerance``, refitted to them by least squares, then the same among the points it leaves;
+    planes of fewer than :data:`MIN_INLIERS` points are not proposed."""
+    planes = []
+    left = np.ones(len(points), bool)
+    for _ in range(count):
+        idx = np.flatnonzero(left)
+        if len(idx) < MIN_INLIERS:
+            break
+        samples = rng.integers(0, len(idx), (RANSAC_ITERATIONS, 3))
+        a, b, c = (points[idx[samples[:, k]]] for k in range(3))
+        normals = np.cross(b - a, c - a)
+        norms = np.linalg.norm(normals, axis=1)
+        ok = norms > 1e-12
+        if not ok.any():
+            break
+        normals, a = normals[ok] / norms[ok, None], a[ok]
+        distances = np.abs(points[idx] @ normals.T - np.einsum("ij,ij->i", normals, a))  # [n, hypotheses]
+        best = int(np.argmax((distances < tolerance).sum(0)))
+        inliers = idx[distances[:, best] < tolerance]
+        if len(inliers) < MIN_INLIERS:
+            break
+        for _ in range(2):  # refit to the inliers, then take the inliers of the refitted plane
+            normal, offset = fit_plane(points[inliers])
+            inliers = idx[np.abs(points[idx] @ normal + offset) < tolerance]
+            if len(inliers) < MIN_INLIERS:
+                break
+        if len(inliers) < MIN_INLIERS:
+            break
+        mask = np.zeros(len(points), bool)
+        mask[inliers] = True
+        planes.append((normal, offset, mask))
+        left &= ~mask
+    return planes
+
+
+def outline_points(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float) -> np.ndarray:
+    """The SfM points ``xyz`` on the marks' outlines: in front of a marked view within ``band`` of its longest
+    side just outside its mask, and not :data:`INSIDE_MARGIN` pixels inside any marked view's mask."""
+    from rtsplat.masks.propagation import _dilate, project_points
+
+    near = np.zeros(len(xyz), bool)
+    inside = np.zeros(len(xyz), bool)
+    for view, mask in marked:
+        uv, _, front = project_points(view, xyz)
+        h, w = mask.shape
+        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        seen = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        ring = _dilate(mask, max(2, int(round(band * max(h, w))))) & ~mask
+        deep = ~_dilate(~mask, INSIDE_MARGIN)
+        near[seen] |= ring[v[seen], u[seen]]
+        inside[seen] |= deep[v[seen], u[seen]]
+    return xyz[near & ~inside]
+
+
+# ----------------------------------------------------------------------------------------------
+# casting
+
+
+def pixel_rays(view: ColmapView, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """World directions [h, w, 3] (not normalised; unit depth along the view's axis) of the pixel centres of
+    ``view`` at ``scale`` of its size, and its centre; distortion undone through pycolmap."""
+    h, w = int(round(view.height * scale)), int(round(view.width * scale))
+    u, v = np.meshgrid((np.arange(w) + 0.5) / scale, (np.arange(h) + 0.5) / scale)
+    uv = np.stack([u.ravel(), v.ravel()], -1)
+    if view.has_distortion:
+        import pycolmap
+
+        camera = pycolmap.Camera.create_from_model_name(1, view.model, 1.0, view.width, view.height)
+        camera.params = view.params.tolist()
+        xy = np.asarray(camera.cam_from_img(np.ascontiguousarray(uv)), dtype=np.float64)[:, :2]
+    else:
+        K = view.K
+        xy = (uv - K[:2, 2]) / np.diag(K)[:2]
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], 1) @ view.world_to_camera[:3, :3]
+    return rays.reshape(h, w, 3), view.center
+
+
+def plane_points(plane: GlassPlane, view: ColmapView, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Where the rays of ``view``'s pixels (at ``scale``) meet the plane: points [h, w, 3] and their depth along
+    the view's axis [h, w] (inf where a ray runs parallel to the plane or meets it behind the camera)."""
+    rays, centre = pixel_rays(view, scale)
+    towards = rays @ plane.normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = -(plane.normal @ centre + plane.offset) / towards
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.inf)
+    points = centre + rays * np.where(np.isfinite(depth), depth, 0.0)[..., None]
+    return points, depth
+
+
+def _mark_votes(points: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """[views, N] bool: whether each marked view has each point in frame, and whether it sees it in its mask."""
+    from rtsplat.masks.propagation import project_points
+
+    seen = np.zeros((len(marked), len(points)), bool)
+    inside = np.zeros((len(marked), len(points)), bool)
+    for k, (view, mask) in enumerate(marked):
+        uv, _, front = project_points(view, points)
+        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        h, w = mask.shape
+        seen[k] = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        inside[k, seen[k]] = mask[v[seen[k]], u[seen[k]]]
+    return seen, inside
+
+
+def cast_marks(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]], view: ColmapView,
+               scale: float = 1.0, occluders: np.ndarray | None = None) -> np.ndarray:
+    """The marks cast through the plane into ``view`` (bool, its size times ``scale``): a pixel whose ray meets
+    the plane in front of the camera is inside when at least half the marked views that have that point in frame
+    see it in their masks; with ``occluders`` (SfM points) the pixels where those lie clearly in front of the
+    plane are left out."""
+    from rtsplat.masks.propagation import _occluded, opaque_depth
+
+    points, depth = plane_points(plane, view, scale)
+    hit = np.isfinite(depth).ravel()
+    seen, inside = _mark_votes(points.reshape(-1, 3)[hit], marked)
+    votes = seen.sum(0)
+    out = np.zeros(depth.size, bool)
+    out[hit] = (votes > 0) & (2 * inside.sum(0) >= votes)
+    out = out.reshape(depth.shape)
+    if occluders is None or not len(occluders) or not out.any():
+        return out
+    step = RANSAC_TOLERANCE * float(np.median(depth[out]))
+    return out & ~_occluded(opaque_depth(view, occluders, scale), depth, step)
+
+
+def mark_agreement(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]], scale: float) -> float:
+    """How well the marks agree through ``plane``: each marked view's mask cast into each other marked view (at
+    ``scale``), against that view's mask on the pixels whose plane point the first view has in frame, as IoU;
+    the mean over the pairs where either is non-empty (0 when none is)."""
+    from rtsplat.masks.propagation import _iou, _resize_mask
+
+    scores = []
+    for i, (view, mask) in enumerate(marked):
+        points, depth = plane_points(plane, view, scale)
+        truth = _resize_mask(mask, *depth.shape[::-1])
+        hit = np.isfinite(depth).ravel()
+        for j, other in enumerate(marked):
+            if i == j:
+                continue
+            seen, inside = _mark_votes(points.reshape(-1, 3)[hit], [other])
+            frame = np.zeros(depth.size, bool)
+            frame[hit] = seen[0]
+            cast = np.zeros(depth.size, bool)
+            cast[hit] = inside[0]
+            frame = frame.reshape(depth.shape)
+            if (truth & frame).any() or cast.any():
+                scores.append(_iou(cast.reshape(depth.shape), truth & frame))
+    return float(np.mean(scores)) if scores else 0.0
+
+
+def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float, scale: float,
+                seed: int = 0) -> GlassPlane:
+    """The plane of the glass the marks outline (see the module's description); :class:`PlaneFitError` saying
+    why when too few SfM points lie on the outlines, or the marks agree on no proposed plane."""
+    outline = outline_points(xyz, marked, band)
+    if len(outline) < MIN_INLIERS:
+        raise PlaneFitError(f"{len(outline)} SfM point(s) lie on the marks' outlines (at least {MIN_INLIERS} "
+                            "are needed to fit the glass's plane)")
+    centres = np.stack([v.center for v, _ in marked])
+    depth = float(np.median(np.linalg.norm(outline[:, None] - centres[None], axis=2)))
+    tolerance = RANSAC_TOLERANCE * depth
+    best = None
+    for normal, offset, inliers in ransac_planes(outline, tolerance, np.random.default_rng(seed)):
+        sign = 1.0 if float(np.median(centres @ normal + offset)) >= 0 else -1.0
+        distances = outline[inliers] @ normal + offset
+        plane = GlassPlane(sign * normal, sign * offset, float(np.sqrt(np.mean(distances**2))),
+                           float(np.sqrt(np.mean(distances**2)) / depth), int(inliers.sum()), len(outline), 0.0)
+        if np.any(centres @ plane.normal + plane.offset <= 0):  # a plane between the marked cameras
+            continue
+        plane.agreement = mark_agreement(plane, marked, scale)
+        if best is None or plane.agreement > best.agreement:
+            best = plane
+    if best is None:
+        raise PlaneFitError(f"no plane that passes in front of the marked cameras holds {MIN_INLIERS} of the "
+                            f"{len(outline)} SfM points on the marks' outlines")
+    if best.agreement < MIN_AGREEMENT:
+        raise PlaneFitError(f"the marks agree on no plane through the SfM points on their outlines (best mean IoU "
+                            f"between marked views {best.agreement:.2f}, at least {MIN_AGREEMENT} is needed)")
+    return best
