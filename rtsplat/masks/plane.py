@@ -5,10 +5,11 @@ leave its depth unbounded. Flat glass is bounded by its plane instead. The plane
 on the glass's outline (:func:`outline_points`): points just outside a marked view's mask (its frame, the
 wall or mullions around it), within ``plane_band`` of the view's longest side, and not well inside any mark
 (points seen through the glass or in its reflection). Among those, points seen through the glass beside it
-or a floor below it may form planes too, so RANSAC proposes a few planes (:func:`ransac_planes`: the best
-plane, then the best of the points it leaves, and so on) and the one on which the marks agree best is kept
-(:func:`mark_agreement`: each marked view's mask cast onto the plane and seen from each other marked view,
-against that view's mask where the first view's frame reaches, as mean IoU).
+or a floor below it may form planes too, so RANSAC proposes a few distinct planes (:func:`ransac_planes`)
+and the one on which the marks agree best is kept (:func:`mark_agreement`: each marked view's mask cast onto
+the plane and seen from each other marked view, against that view's mask where the first view's frame reaches,
+as mean IoU). Of planes the marks agree on about as well the one that holds the most points is kept: marks
+that span the frame along a walk agree through every plane that contains the walk's direction.
 
 Every view then gets the marks cast onto the plane (:func:`cast_marks`): its pixels' rays meet the plane, and
 a pixel is inside when most of the marked views that have its plane point in frame see it inside their masks;
@@ -24,10 +25,12 @@ import numpy as np
 from rtsplat.io.colmap import ColmapView
 
 MIN_INLIERS = 12  # a plane on fewer outline points is not trusted
+AGREEMENT_TIE = 0.02  # planes whose marks' agreement differs by less are told apart by their points
 MIN_AGREEMENT = 0.7  # marks agreeing less on their best plane (mean IoU between marked views) are refused
 RANSAC_ITERATIONS = 400
 RANSAC_TOLERANCE = 0.01  # inlier distance as a fraction of the outline points' median depth
-CANDIDATES = 3  # planes proposed by RANSAC, each from the points the previous ones leave
+CANDIDATES = 6  # distinct planes proposed by RANSAC
+DISTINCT_DEGREES = 5.0  # planes whose normals differ by less (and that lie close together) are the same
 INSIDE_MARGIN = 3  # pixels: an SfM point this far inside a mark is seen through the glass, not on its outline
 
 
@@ -68,40 +71,47 @@ def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 def ransac_planes(points: np.ndarray, tolerance: float, rng: np.random.Generator,
                   count: int = CANDIDATES) -> list[tuple[np.ndarray, float, np.ndarray]]:
-    """Up to ``count`` planes (unit normal, offset, inlier bool [N]) proposed by RANSAC: the plane with the most
-    points within ``tolerance``, refitted to them by least squares, then the same among the points it leaves;
-    planes of fewer than :data:`MIN_INLIERS` points are not proposed."""
-    planes = []
-    left = np.ones(len(points), bool)
-    for _ in range(count):
-        idx = np.flatnonzero(left)
-        if len(idx) < MIN_INLIERS:
+    """Up to ``count`` distinct planes (unit normal, offset, inlier bool [N]) proposed by RANSAC, most inliers
+    first: planes through three random points, ranked by how many points lie within ``tolerance``, each kept
+    when it differs from those kept before (normals :data:`DISTINCT_DEGREES` apart, or offsets 3 ``tolerance``
+    apart at the points' centre) and refitted to its inliers by least squares; planes of fewer than
+    :data:`MIN_INLIERS` points are not proposed. The planes may share points: the glass's plane meets a floor
+    or a wall along its edge."""
+    if len(points) < MIN_INLIERS:
+        return []
+    samples = rng.integers(0, len(points), (RANSAC_ITERATIONS, 3))
+    a, b, c = (points[samples[:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-12 * max(1.0, float(np.abs(points).max()) ** 2)
+    normals, a = normals[ok] / norms[ok, None], a[ok]
+    support = (np.abs(points @ normals.T - np.einsum("ij,ij->i", normals, a)) < tolerance).sum(0)
+    centre = points.mean(0)
+    planes: list[tuple[np.ndarray, float, np.ndarray]] = []
+    for k in np.argsort(-support, kind="stable"):
+        if support[k] < MIN_INLIERS or len(planes) == count:
             break
-        samples = rng.integers(0, len(idx), (RANSAC_ITERATIONS, 3))
-        a, b, c = (points[idx[samples[:, k]]] for k in range(3))
-        normals = np.cross(b - a, c - a)
-        norms = np.linalg.norm(normals, axis=1)
-        ok = norms > 1e-12
-        if not ok.any():
-            break
-        normals, a = normals[ok] / norms[ok, None], a[ok]
-        distances = np.abs(points[idx] @ normals.T - np.einsum("ij,ij->i", normals, a))  # [n, hypotheses]
-        best = int(np.argmax((distances < tolerance).sum(0)))
-        inliers = idx[distances[:, best] < tolerance]
-        if len(inliers) < MIN_INLIERS:
-            break
+        normal, offset = normals[k], float(-normals[k] @ a[k])
+        inliers = np.abs(points @ normal + offset) < tolerance
         for _ in range(2):  # refit to the inliers, then take the inliers of the refitted plane
             normal, offset = fit_plane(points[inliers])
-            inliers = idx[np.abs(points[idx] @ normal + offset) < tolerance]
-            if len(inliers) < MIN_INLIERS:
+            inliers = np.abs(points @ normal + offset) < tolerance
+            if inliers.sum() < MIN_INLIERS:
                 break
-        if len(inliers) < MIN_INLIERS:
-            break
-        mask = np.zeros(len(points), bool)
-        mask[inliers] = True
-        planes.append((normal, offset, mask))
-        left &= ~mask
+        if inliers.sum() < MIN_INLIERS or any(_same_plane(normal, offset, n, o, centre, tolerance)
+                                              for n, o, _ in planes):
+            continue
+        planes.append((normal, offset, inliers))
     return planes
+
+
+def _same_plane(n1: np.ndarray, o1: float, n2: np.ndarray, o2: float, centre: np.ndarray, tolerance: float) -> bool:
+    """Whether two planes are the same up to :data:`DISTINCT_DEGREES` and 3 ``tolerance`` at ``centre``."""
+    cos = float(n1 @ n2)
+    if abs(cos) < np.cos(np.radians(DISTINCT_DEGREES)):
+        return False
+    sign = 1.0 if cos > 0 else -1.0
+    return abs((n1 @ centre + o1) - sign * (n2 @ centre + o2)) < 3 * tolerance
 
 
 def outline_points(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float) -> np.ndarray:
@@ -196,8 +206,9 @@ def cast_marks(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]], v
 
 def mark_agreement(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]], scale: float) -> float:
     """How well the marks agree through ``plane``: each marked view's mask cast into each other marked view (at
-    ``scale``), against that view's mask on the pixels whose plane point the first view has in frame, as IoU;
-    the mean over the pairs where either is non-empty (0 when none is)."""
+    ``scale``), against that view's mask on the pixels whose plane point the first view has in frame and on those
+    whose ray misses the plane (behind the camera, or parallel to it), as IoU; the mean over the pairs where either
+    is non-empty (0 when none is)."""
     from rtsplat.masks.propagation import _iou, _resize_mask
 
     scores = []
@@ -213,9 +224,9 @@ def mark_agreement(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]
             frame[hit] = seen[0]
             cast = np.zeros(depth.size, bool)
             cast[hit] = inside[0]
-            frame = frame.reshape(depth.shape)
-            if (truth & frame).any() or cast.any():
-                scores.append(_iou(cast.reshape(depth.shape), truth & frame))
+            judged = frame.reshape(depth.shape) | ~np.isfinite(depth)  # a mark off the plane is a miss
+            if (truth & judged).any() or cast.any():
+                scores.append(_iou(cast.reshape(depth.shape), truth & judged))
     return float(np.mean(scores)) if scores else 0.0
 
 
@@ -239,7 +250,7 @@ def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], ba
         if np.any(centres @ plane.normal + plane.offset <= 0):  # a plane between the marked cameras
             continue
         plane.agreement = mark_agreement(plane, marked, scale)
-        if best is None or plane.agreement > best.agreement:
+        if best is None or plane.agreement > best.agreement + AGREEMENT_TIE:  # ties keep the plane of more points
             best = plane
     if best is None:
         raise PlaneFitError(f"no plane that passes in front of the marked cameras holds {MIN_INLIERS} of the "
