@@ -11,6 +11,9 @@ the plane and seen from each other marked view, against that view's mask where t
 as mean IoU). Of planes the marks agree on about as well the one that holds the most points is kept: marks
 that span the frame along a walk agree through every plane that contains the walk's direction.
 
+A plane that passes in front of more than :data:`MAX_IN_FRONT` of the SfM points the marked views see inside their
+marks is not proposed (:func:`in_front_share`): what is seen through glass, or reflected in it, lies behind it.
+
 Every view then gets the marks cast onto the plane (:func:`cast_marks`): its pixels' rays meet the plane, and
 a pixel is inside when most of the marked views that have its plane point in frame see it inside their masks;
 with occluders (SfM points on a surface) the pixels where those lie clearly in front of the plane are left out.
@@ -26,7 +29,8 @@ from rtsplat.io.colmap import ColmapView
 
 MIN_INLIERS = 12  # a plane on fewer outline points is not trusted
 AGREEMENT_TIE = 0.02  # planes whose marks' agreement differs by less are told apart by their points
-MIN_AGREEMENT = 0.7  # marks agreeing less on their best plane (mean IoU between marked views) are refused
+MIN_AGREEMENT = 0.85  # marks agreeing less on their best plane (mean IoU between marked views) are refused
+MAX_IN_FRONT = 0.2  # a plane with more of the points seen inside the marks in front of it is not the glass
 RANSAC_ITERATIONS = 400
 RANSAC_TOLERANCE = 0.01  # inlier distance as a fraction of the outline points' median depth
 CANDIDATES = 6  # distinct planes proposed by RANSAC
@@ -112,6 +116,35 @@ def _same_plane(n1: np.ndarray, o1: float, n2: np.ndarray, o2: float, centre: np
         return False
     sign = 1.0 if cos > 0 else -1.0
     return abs((n1 @ centre + o1) - sign * (n2 @ centre + o2)) < 3 * tolerance
+
+
+def seen_through(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]]) -> list[tuple[ColmapView, np.ndarray]]:
+    """Per marked view, the SfM points ``xyz`` it sees :data:`INSIDE_MARGIN` pixels inside its mask: what lies
+    behind the glass or is reflected in it (a reflection triangulates behind the glass too)."""
+    from rtsplat.masks.propagation import _dilate, project_points
+
+    seen = []
+    for view, mask in marked:
+        uv, _, front = project_points(view, xyz)
+        h, w = mask.shape
+        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        deep = ~_dilate(~mask, INSIDE_MARGIN)
+        ok[ok] = deep[v[ok], u[ok]]
+        seen.append((view, xyz[ok]))
+    return seen
+
+
+def in_front_share(normal: np.ndarray, offset: float, seen: list[tuple[ColmapView, np.ndarray]],
+                   tolerance: float) -> float:
+    """The share of the points seen inside the marks (:func:`seen_through`) that lie more than ``tolerance`` on
+    the marked camera's side of the plane: points the glass would have to hide (0 with none)."""
+    front, total = 0, 0
+    for view, points in seen:
+        side = np.sign(normal @ view.center + offset)
+        front += int((side * (points @ normal + offset) > tolerance).sum())
+        total += len(points)
+    return front / total if total else 0.0
 
 
 def outline_points(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float) -> np.ndarray:
@@ -241,7 +274,8 @@ def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], ba
     centres = np.stack([v.center for v, _ in marked])
     depth = float(np.median(np.linalg.norm(outline[:, None] - centres[None], axis=2)))
     tolerance = RANSAC_TOLERANCE * depth
-    best = None
+    behind = seen_through(xyz, marked)
+    best, hiding = None, []
     for normal, offset, inliers in ransac_planes(outline, tolerance, np.random.default_rng(seed)):
         sign = 1.0 if float(np.median(centres @ normal + offset)) >= 0 else -1.0
         distances = outline[inliers] @ normal + offset
@@ -249,9 +283,17 @@ def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], ba
                            float(np.sqrt(np.mean(distances**2)) / depth), int(inliers.sum()), len(outline), 0.0)
         if np.any(centres @ plane.normal + plane.offset <= 0):  # a plane between the marked cameras
             continue
+        share = in_front_share(plane.normal, plane.offset, behind, 3 * tolerance)
+        if share > MAX_IN_FRONT:  # glass would hide what the marked views see through it
+            hiding.append(share)
+            continue
         plane.agreement = mark_agreement(plane, marked, scale)
         if best is None or plane.agreement > best.agreement + AGREEMENT_TIE:  # ties keep the plane of more points
             best = plane
+    if best is None and hiding:
+        raise PlaneFitError(f"every plane through the SfM points on the marks' outlines passes in front of what the "
+                            f"marked views see through the glass (at least {min(hiding):.0%} of those points, at most "
+                            f"{MAX_IN_FRONT:.0%} may lie in front)")
     if best is None:
         raise PlaneFitError(f"no plane that passes in front of the marked cameras holds {MIN_INLIERS} of the "
                             f"{len(outline)} SfM points on the marks' outlines")

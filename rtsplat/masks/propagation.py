@@ -565,10 +565,13 @@ def _left_out_iou(carrier: Carrier, settings: MaskPropagationConfig) -> float:
 
 
 def _other_sides(model: ColmapModel, marked: dict[str, np.ndarray]) -> str:
-    """What to mark so that a visual hull bounds the object: views to add, named where the capture has some."""
+    """What to mark so that a visual hull bounds the object: views to add, named where the capture has some that
+    look from other sides."""
+    views = {v.name: v for v in model.views}
     others = suggest_views(model, 2, tuple(marked))
-    return ("mark views from other sides too, e.g. " + ", ".join(others) if others
-            else "photograph the object from other sides too and mark some of those views")
+    if others and direction_spread([views[n] for n in [*marked, *others] if n in views]) >= ONE_SIDE_DEGREES:
+        return "mark views from other sides too, e.g. " + ", ".join(others)
+    return "photograph the object from other sides too and mark some of those views"
 
 
 def carry_marks(model: ColmapModel, marked: dict[str, np.ndarray], settings: MaskPropagationConfig,
