@@ -380,6 +380,16 @@ class RenderConfig:
 
 
 @dataclass
+class FramesConfig:
+    """Photos taken from a video (``rtsplat frames``): a scene folder holding a video instead of ``images/``."""
+
+    count: int = _f(0, help="frames to extract, one per equal stretch of the video; 0: one per 'every' seconds",
+                    minimum=0)
+    every: float = _f(0.5, help="seconds of video per extracted frame (when count is 0)", exclusiveMinimum=0.0)
+    quality: int = _f(95, help="JPEG quality of the extracted frames", minimum=50, maximum=100)
+
+
+@dataclass
 class VideoConfig:
     """Camera-path videos (``rtsplat video``)."""
 
@@ -416,6 +426,7 @@ class MetricsConfig:
 class SceneConfig:
     """Every stage's settings for one scene (defaults, then per-scene overrides)."""
 
+    frames: FramesConfig = _f(help="photos taken from a video", factory=FramesConfig)
     sfm: SfmConfig = _f(help="structure from motion", factory=SfmConfig)
     masks: MasksConfig = _f(help="transparent masks", factory=MasksConfig)
     prepare: PrepareConfig = _f(help="prepared scene", factory=PrepareConfig)
@@ -600,7 +611,8 @@ def discover_scenes(cfg: PipelineConfig) -> list[str]:
             raise ConfigError(
                 f"listed scenes have no images/ folder: {', '.join(missing)}",
                 path=data,
-                fix="check the scene names in 'scenes' or the 'data' directory",
+                fix="check the scene names in 'scenes' or the 'data' directory (a scene folder holds its photos in "
+                "images/, or one video, *.mp4 or *.mov)",
             )
         return list(cfg.scenes)
     if not data.is_dir():
@@ -610,7 +622,8 @@ def discover_scenes(cfg: PipelineConfig) -> list[str]:
         raise ConfigError(
             "no scenes found (no <scene>/images folder)",
             path=data,
-            fix="put each scene's photos in <data>/<scene>/images/, or set 'data' in config.yaml",
+            fix="put each scene's photos in <data>/<scene>/images/ (or its video in <data>/<scene>/), or set 'data' "
+            "in config.yaml",
         )
     unknown = sorted(set(cfg.overrides) - set(scenes))
     if unknown:
