@@ -210,6 +210,7 @@ def test_three_polygons_on_a_walk_past_glass_mask_every_frame(member, tmp_path, 
     pytest.importorskip("mitsuba")
     from rtsplat.cli import main as cli_main
     from rtsplat.io.images import read_mask
+    from rtsplat.report import masks_paragraph
 
     dataset = tmp_path / "data"
     assert cli_main(["synth", "--scene", f"family/{member}", "--out", str(dataset), "--no-progress", "--views",
@@ -227,6 +228,9 @@ def test_three_polygons_on_a_walk_past_glass_mask_every_frame(member, tmp_path, 
     assert summary["propagation_method"] == "plane"
     assert summary["glass_plane"]["relative_residual"] < 0.01
     assert summary["glass_plane"]["inliers"] >= 12
+    residual = f"RMS residual {100 * summary['glass_plane']['relative_residual']:.2f}% of their depth"
+    assert "photos through the glass's plane (fitted to" in masks_paragraph(summary)  # what the report says
+    assert residual in masks_paragraph(summary)
     scores = [iou(read_mask(out / f"{Path(n).stem}.png"), truth[n])
               for n, source in summary["mask_sources"].items() if source == "propagated"]
     assert len(scores) == 13

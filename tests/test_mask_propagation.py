@@ -272,7 +272,8 @@ def test_stage_propagates_and_records_each_masks_source(scene, tmp_path):
     # the report says where the masks came from
     text = masks_paragraph(written)
     assert f"propagated from 5 marked views (5 mask files: {', '.join(sorted(marked))})" in text
-    assert f"to {VIEWS - 5} of the {VIEWS + 2} photos" in text
+    assert f"to {VIEWS - 5} of the {VIEWS + 2} photos through the marked views' visual hull" in text
+    assert written["propagation_method"] == "hull" and written["glass_plane"] == {}
     assert "1 left empty" in text and "1 without an SfM pose" in text
 
 
