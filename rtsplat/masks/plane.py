@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rtsplat.io.colmap import ColmapView
+from rtsplat.masks.propagation import _dilate, _iou, _occluded, _resize_mask, opaque_depth, project_points
 
 MIN_INLIERS = 12  # a plane on fewer outline points is not trusted
 AGREEMENT_TIE = 0.02  # planes whose marks' agreement differs by less are told apart by their points
@@ -121,8 +122,6 @@ def _same_plane(n1: np.ndarray, o1: float, n2: np.ndarray, o2: float, centre: np
 def seen_through(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]]) -> list[tuple[ColmapView, np.ndarray]]:
     """Per marked view, the SfM points ``xyz`` it sees :data:`INSIDE_MARGIN` pixels inside its mask: what lies
     behind the glass or is reflected in it (a reflection triangulates behind the glass too)."""
-    from rtsplat.masks.propagation import _dilate, project_points
-
     seen = []
     for view, mask in marked:
         uv, _, front = project_points(view, xyz)
@@ -150,8 +149,6 @@ def in_front_share(normal: np.ndarray, offset: float, seen: list[tuple[ColmapVie
 def outline_points(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float) -> np.ndarray:
     """The SfM points ``xyz`` on the marks' outlines: in front of a marked view within ``band`` of its longest
     side just outside its mask, and not :data:`INSIDE_MARGIN` pixels inside any marked view's mask."""
-    from rtsplat.masks.propagation import _dilate, project_points
-
     near = np.zeros(len(xyz), bool)
     inside = np.zeros(len(xyz), bool)
     for view, mask in marked:
@@ -203,8 +200,6 @@ def plane_points(plane: GlassPlane, view: ColmapView, scale: float = 1.0) -> tup
 
 def _mark_votes(points: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """[views, N] bool: whether each marked view has each point in frame, and whether it sees it in its mask."""
-    from rtsplat.masks.propagation import project_points
-
     seen = np.zeros((len(marked), len(points)), bool)
     inside = np.zeros((len(marked), len(points)), bool)
     for k, (view, mask) in enumerate(marked):
@@ -222,8 +217,6 @@ def cast_marks(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]], v
     the plane in front of the camera is inside when at least half the marked views that have that point in frame
     see it in their masks; with ``occluders`` (SfM points) the pixels where those lie clearly in front of the
     plane are left out."""
-    from rtsplat.masks.propagation import _occluded, opaque_depth
-
     points, depth = plane_points(plane, view, scale)
     hit = np.isfinite(depth).ravel()
     seen, inside = _mark_votes(points.reshape(-1, 3)[hit], marked)
@@ -242,8 +235,6 @@ def mark_agreement(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]
     ``scale``), against that view's mask on the pixels whose plane point the first view has in frame and on those
     whose ray misses the plane (behind the camera, or parallel to it), as IoU; the mean over the pairs where either
     is non-empty (0 when none is)."""
-    from rtsplat.masks.propagation import _iou, _resize_mask
-
     scores = []
     for i, (view, mask) in enumerate(marked):
         points, depth = plane_points(plane, view, scale)

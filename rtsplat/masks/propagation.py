@@ -39,12 +39,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rtsplat.config import MaskPropagationConfig
 from rtsplat.errors import PipelineError
 from rtsplat.io.colmap import ColmapModel, ColmapView
+
+if TYPE_CHECKING:
+    from rtsplat.masks.plane import GlassPlane
 
 MIN_MARKED = 3  # fewer marked views do not bound the object in depth
 COARSE_GRID = 48  # voxels along the longest side of the first pass
@@ -498,7 +502,7 @@ class Carrier:
     reason: str
     marked: list[tuple[ColmapView, np.ndarray]]
     carry: Callable[[list[tuple[ColmapView, np.ndarray]], ColmapView, float], np.ndarray | None]
-    plane: object = None  # rtsplat.masks.plane.GlassPlane
+    plane: GlassPlane | None = None
 
     def silhouette(self, view: ColmapView, scale: float = 1.0) -> np.ndarray:
         """The silhouette of every marked view in ``view``."""
