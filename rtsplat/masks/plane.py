@@ -46,7 +46,7 @@ class GlassPlane:
     normal: np.ndarray
     offset: float
     residual: float  # RMS distance of its inliers to the plane (scene units)
-    relative_residual: float  # the residual over the inliers' median depth in the marked views
+    relative_residual: float  # the residual over the outline points' median distance from the marked cameras
     inliers: int
     outline_points: int  # SfM points on the marks' outlines it was fitted among
     agreement: float  # the marks' mean IoU between marked views through the plane (mark_agreement)
@@ -257,7 +257,8 @@ def mark_agreement(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]
 def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float, scale: float,
                 seed: int = 0) -> GlassPlane:
     """The plane of the glass the marks outline (see the module's description); :class:`PlaneFitError` saying
-    why when too few SfM points lie on the outlines, or the marks agree on no proposed plane."""
+    why when too few SfM points lie on the outlines, every proposed plane passes between the marked cameras or in
+    front of what they see through the glass, or the marks agree on none."""
     outline = outline_points(xyz, marked, band)
     if len(outline) < MIN_INLIERS:
         raise PlaneFitError(f"{len(outline)} SfM point(s) lie on the marks' outlines (at least {MIN_INLIERS} "
