@@ -1,5 +1,9 @@
 """Transparent masks carried from a few marked views to every view through the SfM cameras.
 
+The marks are carried through the marked views' visual hull (below) or, for flat glass seen from one side,
+through the glass's plane (:mod:`rtsplat.masks.plane`); :func:`carry_marks` chooses (``masks.propagate.method``)
+and says why, and both paths share the refinements and the per-view loop of :func:`propagate_masks`.
+
 The masks of the marked views (at least :data:`MIN_MARKED`) carve a voxel grid: a voxel stays when every
 marked view that has it in frame sees it inside its mask (dilated by half a voxel's footprint), at least
 two marked views have it in frame, and every marked view whose mask does not touch the image border (the
