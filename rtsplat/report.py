@@ -827,9 +827,10 @@ def carried_text(summary: dict) -> str:
     if method != "plane":
         return ""
     plane = summary.get("glass_plane") or {}
-    return (f" through the glass's plane (fitted to {plane.get('inliers', '?')} SfM points on the marks' outlines, "
-            f"RMS residual {100 * float(plane.get('relative_residual', 0.0)):.2f}% of their depth; the marked views "
-            f"agree through it at IoU {float(plane.get('agreement', 0.0)):.2f})")
+    return (f" through the glass's plane ({plane.get('inliers', '?')} of {plane.get('outline_points', '?')} SfM "
+            f"points on the marks' outlines lie on it, RMS residual "
+            f"{100 * float(plane.get('relative_residual', 0.0)):.2f}% of their depth; the marked views agree through "
+            f"it at IoU {float(plane.get('agreement', 0.0)):.2f})")
 
 
 def polarity_text(summary: dict) -> str:

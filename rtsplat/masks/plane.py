@@ -12,7 +12,10 @@ as mean IoU). Of planes the marks agree on about as well the one that holds the 
 that span the frame along a walk agree through every plane that contains the walk's direction.
 
 A plane that passes in front of more than :data:`MAX_IN_FRONT` of the SfM points the marked views see inside their
-marks is not proposed (:func:`in_front_share`): what is seen through glass, or reflected in it, lies behind it.
+marks is not the glass (:func:`in_front_share`): what is seen through glass, or reflected in it, lies behind it;
+its agreement counts :data:`REFINE_PENALTY` times that excess less. Where few SfM points lie on the glass's own
+outline (a thin frame) no proposed plane may be the glass's; then the best one is moved to where the marks agree
+best (:func:`refine_plane`), and the plane is refused when they still agree at under :data:`MIN_AGREEMENT`.
 
 Every view then gets the marks cast onto the plane (:func:`cast_marks`): its pixels' rays meet the plane, and
 a pixel is inside when most of the marked views that have its plane point in frame see it inside their masks;
@@ -36,6 +39,9 @@ RANSAC_ITERATIONS = 400
 RANSAC_TOLERANCE = 0.01  # inlier distance as a fraction of the outline points' median depth
 CANDIDATES = 6  # distinct planes proposed by RANSAC
 DISTINCT_DEGREES = 5.0  # planes whose normals differ by less (and that lie close together) are the same
+REFINE_BELOW = 0.95  # the best proposed plane, refined on the marks' agreement when they agree less through it
+REFINE_EVALUATIONS = 80  # of the marks' agreement while refining a plane
+REFINE_PENALTY = 5.0  # agreement lost per share of the points seen through the glass in front of the plane
 INSIDE_MARGIN = 3  # pixels: an SfM point this far inside a mark is seen through the glass, not on its outline
 
 
@@ -50,13 +56,14 @@ class GlassPlane:
     inliers: int
     outline_points: int  # SfM points on the marks' outlines it was fitted among
     agreement: float  # the marks' mean IoU between marked views through the plane (mark_agreement)
+    refined: bool = False  # moved from the best proposed plane to where the marks agree best (refine_plane)
 
     def record(self) -> dict:
         """The plane as the masks summary records it."""
         return {"normal": [round(float(x), 6) for x in self.normal], "offset": round(float(self.offset), 6),
                 "residual": float(self.residual), "relative_residual": float(self.relative_residual),
                 "inliers": self.inliers, "outline_points": self.outline_points,
-                "agreement": round(float(self.agreement), 4)}
+                "agreement": round(float(self.agreement), 4), "refined": self.refined}
 
 
 class PlaneFitError(ValueError):
@@ -204,6 +211,8 @@ def _mark_votes(points: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]])
     inside = np.zeros((len(marked), len(points)), bool)
     for k, (view, mask) in enumerate(marked):
         uv, _, front = project_points(view, points)
+        front &= np.isfinite(uv).all(1)
+        uv[~front] = -1.0
         u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         h, w = mask.shape
         seen[k] = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
@@ -254,11 +263,52 @@ def mark_agreement(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]
     return float(np.mean(scores)) if scores else 0.0
 
 
+def _plane_score(normal: np.ndarray, offset: float, marked: list[tuple[ColmapView, np.ndarray]], scale: float,
+                 behind: list[tuple[ColmapView, np.ndarray]], tolerance: float) -> tuple[float, float]:
+    """(the marks' agreement through the plane, the share of what they see through the glass in front of it)."""
+    plane = GlassPlane(normal, offset, 0.0, 0.0, 0, 0, 0.0)
+    return mark_agreement(plane, marked, scale), in_front_share(normal, offset, behind, tolerance)
+
+
+def refine_plane(normal: np.ndarray, offset: float, marked: list[tuple[ColmapView, np.ndarray]], scale: float,
+                 behind: list[tuple[ColmapView, np.ndarray]], tolerance: float) -> tuple[np.ndarray, float]:
+    """The plane near (``normal``, ``offset``) on which the marks agree best (Nelder-Mead over its normal's two
+    angles and its offset, :data:`REFINE_EVALUATIONS` evaluations), a plane in front of more than
+    :data:`MAX_IN_FRONT` of what the marked views see through the glass counting as a disagreement."""
+    from scipy.optimize import minimize
+
+    centres = np.stack([v.center for v, _ in marked])
+
+    def plane_of(x: np.ndarray) -> tuple[np.ndarray, float]:
+        return np.array([np.sin(x[0]) * np.cos(x[1]), np.sin(x[0]) * np.sin(x[1]), np.cos(x[0])]), float(x[2])
+
+    def loss(x: np.ndarray) -> float:
+        n, d = plane_of(x)
+        if np.any(centres @ n + d <= 0):
+            return 1.0
+        agreement, share = _plane_score(n, d, marked, scale, behind, tolerance)
+        return -agreement + REFINE_PENALTY * max(0.0, share - MAX_IN_FRONT)
+
+    x0 = np.array([np.arccos(np.clip(normal[2], -1.0, 1.0)), np.arctan2(normal[1], normal[0]), offset])
+    simplex = np.stack([x0, x0 + [0.15, 0, 0], x0 + [0, 0.15, 0], x0 + [0, 0, 10 * tolerance]])
+    result = minimize(loss, x0, method="Nelder-Mead",
+                      options={"maxfev": REFINE_EVALUATIONS, "initial_simplex": simplex})
+    return plane_of(result.x if result.fun < loss(x0) else x0)
+
+
+def _fit(outline: np.ndarray, normal: np.ndarray, offset: float, depth: float, tolerance: float) -> GlassPlane:
+    """The plane with its fit to the outline points within ``tolerance`` of it (their RMS distance)."""
+    distances = np.abs(outline @ normal + offset)
+    near = distances[distances < tolerance]
+    rms = float(np.sqrt(np.mean(near**2))) if len(near) else 0.0
+    return GlassPlane(normal, offset, rms, rms / depth, len(near), len(outline), 0.0)
+
+
 def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float, scale: float,
                 seed: int = 0) -> GlassPlane:
     """The plane of the glass the marks outline (see the module's description); :class:`PlaneFitError` saying
-    why when too few SfM points lie on the outlines, every proposed plane passes between the marked cameras or in
-    front of what they see through the glass, or the marks agree on none."""
+    why when too few SfM points lie on the outlines, every proposed plane passes between the marked cameras, or
+    the marks agree on none, even refined."""
     outline = outline_points(xyz, marked, band)
     if len(outline) < MIN_INLIERS:
         raise PlaneFitError(f"{len(outline)} SfM point(s) lie on the marks' outlines (at least {MIN_INLIERS} "
@@ -267,29 +317,29 @@ def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], ba
     depth = float(np.median(np.linalg.norm(outline[:, None] - centres[None], axis=2)))
     tolerance = RANSAC_TOLERANCE * depth
     behind = seen_through(xyz, marked)
-    best, hiding = None, []
-    for normal, offset, inliers in ransac_planes(outline, tolerance, np.random.default_rng(seed)):
+    best, best_score = None, -np.inf
+    for normal, offset, _ in ransac_planes(outline, tolerance, np.random.default_rng(seed)):
         sign = 1.0 if float(np.median(centres @ normal + offset)) >= 0 else -1.0
-        distances = outline[inliers] @ normal + offset
-        plane = GlassPlane(sign * normal, sign * offset, float(np.sqrt(np.mean(distances**2))),
-                           float(np.sqrt(np.mean(distances**2)) / depth), int(inliers.sum()), len(outline), 0.0)
-        if np.any(centres @ plane.normal + plane.offset <= 0):  # a plane between the marked cameras
+        normal, offset = sign * normal, sign * offset
+        if np.any(centres @ normal + offset <= 0):  # a plane between the marked cameras
             continue
-        share = in_front_share(plane.normal, plane.offset, behind, 3 * tolerance)
-        if share > MAX_IN_FRONT:  # glass would hide what the marked views see through it
-            hiding.append(share)
-            continue
-        plane.agreement = mark_agreement(plane, marked, scale)
-        if best is None or plane.agreement > best.agreement + AGREEMENT_TIE:  # ties keep the plane of more points
-            best = plane
-    if best is None and hiding:
-        raise PlaneFitError(f"every plane through the SfM points on the marks' outlines passes in front of what the "
-                            f"marked views see through the glass (at least {min(hiding):.0%} of those points, at most "
-                            f"{MAX_IN_FRONT:.0%} may lie in front)")
+        agreement, share = _plane_score(normal, offset, marked, scale, behind, 3 * tolerance)
+        score = agreement - REFINE_PENALTY * max(0.0, share - MAX_IN_FRONT)
+        if score > best_score + AGREEMENT_TIE:  # ties keep the plane of more points
+            best, best_score = (normal, offset), score
     if best is None:
         raise PlaneFitError(f"no plane that passes in front of the marked cameras holds {MIN_INLIERS} of the "
                             f"{len(outline)} SfM points on the marks' outlines")
-    if best.agreement < MIN_AGREEMENT:
+    refined = best_score < REFINE_BELOW
+    if refined:  # few points on the glass's own outline: the marks place the plane
+        best = refine_plane(*best, marked, scale, behind, 3 * tolerance)
+    plane = _fit(outline, *best, depth, tolerance)
+    plane.agreement, share = _plane_score(plane.normal, plane.offset, marked, scale, behind, 3 * tolerance)
+    plane.refined = refined
+    if share > MAX_IN_FRONT:
+        raise PlaneFitError(f"every plane the marks agree on passes in front of what the marked views see through "
+                            f"the glass ({share:.0%} of those points, at most {MAX_IN_FRONT:.0%} may lie in front)")
+    if plane.agreement < MIN_AGREEMENT:
         raise PlaneFitError(f"the marks agree on no plane through the SfM points on their outlines (best mean IoU "
-                            f"between marked views {best.agreement:.2f}, at least {MIN_AGREEMENT} is needed)")
-    return best
+                            f"between marked views {plane.agreement:.2f}, at least {MIN_AGREEMENT} is needed)")
+    return plane

@@ -550,9 +550,10 @@ def _plane_carrier(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray
     scale = min(1.0, AGREEMENT_SIZE / max(max(v.width, v.height) for v, _ in marked))
     plane = glass_plane(model.xyz, marked, settings.plane_band, scale)
     occluders = model.xyz if settings.occlusion else None
-    reason = (f"{why}: the marks are cast through the glass's plane, fitted to {plane.inliers} of "
-              f"{plane.outline_points} SfM points on their outlines (RMS residual {plane.relative_residual:.2%} of "
-              f"their depth; the marked views agree through it at mean IoU {plane.agreement:.2f})")
+    placed = "placed where the marks agree best near the plane of" if plane.refined else "fitted to"
+    reason = (f"{why}: the marks are cast through the glass's plane, {placed} the SfM points on their outlines "
+              f"({plane.inliers} of {plane.outline_points} within 1% of their depth of it, RMS residual "
+              f"{plane.relative_residual:.2%}; the marked views agree through it at mean IoU {plane.agreement:.2f})")
     return Carrier("plane", reason, marked, lambda views, view, scale: cast_marks(plane, views, view, scale, occluders),
                    plane)
 
