@@ -305,10 +305,11 @@ def _fit(outline: np.ndarray, normal: np.ndarray, offset: float, depth: float, t
 
 
 def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float, scale: float,
-                seed: int = 0) -> GlassPlane:
-    """The plane of the glass the marks outline (see the module's description); :class:`PlaneFitError` saying
-    why when too few SfM points lie on the outlines, every proposed plane passes between the marked cameras, or
-    the marks agree on none, even refined."""
+                seed: int = 0, refine: bool = True) -> GlassPlane:
+    """The plane of the glass the marks outline (see the module's description; ``refine``: whether the best
+    proposed plane may be moved to where the marks agree); :class:`PlaneFitError` saying why when too few SfM
+    points lie on the outlines, every proposed plane passes between the marked cameras, or the marks agree on
+    none."""
     outline = outline_points(xyz, marked, band)
     if len(outline) < MIN_INLIERS:
         raise PlaneFitError(f"{len(outline)} SfM point(s) lie on the marks' outlines (at least {MIN_INLIERS} "
@@ -330,7 +331,7 @@ def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], ba
     if best is None:
         raise PlaneFitError(f"no plane that passes in front of the marked cameras holds {MIN_INLIERS} of the "
                             f"{len(outline)} SfM points on the marks' outlines")
-    refined = best_score < REFINE_BELOW
+    refined = refine and best_score < REFINE_BELOW
     if refined:  # few points on the glass's own outline: the marks place the plane
         best = refine_plane(*best, marked, scale, behind, 3 * tolerance)
     plane = _fit(outline, *best, depth, tolerance)

@@ -542,13 +542,14 @@ def _hull_carrier(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]
 
 
 def _plane_carrier(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]], settings: MaskPropagationConfig,
-                   why: str) -> Carrier:
-    """The glass plane's :class:`Carrier` (``why`` says why the plane was chosen);
+                   why: str, refine: bool = True) -> Carrier:
+    """The glass plane's :class:`Carrier` (``why`` says why the plane was chosen; ``refine``: whether the plane
+    may be moved to where the marks agree, :func:`rtsplat.masks.plane.glass_plane`);
     :class:`rtsplat.masks.plane.PlaneFitError` when no plane fits."""
     from rtsplat.masks.plane import cast_marks, glass_plane
 
     scale = min(1.0, AGREEMENT_SIZE / max(max(v.width, v.height) for v, _ in marked))
-    plane = glass_plane(model.xyz, marked, settings.plane_band, scale)
+    plane = glass_plane(model.xyz, marked, settings.plane_band, scale, refine=refine)
     occluders = model.xyz if settings.occlusion else None
     placed = "placed where the marks agree best near the plane of" if plane.refined else "fitted to"
     reason = (f"{why}: the marks are cast through the glass's plane, {placed} the SfM points on their outlines "
@@ -588,9 +589,9 @@ def carry_marks(model: ColmapModel, marked: dict[str, np.ndarray], settings: Mas
     """The :class:`Carrier` of ``masks.propagate.method`` for the ``marked`` photos' masks (checked by
     :func:`check_marked`). ``auto``: the glass's plane (:func:`rtsplat.masks.plane.glass_plane`) when the marked
     views' directions differ by less than :data:`ONE_SIDE_DEGREES` (a hull of them is unbounded in depth); else
-    the visual hull, or the plane where one fits and it carries each marked view's mask from the others better
-    (mean IoU). Raises :class:`PipelineError` when the chosen one bounds nothing: a hull of views from one side,
-    marks that share no 3D region, or no plane on which the marks agree."""
+    the visual hull, or the plane where one fits (as the SfM points propose it) and it carries each marked view's
+    mask from the others better (mean IoU). Raises :class:`PipelineError` when the chosen one bounds nothing: a
+    hull of views from one side, marks that share no 3D region, or no plane on which the marks agree."""
     from rtsplat.masks.plane import PlaneFitError
 
     check_marked(model, marked, source)
@@ -617,8 +618,8 @@ def carry_marks(model: ColmapModel, marked: dict[str, np.ndarray], settings: Mas
     hull = _hull_carrier(model, marked_views, settings, f"{around}: their visual hull bounds the object", source)
     if settings.method == "hull":
         return hull
-    try:
-        plane = _plane_carrier(model, marked_views, settings, around)
+    try:  # the plane as the SfM points propose it: left-out marks judge a looser hull, which favours a moved plane
+        plane = _plane_carrier(model, marked_views, settings, around, refine=False)
     except PlaneFitError as err:
         hull.reason += f" (no plane: {err})"
         return hull
