@@ -41,6 +41,7 @@ class Stage:
 
 
 STAGES: tuple[Stage, ...] = (
+    Stage("frames", "rtsplat.frames", "take a scene's photos from its video (the sharpest frame of each stretch)"),
     Stage("sfm", "rtsplat.sfm", "structure from motion with pycolmap (skipped when sparse/0 exists)"),
     Stage("masks", "rtsplat.masks", "ingest or segment (ONNX) the transparent-surface masks"),
     Stage("prepare", "rtsplat.prepare", "downsample, region of interest, train/test split"),

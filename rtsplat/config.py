@@ -180,7 +180,17 @@ class OnnxSegmenterConfig:
 class MaskPropagationConfig:
     """Masks carried from a few marked views to the others through the SfM cameras (masks.source: propagate)."""
 
+    method: Literal["auto", "hull", "plane"] = _f(
+        "auto", help="how the marks reach the other views: hull: through the marked views' visual hull (views from "
+        "around the object); plane: through the glass's plane, fitted to the SfM points on the marks' outlines (flat "
+        "glass seen from one side, e.g. a walk past a shop window); auto: hull when the marked views' directions "
+        "differ by at least 10 degrees, else plane"
+    )
     grid: int = _f(128, help="voxels along the longest side of the marked object's box (visual hull)", minimum=16)
+    plane_band: float = _f(
+        0.03, help="plane: how far outside a mark its outline's SfM points are looked for, as a fraction of the "
+        "photo's longest side", exclusiveMinimum=0.0, maximum=0.5,
+    )
     refine: Literal["auto", "grabcut", "watershed", "onnx", "none"] = _f(
         "auto", help="grabcut: each projected hull refined on its image with OpenCV GrabCut; watershed: its "
         "outline moved to the image's strongest edges within snap_band (OpenCV watershed); onnx: segmented with "
@@ -373,6 +383,16 @@ class RenderConfig:
 
 
 @dataclass
+class FramesConfig:
+    """Photos taken from a video (``rtsplat frames``): a scene folder holding a video instead of ``images/``."""
+
+    count: int = _f(0, help="frames to extract, one per equal stretch of the video; 0: one per 'every' seconds",
+                    minimum=0)
+    every: float = _f(0.5, help="seconds of video per extracted frame (when count is 0)", exclusiveMinimum=0.0)
+    quality: int = _f(95, help="JPEG quality of the extracted frames", minimum=50, maximum=100)
+
+
+@dataclass
 class VideoConfig:
     """Camera-path videos (``rtsplat video``)."""
 
@@ -409,6 +429,7 @@ class MetricsConfig:
 class SceneConfig:
     """Every stage's settings for one scene (defaults, then per-scene overrides)."""
 
+    frames: FramesConfig = _f(help="photos taken from a video", factory=FramesConfig)
     sfm: SfmConfig = _f(help="structure from motion", factory=SfmConfig)
     masks: MasksConfig = _f(help="transparent masks", factory=MasksConfig)
     prepare: PrepareConfig = _f(help="prepared scene", factory=PrepareConfig)
@@ -593,7 +614,8 @@ def discover_scenes(cfg: PipelineConfig) -> list[str]:
             raise ConfigError(
                 f"listed scenes have no images/ folder: {', '.join(missing)}",
                 path=data,
-                fix="check the scene names in 'scenes' or the 'data' directory",
+                fix="check the scene names in 'scenes' or the 'data' directory (a scene folder holds its photos in "
+                "images/, or one video, *.mp4 or *.mov)",
             )
         return list(cfg.scenes)
     if not data.is_dir():
@@ -603,7 +625,8 @@ def discover_scenes(cfg: PipelineConfig) -> list[str]:
         raise ConfigError(
             "no scenes found (no <scene>/images folder)",
             path=data,
-            fix="put each scene's photos in <data>/<scene>/images/, or set 'data' in config.yaml",
+            fix="put each scene's photos in <data>/<scene>/images/ (or its video in <data>/<scene>/), or set 'data' "
+            "in config.yaml",
         )
     unknown = sorted(set(cfg.overrides) - set(scenes))
     if unknown:

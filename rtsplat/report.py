@@ -851,8 +851,8 @@ MARK_KINDS = {"file": ("mask file", "mask files"), "polygon": ("polygon", "polyg
 
 def masks_paragraph(summary: dict) -> str:
     """Where a scene's transparent masks came from, from the masks stage's summary.json: given, segmented,
-    none, or propagated from marked views (how each was marked, how many were propagated, refined, left
-    empty or had no pose)."""
+    none, or propagated from marked views (how each was marked, how many were propagated and through what
+    (:func:`carried_text`), refined, left empty or had no pose)."""
     source, total = summary.get("source"), summary.get("num_images", "?")
     if not summary.get("has_masks"):
         return f"Transparent masks: none for the {total} photos (trained without the transmission's masks)."
@@ -866,7 +866,7 @@ def masks_paragraph(summary: dict) -> str:
     refined = summary.get("refined") or []
     how = ", ".join(f"{n} {MARK_KINDS.get(kind, (kind, kind))[n != 1]}" for kind, n in sorted(kinds.items()))
     text = (f"Transparent masks: propagated from {len(marked)} marked views ({how}: {', '.join(marked)}) to "
-            f"{sources.get('propagated', 0)} of the {total} photos")
+            f"{sources.get('propagated', 0)} of the {total} photos{carried_text(summary)}")
     if refined:
         text += f", {len(refined)} of them refined ({summary.get('refinement') or '?'})"
     for key, what in (("empty", "left empty (the marked region is not in view)"),
@@ -874,6 +874,21 @@ def masks_paragraph(summary: dict) -> str:
         if sources.get(key):
             text += f"; {sources[key]} {what}"
     return f"{text}; {coverage}"
+
+
+def carried_text(summary: dict) -> str:
+    """How propagated marks reached the other photos (the masks summary's ``propagation_method``): through the
+    marked views' visual hull, or through the glass's plane with its fit; empty in summaries without it."""
+    method = summary.get("propagation_method")
+    if method == "hull":
+        return " through the marked views' visual hull"
+    if method != "plane":
+        return ""
+    plane = summary.get("glass_plane") or {}
+    return (f" through the glass's plane ({plane.get('inliers', '?')} of {plane.get('outline_points', '?')} SfM "
+            f"points on the marks' outlines lie on it, RMS residual "
+            f"{100 * float(plane.get('relative_residual', 0.0)):.2f}% of their depth; the marked views agree through "
+            f"it at IoU {float(plane.get('agreement', 0.0)):.2f})")
 
 
 def polarity_text(summary: dict) -> str:

@@ -42,7 +42,7 @@ def test_repository_config_is_valid_and_matches_defaults():
     assert "rtsplat" in cfg.methods and "2dgs" in cfg.methods
     # every key in config.yaml exists in the schema (it validated) and the schema has every field
     props = json_schema()["properties"]["defaults"]["properties"]
-    assert set(props) == {"sfm", "masks", "prepare", "train", "render", "video", "metrics"}
+    assert set(props) == {"frames", "sfm", "masks", "prepare", "train", "render", "video", "metrics"}
 
 
 def test_the_real_capture_benchmark_builds_every_method_on_both_captures():

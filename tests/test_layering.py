@@ -10,7 +10,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parent.parent / "rtsplat"
 STAGES = ("rtsplat.sfm", "rtsplat.masks", "rtsplat.prepare", "rtsplat.train", "rtsplat.render", "rtsplat.video",
-          "rtsplat.fps", "rtsplat.metrics", "rtsplat.report")
+          "rtsplat.fps", "rtsplat.metrics", "rtsplat.report", "rtsplat.frames")
 
 # (modules the rule applies to, modules they must not reach)
 RULES = [

@@ -17,6 +17,7 @@ from rtsplat.io.colmap import ColmapImage, ColmapPoints, ColmapView, write_spars
 from rtsplat.io.images import read_mask, write_mask, write_png
 from rtsplat.masks import make_masks
 from rtsplat.masks.propagation import (
+    carry_marks,
     check_marked,
     opaque_depth,
     project_hull,
@@ -201,8 +202,14 @@ def test_marks_from_one_side_are_refused(scene):
     near = ring_model(400).views[0:6:2]  # three cameras 1.8 degrees apart at one height
     one_side = type(model)(near, model.xyz)
     marked = {v.name: render(v)[1] for v in near}
-    with pytest.raises(PipelineError, match="from one side"):
-        check_marked(one_side, marked)
+    # a curved object with nothing flat on its outline: neither a hull nor a plane bounds it
+    with pytest.raises(PipelineError, match="from one side.*SfM points on the marks' outlines") as err:
+        carry_marks(one_side, marked, FAST)
+    assert "draw each mark on the glass's own edges" in str(err.value)
+    assert "from other sides too" in str(err.value)
+    with pytest.raises(PipelineError, match="from one side.*depth is not bounded") as err:
+        carry_marks(one_side, marked, MaskPropagationConfig(method="hull"))
+    assert "masks.propagate.method: plane" in str(err.value)
 
 
 def test_disagreeing_marks_name_the_views(scene):
@@ -265,7 +272,8 @@ def test_stage_propagates_and_records_each_masks_source(scene, tmp_path):
     # the report says where the masks came from
     text = masks_paragraph(written)
     assert f"propagated from 5 marked views (5 mask files: {', '.join(sorted(marked))})" in text
-    assert f"to {VIEWS - 5} of the {VIEWS + 2} photos" in text
+    assert f"to {VIEWS - 5} of the {VIEWS + 2} photos through the marked views' visual hull" in text
+    assert written["propagation_method"] == "hull" and written["glass_plane"] == {}
     assert "1 left empty" in text and "1 without an SfM pose" in text
 
 

@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -475,3 +476,25 @@ def test_train_and_render_jobs_get_the_configured_device_and_a_gpu_on_slurm(data
     video = [b for b in jobs if b.startswith("rule video:")]
     assert len(video) == 2 and all(config_json(b, "video")["device"] == "cuda:0" for b in video)
     assert all("gpu=1" in b for b in train + render + video)
+
+
+def test_a_scene_folder_with_a_video_gets_its_frames_once(tmp_path):
+    from rtsplat.io.video import Mp4Writer
+
+    scene = tmp_path / "data" / "walk"
+    scene.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    with Mp4Writer(scene / "walk.MOV", 64, 48, 10.0) as writer:
+        for _ in range(20):
+            writer.write(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    config = _config(tmp_path, overrides={"walk": {"frames": {"count": 4}}})
+    r = snakemake(tmp_path, "-n", "-p", str(tmp_path / "results" / "walk" / "sfm"), config=config)
+    assert r.returncode == 0, r.stderr + r.stdout
+    names = sorted(p.name for p in (scene / "images").iterdir())
+    assert len(names) == 4 and all(re.fullmatch(r"frame_\d{5}\.jpg", n) for n in names)
+    assert "4 of 20 frames" in r.stderr
+    sfm = next(b for b in _jobs(r.stdout + r.stderr) if b.startswith("rule sfm"))
+    assert f"{scene}/images" in sfm
+    again = snakemake(tmp_path, "-n", str(tmp_path / "results" / "walk" / "sfm"), config=config)
+    assert again.returncode == 0 and "frames" not in again.stderr.split("Building DAG")[0]
+    assert sorted(p.name for p in (scene / "images").iterdir()) == names

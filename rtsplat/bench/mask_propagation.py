@@ -37,7 +37,7 @@ from rtsplat.io.colmap import dataset_model_dir, load_model
 from rtsplat.io.images import list_images, read_image, read_mask, write_png
 from rtsplat.io.outputs import check_png_output
 from rtsplat.masks import match_masks
-from rtsplat.masks.propagation import propagate_masks, suggest_views
+from rtsplat.masks.propagation import carry_marks, propagate_masks, suggest_views
 
 PROGRAM = "python -m rtsplat.bench.mask_propagation"  # also the --figure PNG's Software text
 
@@ -138,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--marked", default="3,5,8", help="numbers of marked views, comma-separated")
     parser.add_argument("--refine", default="auto,grabcut,watershed,none",
                         help="refinements to compare, comma-separated")
+    parser.add_argument("--method", choices=["auto", "hull", "plane"], default="auto",
+                        help="how the marks reach the other views (masks.propagate.method)")
     parser.add_argument("--grid", type=int, default=MaskPropagationConfig.grid)
     parser.add_argument("--no-occlusion", action="store_true", help="SfM points do not hide the object")
     parser.add_argument("--figure", type=Path, help="write a PNG of a view marked with a box and two propagated "
@@ -160,18 +162,21 @@ def measure(args: argparse.Namespace) -> None:
     print(f"{args.data}: {len(names)} registered views with a true mask, "
           f"mean coverage {100 * np.mean([masks[n].mean() for n in names]):.2f}%")
     if args.figure:
-        settings = MaskPropagationConfig(grid=args.grid, refine=args.refine.split(",")[0],
+        settings = MaskPropagationConfig(method=args.method, grid=args.grid, refine=args.refine.split(",")[0],
                                          occlusion=not args.no_occlusion)
         draw_figure(model, by_name, masks, names, int(args.marked.split(",")[0]), settings, args.figure, args.mark)
         return
     for refine in args.refine.split(","):
         for count in (int(c) for c in args.marked.split(",")):
             marked = _suggested(model, count, masks)
-            settings = MaskPropagationConfig(grid=args.grid, refine=refine, occlusion=not args.no_occlusion)
+            settings = MaskPropagationConfig(method=args.method, grid=args.grid, refine=refine,
+                                             occlusion=not args.no_occlusion)
             start = time.perf_counter()
             scores, refined = {}, collections.Counter()
             _, drawn = drawn_marks(marked, masks, by_name, args.mark, settings)
-            for out in propagate_masks(model, drawn, names, lambda n: read_image(by_name[n]), settings):
+            carrier = carry_marks(model, drawn, settings)
+            for out in propagate_masks(model, drawn, names, lambda n: read_image(by_name[n]), settings,
+                                       carrier=carrier):
                 if out.source != "given":
                     scores[out.name] = iou(out.mask, masks[out.name])
                     refined[out.refinement or "none"] += 1
@@ -179,9 +184,10 @@ def measure(args: argparse.Namespace) -> None:
             worst = min(scores, key=scores.get)
             mean = float(np.mean(list(scores.values())))
             by = ", ".join(f"{k} {n}" for k, n in sorted(refined.items()) if k != "none") or "none"
-            print(f"refine={refine:8s} marked={count} ({', '.join(marked)}): mean IoU {mean:.3f}, worst "
-                  f"{scores[worst]:.3f} ({worst}), {len(scores) - refined['none']}/{len(scores)} refined ({by}), "
+            print(f"refine={refine:8s} marked={count} ({', '.join(marked)}): {carrier.method}, mean IoU {mean:.3f}, "
+                  f"worst {scores[worst]:.3f} ({worst}), {len(scores) - refined['none']}/{len(scores)} refined ({by}), "
                   f"{seconds:.1f} s")
+            print(f"  {carrier.method}: {carrier.reason}")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""MP4 (H.264) writing and reading with PyAV (FFmpeg's libraries, bundled in its wheels with libx264).
+"""MP4 (H.264) writing and reading with PyAV (FFmpeg's libraries, bundled in its wheels with libx264);
+:func:`open_video` opens any video PyAV reads (a phone's MP4 or MOV).
 
 :class:`Mp4Writer` encodes RGB frames one at a time into a temporary sibling of the output file that is
 renamed into place when the writer closes without error (:func:`rtsplat.io.atomic.atomic_path`), so a
@@ -82,6 +83,21 @@ class Mp4Writer:
             self._stack.__exit__(type(err), err, err.__traceback__)  # removes the temporary file
             raise
         return bool(self._stack.__exit__(exc_type, exc, tb))
+
+
+def open_video(path: str | Path):
+    """``(container, stream)``: the opened video file and its first video stream (close the container, e.g. ``with
+    container:``); :class:`PipelineError` naming the file when it is no video PyAV can read."""
+    av = _av()
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError, ValueError) as err:
+        raise PipelineError(f"cannot read the video ({err})", path=path,
+                            fix="check the file is a complete MP4 or MOV video (copy it again)") from None
+    if not container.streams.video:
+        container.close()
+        raise PipelineError("the file has no video stream", path=path, fix="use the video file of the capture")
+    return container, container.streams.video[0]
 
 
 def read_mp4(path: str | Path) -> tuple[np.ndarray, float]:

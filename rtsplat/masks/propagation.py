@@ -1,5 +1,9 @@
 """Transparent masks carried from a few marked views to every view through the SfM cameras.
 
+The marks are carried through the marked views' visual hull (below) or, for flat glass seen from one side,
+through the glass's plane (:mod:`rtsplat.masks.plane`); :func:`carry_marks` chooses (``masks.propagate.method``)
+and says why, and both paths share the refinements and the per-view loop of :func:`propagate_masks`.
+
 The masks of the marked views (at least :data:`MIN_MARKED`) carve a voxel grid: a voxel stays when every
 marked view that has it in frame sees it inside its mask (dilated by half a voxel's footprint), at least
 two marked views have it in frame, and every marked view whose mask does not touch the image border (the
@@ -39,6 +43,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -46,8 +51,13 @@ from rtsplat.config import MaskPropagationConfig
 from rtsplat.errors import PipelineError
 from rtsplat.io.colmap import ColmapModel, ColmapView
 
+if TYPE_CHECKING:
+    from rtsplat.masks.plane import GlassPlane
+
 MIN_MARKED = 3  # fewer marked views do not bound the object in depth
 COARSE_GRID = 48  # voxels along the longest side of the first pass
+ONE_SIDE_DEGREES = 10.0  # marked views whose directions differ by less do not bound a hull in depth
+AGREEMENT_SIZE = 256  # longest image side the marks' agreement through a plane is measured at
 MIN_BOX_KEPT = 0.2  # a box mark's GrabCut cut keeping less of the box is taken for a failure (the box is kept)
 # an SfM point occludes only on a surface: this many points within this many mean point spacings in the image, and
 # within this fraction of its depth (surface_points)
@@ -485,6 +495,141 @@ def _resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
     return cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR) >= 0.5
 
 
+@dataclass
+class Carrier:
+    """How the marks reach the other views: ``method`` (``hull`` | ``plane``), why it was chosen, the marked views
+    (view, mask) and ``carry(marked, view, scale)``, the silhouette in ``view`` (bool, its size times ``scale``)
+    of some marked views (the refinement's choice leaves each out in turn), None where they bound nothing;
+    ``plane`` is the fitted plane of method ``plane``."""
+
+    method: str
+    reason: str
+    marked: list[tuple[ColmapView, np.ndarray]]
+    carry: Callable[[list[tuple[ColmapView, np.ndarray]], ColmapView, float], np.ndarray | None]
+    plane: GlassPlane | None = None
+
+    def silhouette(self, view: ColmapView, scale: float = 1.0) -> np.ndarray:
+        """The silhouette of every marked view in ``view``."""
+        return self.carry(self.marked, view, scale)
+
+    def record(self) -> dict:
+        """The choice as the masks summary records it."""
+        return {"method": self.method, "reason": self.reason,
+                "plane": self.plane.record() if self.plane is not None else None}
+
+
+def _names(marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[str, ...]:
+    return tuple(v.name for v, _ in marked)
+
+
+def _hull_carrier(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]], settings: MaskPropagationConfig,
+                  reason: str, source: str) -> Carrier:
+    """The visual hull's :class:`Carrier` (the hull of ``marked`` carved at once, which refuses marks that share
+    no 3D region; the hull of fewer marked views when asked for)."""
+    occluders = model.xyz if settings.occlusion else None
+    hulls = {_names(marked): visual_hull(model, marked, settings, source)}
+
+    def carry(views, view, scale):
+        if _names(views) not in hulls:
+            try:
+                hulls[_names(views)] = visual_hull(model, views, settings)
+            except PipelineError:
+                hulls[_names(views)] = None
+        hull = hulls[_names(views)]
+        return None if hull is None else project_hull(hull, view, scale, occluders)
+
+    return Carrier("hull", reason, marked, carry)
+
+
+def _plane_carrier(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]], settings: MaskPropagationConfig,
+                   why: str, refine: bool = True) -> Carrier:
+    """The glass plane's :class:`Carrier` (``why`` says why the plane was chosen; ``refine``: whether the plane
+    may be moved to where the marks agree, :func:`rtsplat.masks.plane.glass_plane`);
+    :class:`rtsplat.masks.plane.PlaneFitError` when no plane fits."""
+    from rtsplat.masks.plane import cast_marks, glass_plane
+
+    scale = min(1.0, AGREEMENT_SIZE / max(max(v.width, v.height) for v, _ in marked))
+    plane = glass_plane(model.xyz, marked, settings.plane_band, scale, refine=refine)
+    occluders = model.xyz if settings.occlusion else None
+    placed = "placed where the marks agree best near the plane of" if plane.refined else "fitted to"
+    reason = (f"{why}: the marks are cast through the glass's plane, {placed} the SfM points on their outlines "
+              f"({plane.inliers} of {plane.outline_points} within 1% of their depth of it, RMS residual "
+              f"{plane.relative_residual:.2%}; the marked views agree through it at mean IoU {plane.agreement:.2f})")
+    return Carrier("plane", reason, marked, lambda views, view, scale: cast_marks(plane, views, view, scale, occluders),
+                   plane)
+
+
+def _left_out(carrier: Carrier, settings: MaskPropagationConfig) -> Iterator[tuple[ColmapView, np.ndarray, np.ndarray]]:
+    """Each marked view in turn left out: (view, its mask, its silhouette carried from the others), both at the
+    work size; views the others bound nothing in are skipped."""
+    for k, (view, mask) in enumerate(carrier.marked):
+        silhouette = carrier.carry(carrier.marked[:k] + carrier.marked[k + 1:], view, _work_scale(view, settings))
+        if silhouette is not None and silhouette.any():
+            yield view, _resize_mask(mask, *silhouette.shape[::-1]), silhouette
+
+
+def _left_out_iou(carrier: Carrier, settings: MaskPropagationConfig) -> float:
+    """The mean IoU of each marked view's mask and its silhouette carried from the others (0 when none is)."""
+    scores = [_iou(silhouette, truth) for _, truth, silhouette in _left_out(carrier, settings)]
+    return float(np.mean(scores)) if scores else 0.0
+
+
+def _other_sides(model: ColmapModel, marked: dict[str, np.ndarray]) -> str:
+    """What to mark so that a visual hull bounds the object: views to add, named where the capture has some that
+    look from other sides."""
+    views = {v.name: v for v in model.views}
+    others = suggest_views(model, 2, tuple(marked))
+    if others and direction_spread([views[n] for n in [*marked, *others] if n in views]) >= ONE_SIDE_DEGREES:
+        return "mark views from other sides too, e.g. " + ", ".join(others)
+    return "photograph the object from other sides too and mark some of those views"
+
+
+def carry_marks(model: ColmapModel, marked: dict[str, np.ndarray], settings: MaskPropagationConfig,
+                source: str = "") -> Carrier:
+    """The :class:`Carrier` of ``masks.propagate.method`` for the ``marked`` photos' masks (checked by
+    :func:`check_marked`). ``auto``: the glass's plane (:func:`rtsplat.masks.plane.glass_plane`) when the marked
+    views' directions differ by less than :data:`ONE_SIDE_DEGREES` (a hull of them is unbounded in depth); else
+    the visual hull, or the plane where one fits (as the SfM points propose it) and it carries each marked view's
+    mask from the others better (mean IoU). Raises :class:`PipelineError` when the chosen one bounds nothing: a
+    hull of views from one side, marks that share no 3D region, or no plane on which the marks agree."""
+    from rtsplat.masks.plane import PlaneFitError
+
+    check_marked(model, marked, source)
+    views = {v.name: v for v in model.views}
+    marked_views = [(views[n], marked[n]) for n in sorted(marked)]
+    spread = direction_spread([v for v, _ in marked_views])
+    one_side = f"the marked views look from one side (their directions differ by at most {spread:.1f} degrees)"
+    if spread < ONE_SIDE_DEGREES and settings.method == "hull":
+        raise PipelineError(
+            f"{one_side}: the object's depth is not bounded", path=source or None,
+            fix=f"{_other_sides(model, marked)}, or, for flat glass, set masks.propagate.method: plane (or auto)",
+        )
+    if spread < ONE_SIDE_DEGREES or settings.method == "plane":
+        why = one_side if settings.method == "auto" else "masks.propagate.method is plane"
+        try:
+            return _plane_carrier(model, marked_views, settings, why)
+        except PlaneFitError as err:
+            raise PipelineError(
+                f"{why}, and {err}", path=source or None,
+                fix="draw each mark on the glass's own edges, with its frame or the wall around it in view (SfM "
+                f"points there give the plane), or {_other_sides(model, marked)}",
+            ) from None
+    around = f"the marked views' directions differ by up to {spread:.1f} degrees"
+    hull = _hull_carrier(model, marked_views, settings, f"{around}: their visual hull bounds the object", source)
+    if settings.method == "hull":
+        return hull
+    try:  # the plane as the SfM points propose it: left-out marks judge a looser hull, which favours a moved plane
+        plane = _plane_carrier(model, marked_views, settings, around, refine=False)
+    except PlaneFitError as err:
+        hull.reason += f" (no plane: {err})"
+        return hull
+    scores = {carrier.method: _left_out_iou(carrier, settings) for carrier in (hull, plane)}
+    chosen = plane if scores["plane"] > scores["hull"] else hull
+    chosen.reason += (f"; each marked view left out, the others carry its mask at mean IoU {scores['hull']:.2f} "
+                      f"through the hull, {scores['plane']:.2f} through the plane")
+    return chosen
+
+
 def propagate_masks(
     model: ColmapModel,
     marked: dict[str, np.ndarray],
@@ -494,27 +639,26 @@ def propagate_masks(
     size_of: Callable[[str], tuple[int, int]] | None = None,
     source: str = "",
     segment: Callable[[np.ndarray, tuple[float, float, float, float]], np.ndarray] | None = None,
+    carrier: Carrier | None = None,
 ) -> Iterator[PropagatedMask]:
     """One mask per photo in ``names`` (in that order) from the masks of the ``marked`` photos (bool [H, W]
     at the photo's size), with the registered views of ``model``. ``read_image(name)`` gives a photo as float
     RGB; ``size_of(name)`` (width, height) is asked for photos SfM did not register (empty masks). Raises
     :class:`PipelineError` for too few marked views, marked views without a pose, masks of another size than
-    the camera, and marks without a common 3D region; ``source`` names the mask folder in those messages.
+    the camera, and marks that bound nothing (:func:`carry_marks`, unless ``carrier`` gives its answer);
+    ``source`` names the mask folder in those messages.
     ``segment(image, box)`` (a prompted segmenter: float RGB image, box x0, y0, x1, y1 in its pixels -> bool mask)
     replaces the refinement: each view's mask is its answer to the projected hull's bounding box, or the
     projection where it finds nothing."""
     settings = settings or MaskPropagationConfig()
     views = {v.name: v for v in model.views}
-    check_marked(model, marked, source)
-    marked_views = [(views[n], marked[n]) for n in sorted(marked)]
-    hull = visual_hull(model, marked_views, settings, source)
-    occluders = model.xyz if settings.occlusion else None
+    carrier = carrier or carry_marks(model, marked, settings, source)
     refine = "onnx" if segment is not None else settings.refine
     if refine == "onnx" and segment is None:
         raise PipelineError("masks.propagate.refine is onnx but no segmenter is given", path=source or None,
                             fix="set masks.onnx.model (and encoder), or masks.propagate.refine: auto")
     if refine == "auto":
-        refine = choose_refinement(model, marked_views, read_image, settings)
+        refine = choose_refinement(carrier, read_image, settings)
     for name in names:
         if name in marked:
             yield PropagatedMask(name, marked[name], "given")
@@ -525,7 +669,7 @@ def propagate_masks(
             yield PropagatedMask(name, np.zeros((h, w), bool), "unregistered")
             continue
         scale = _work_scale(view, settings)
-        silhouette = project_hull(hull, view, scale, occluders)
+        silhouette = carrier.silhouette(view, scale)
         if not silhouette.any():
             yield PropagatedMask(name, np.zeros((view.height, view.width), bool), "empty")
             continue
@@ -574,24 +718,13 @@ def _work_image(read_image: Callable[[str], np.ndarray], view: ColmapView, shape
     return image
 
 
-def choose_refinement(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray]],
-                      read_image: Callable[[str], np.ndarray], settings: MaskPropagationConfig) -> str:
+def choose_refinement(carrier: Carrier, read_image: Callable[[str], np.ndarray],
+                      settings: MaskPropagationConfig) -> str:
     """``grabcut``, ``watershed`` or ``none``, whichever matches the marked masks best when each marked view in
-    turn is left out of the hull and its mask is propagated from the others (mean IoU; ties keep the
-    projection, then the order of :data:`REFINERS`). The hull of one view fewer is looser, which favours the
-    refinements slightly."""
+    turn is left out and its mask is carried from the others (mean IoU; ties keep the projection, then the order
+    of :data:`REFINERS`). The hull of one view fewer is looser, which favours the refinements slightly."""
     scores = {"none": [], **{refine: [] for refine in REFINERS}}
-    for k, (view, mask) in enumerate(marked):
-        others = marked[:k] + marked[k + 1:]
-        try:
-            hull = visual_hull(model, others, settings)
-        except PipelineError:
-            continue
-        scale = _work_scale(view, settings)
-        silhouette = project_hull(hull, view, scale, model.xyz if settings.occlusion else None)
-        if not silhouette.any():
-            continue
-        truth = _resize_mask(mask, *silhouette.shape[::-1])
+    for view, truth, silhouette in _left_out(carrier, settings):
         image = _work_image(read_image, view, silhouette.shape)
         scores["none"].append(_iou(silhouette, truth))
         for refine, refiner in REFINERS.items():
@@ -605,7 +738,7 @@ def choose_refinement(model: ColmapModel, marked: list[tuple[ColmapView, np.ndar
 
 def check_marked(model: ColmapModel, marked: dict[str, np.ndarray], source: str = "") -> None:
     """Refuse fewer than :data:`MIN_MARKED` marked views (suggesting views to mark), marked views SfM did not
-    register, masks whose size is not the camera's, and marks all from one side of the object."""
+    register, masks whose size is not the camera's, and empty masks."""
     views = {v.name: v for v in model.views}
     if len(marked) < MIN_MARKED:
         suggestion = suggest_views(model, 5 - len(marked), exclude=tuple(n for n in marked if n in views))
@@ -637,13 +770,9 @@ def check_marked(model: ColmapModel, marked: dict[str, np.ndarray], source: str 
                 f"the mask of marked view {name} is empty", path=source or None,
                 fix="mark the see-through surface in white, or remove the empty mask",
             )
-    dirs = np.stack([views[n].forward for n in marked])
-    spread = np.degrees(np.arccos(np.clip(dirs @ dirs.T, -1.0, 1.0))).max()
-    if spread < 10.0:
-        suggestion = suggest_views(model, 2, exclude=tuple(marked))
-        raise PipelineError(
-            f"the marked views look at the object from one side (their directions differ by at most {spread:.1f} "
-            "degrees): the object's depth is not bounded",
-            path=source or None,
-            fix=f"mark views from other sides too, e.g. {', '.join(suggestion)}",
-        )
+
+
+def direction_spread(views: list[ColmapView]) -> float:
+    """The largest angle between two views' directions, in degrees."""
+    dirs = np.stack([v.forward for v in views])
+    return float(np.degrees(np.arccos(np.clip(dirs @ dirs.T, -1.0, 1.0))).max())

@@ -79,6 +79,9 @@ class MasksSummary:
     # | unregistered (rtsplat.masks.propagation.PropagatedMask.source)
     refined: list[str] = field(default_factory=list)  # propagate: photos whose propagated mask was refined
     refinement: str = ""  # propagate: what refined them, grabcut | watershed | onnx (<model kind>)
+    propagation_method: str = ""  # propagate: how the marks reached the other photos, hull | plane
+    propagation_reason: str = ""  # propagate: why (rtsplat.masks.propagation.carry_marks)
+    glass_plane: dict = field(default_factory=dict)  # propagate through a plane: its fit (GlassPlane.record)
     scene_dir: str = ""  # the dataset scene they were made for (for messages)
     images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
     photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
@@ -107,8 +110,8 @@ def resolve_source(scene_dir: str | Path, cfg: MasksConfig, images: list[Path] |
 @dataclass
 class Propagation:
     """What :func:`propagate_from_marked` wrote: per-image coverage, each photo's mask source, each marked
-    photo's mark source, the photos whose propagated mask was refined and by what, and the polarity of the
-    mask files (:func:`decide_polarity`)."""
+    photo's mark source, the photos whose propagated mask was refined and by what, the polarity of the
+    mask files (:func:`decide_polarity`) and how the marks reached the other photos (hull or plane, and why)."""
 
     coverage: dict[str, float]
     sources: dict[str, str]
@@ -116,6 +119,7 @@ class Propagation:
     refined: list[str]
     refinement: str  # what refined them: grabcut | watershed | onnx (<model kind>); empty when none was
     polarity: PolarityDecision
+    carried: dict  # how the marks reached the other photos (rtsplat.masks.propagation.Carrier.record)
 
 
 def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | None, out: Path, cfg: MasksConfig,
@@ -127,7 +131,7 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
 
     from rtsplat.io.colmap import is_model_dir, load_model
     from rtsplat.io.images import read_raw_pixels
-    from rtsplat.masks.propagation import propagate_masks
+    from rtsplat.masks.propagation import carry_marks, propagate_masks
 
     marks = check_marks(cfg.marks, images)
     found = match_masks(images, mask_dir) if mask_dir.is_dir() else {img: None for img in images}
@@ -188,8 +192,10 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
 
         refinement = f"onnx ({segmenter.kind})"
     coverage, sources, refined = {}, {}, []
+    where = str(mask_dir) + (" or config: masks.marks" if marks else "")
+    carrier = carry_marks(model, marked, cfg.propagate, where)
     results = propagate_masks(model, marked, sorted(by_name), lambda n: read_image(by_name[n]), cfg.propagate,
-                              size_of, str(mask_dir) + (" or config: masks.marks" if marks else ""), segment)
+                              size_of, where, segment, carrier)
     for result in tqdm(results, total=len(by_name), desc="propagate", unit="img", disable=not progress):
         stem = by_name[result.name].stem
         write_mask(out / f"{stem}.png", result.mask)
@@ -199,7 +205,7 @@ def propagate_from_marked(images: list[Path], mask_dir: Path, sfm_dir: Path | No
             refined.append(result.name)
             refinement = refinement or result.refinement
     return Propagation(coverage, sources, dict(sorted(mark_sources.items())), refined, refinement if refined else "",
-                       polarity)
+                       polarity, carrier.record())
 
 
 def make_masks(
@@ -231,7 +237,7 @@ def make_masks(
     photos = photo_fingerprints(scene_dir / "images")
     with output_dir(out_dir, "masks", inputs=[scene_dir, sfm_dir]) as tmp:
         kind, kinds, missing, sources, refined, mark_sources = "", {}, [], {}, [], {}
-        polarity, refinement = PolarityDecision("white", ""), ""
+        polarity, refinement, carried = PolarityDecision("white", ""), "", {}
         if source == "ingest":
             coverage, kinds, missing = ingest_masks(images, mask_dir, tmp, cfg, progress)
             without = {Path(name).stem for name in missing}
@@ -246,7 +252,7 @@ def make_masks(
                 images, mask_dir, None if sfm_dir is None else Path(sfm_dir), tmp, cfg, progress)
             coverage, sources, refined = propagation.coverage, propagation.sources, propagation.refined
             refinement = propagation.refinement
-            polarity, mark_sources = propagation.polarity, propagation.mark_sources
+            polarity, mark_sources, carried = propagation.polarity, propagation.mark_sources, propagation.carried
         elif source == "onnx":
             coverage, kind = segment_masks(images, tmp, cfg, progress)
         else:
@@ -269,6 +275,9 @@ def make_masks(
             mask_sources=sources,
             refined=refined,
             refinement=refinement,
+            propagation_method=carried.get("method", ""),
+            propagation_reason=carried.get("reason", ""),
+            glass_plane=carried.get("plane") or {},
             scene_dir=str(scene_dir.resolve()),
             images_fingerprint=photos_fingerprint(photos),
             photos=photos,
@@ -309,6 +318,7 @@ def run(args: argparse.Namespace) -> int:
             refined = f"{len(s.refined)} refined" + (f" with {s.refinement}" if s.refined else "")
             print(f"masks {args.scene_dir}: marked {marked}; " + ", ".join(
                 f"{n} {src}" for src, n in sorted(counts.items())) + f"; {refined}")
+            print(f"masks {args.scene_dir}: carried through the {s.propagation_method}: {s.propagation_reason}")
             for src, why in (("empty", "the marked region does not project into them"),
                              ("unregistered", "SfM gave them no pose")):
                 names = [n for n, v in s.mask_sources.items() if v == src]

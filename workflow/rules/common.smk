@@ -5,16 +5,22 @@ import sys
 from pathlib import Path
 
 from rtsplat.config import ConfigError, discover_scenes, load_config_dict, section_json, slurm_resources
+from rtsplat.errors import PipelineError
+from rtsplat.frames import extract_video_scenes
 from rtsplat.io.manifest import refresh_manifest
 from rtsplat.slurm import check_cluster_gpus
 
 # Readable messages first (unknown keys, wrong types, with the fix), then Snakemake's own
-# validation against the same schema (defaults come from the dataclasses).
+# validation against the same schema (defaults come from the dataclasses). A scene folder holding a video
+# and no images/ gets its frames first (rtsplat frames), so every rule reads images/ as for photos.
 try:
     CFG = load_config_dict(config, "config (config.yaml + --config)")
+    extract_video_scenes(CFG, log=lambda message: print(message, file=sys.stderr))
     SCENES = discover_scenes(CFG)
 except ConfigError as _exc:
     sys.exit(f"rtsplat workflow: configuration error:\n{_exc}")
+except PipelineError as _exc:
+    sys.exit(f"rtsplat workflow: {_exc}")
 validate(config, "../schemas/config.schema.json", set_default=False)
 
 DATA = CFG.data.rstrip("/")
