@@ -189,10 +189,11 @@ def _train_both_backends(scene_dir: str, out_dir: str) -> None:
         before_densify = {}
         density_step = trainer.density.step
 
-        def recording_step(iteration, surfels, *args, before_densify=before_densify, density_step=density_step):
+        def recording_step(iteration, surfels, *args, before_densify=before_densify, density_step=density_step,
+                           **kwargs):
             if iteration == ITERATIONS - 1:
                 before_densify.update({k: v.detach().clone() for k, v in surfels.tensors().items()})
-            return density_step(iteration, surfels, *args)
+            return density_step(iteration, surfels, *args, **kwargs)
 
         trainer.density.step = recording_step
         summary = trainer.train(resume=False)
