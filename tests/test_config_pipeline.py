@@ -79,6 +79,26 @@ def test_the_real_glass_is_marked_with_the_outlines_of_the_test_capture():
         assert (np.asarray(mark["polygon"]).max(0) <= [1008, 756]).all()
 
 
+def test_the_budget_curves_over_the_demo_pair_both_methods_at_every_budget():
+    """benchmarks/budgets.yaml over demo/config.yaml: RT-Splatting and 2DGS at the same budgets, a quarter to four
+    times the demo's iterations, and both with the half-size start."""
+    from rtsplat.config import deep_merge, trainer_options
+
+    data = deep_merge(yaml.safe_load((ROOT / "demo" / "config.yaml").read_text()),
+                      yaml.safe_load((ROOT / "benchmarks" / "budgets.yaml").read_text()))
+    cfg = load_config_dict(data, source="budgets.yaml")
+    trees = {m: trainer_options(cfg, "dome", m) for m in cfg.methods}
+    demo = trees["rtsplat"]["schedule"]["iterations"]
+    for suffix, factor in (("quarter", 0.25), ("half", 0.5), ("x2", 2), ("x4", 4)):
+        ours, theirs = trees[f"rtsplat_{suffix}"], trees[f"2dgs_{suffix}"]
+        assert ours["schedule"]["iterations"] == theirs["schedule"]["iterations"] == round(factor * demo)
+        assert theirs["effects"]["transmission"] == "off" and ours["effects"]["transmission"] == "auto"
+    for method in ("rtsplat_halfstart", "2dgs_halfstart"):
+        schedule = trees[method]["schedule"]
+        assert (schedule["coarse_downsample"], schedule["full_resolution_from"], schedule["iterations"]) == (
+            2, trees["rtsplat"]["schedule"]["densify_from"], demo)
+
+
 @pytest.mark.parametrize("layer", ["targets.yaml", "targets_quick.yaml"])
 def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
     """`make targets` layers benchmarks/<layer> over demo/config.yaml: every method must build a valid
