@@ -54,8 +54,3 @@ class ScheduleClock:
         if self.seconds is None:
             return iteration >= self.iterations
         return spent >= self.seconds
-
-    def share(self, iteration: int, spent: float) -> float:
-        """How much of the run is done, in [0, 1] (the progress bar's measure)."""
-        done = iteration / self.iterations if self.seconds is None else spent / self.seconds
-        return min(max(done, 0.0), 1.0)
