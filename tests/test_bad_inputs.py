@@ -526,7 +526,7 @@ VIDEO = ["video", "--run", "{R}/res/trained", "--data", "{R}/res/prepared", "--q
 VIEW = ["view", "--run", "{R}/res/trained", "--data", "{R}/res/prepared"]
 RESULTS_PAGE = "rtsplat.results_page"
 A_REPORT = report_json('{"tables": [], "scenes": ["corner"]}')
-# every file a command writes where the user names it, and every input checked at the edge (issue 71)
+# every file a command writes where the user names it, and every input checked at the edge
 ENTRY_CASES = {
     "video --poster onto a user's PNG": Case([*VIDEO, "--out", "{R}/res/v.mp4", "--poster", "{R}/user/cover.png"],
                                              ["{R}/user/cover.png", "--poster file exists and is not a result of "
