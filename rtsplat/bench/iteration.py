@@ -58,6 +58,9 @@ METHODS = {
     "rtsplat_paper_beta": {"model": {**DEMO_OPTIONS["model"], "attenuation_from": "network"}},
     # the specular network on see-through surfaces alone (model.specular_surfaces)
     "rtsplat_see_through": {"model": {**DEMO_OPTIONS["model"], "specular_surfaces": "see_through"}},
+    # the specular network's matrix products in float32 and in bfloat16 (model.specular_precision)
+    "rtsplat_float32": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "float32"}},
+    "rtsplat_bfloat16": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "bfloat16"}},
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
 }
 PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",
