@@ -131,10 +131,7 @@ def seen_through(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]]) -
     behind the glass or is reflected in it (a reflection triangulates behind the glass too)."""
     seen = []
     for view, mask in marked:
-        uv, _, front = project_points(view, xyz)
-        h, w = mask.shape
-        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        ok, u, v = _in_frame(view, xyz, mask.shape)
         deep = ~_dilate(~mask, INSIDE_MARGIN)
         ok[ok] = deep[v[ok], u[ok]]
         seen.append((view, xyz[ok]))
@@ -153,21 +150,30 @@ def in_front_share(normal: np.ndarray, offset: float, seen: list[tuple[ColmapVie
     return front / total if total else 0.0
 
 
-def outline_points(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float) -> np.ndarray:
+def outline_points(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float,
+                   within: list[tuple[ColmapView, np.ndarray]] | None = None) -> np.ndarray:
     """The SfM points ``xyz`` on the marks' outlines: in front of a marked view within ``band`` of its longest
-    side just outside its mask, and not :data:`INSIDE_MARGIN` pixels inside any marked view's mask."""
+    side just outside its mask, and not :data:`INSIDE_MARGIN` pixels inside any marked view's mask (nor inside
+    any mask of ``within``: every mark, for the outline of one of its panes)."""
     near = np.zeros(len(xyz), bool)
     inside = np.zeros(len(xyz), bool)
     for view, mask in marked:
-        uv, _, front = project_points(view, xyz)
-        h, w = mask.shape
-        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        seen = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        ring = _dilate(mask, max(2, int(round(band * max(h, w))))) & ~mask
-        deep = ~_dilate(~mask, INSIDE_MARGIN)
+        seen, u, v = _in_frame(view, xyz, mask.shape)
+        ring = _dilate(mask, max(2, int(round(band * max(mask.shape))))) & ~mask
         near[seen] |= ring[v[seen], u[seen]]
+    for view, mask in marked + (within or []):
+        seen, u, v = _in_frame(view, xyz, mask.shape)
+        deep = ~_dilate(~mask, INSIDE_MARGIN)
         inside[seen] |= deep[v[seen], u[seen]]
     return xyz[near & ~inside]
+
+
+def _in_frame(view: ColmapView, xyz: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whether each point is in front of ``view`` and inside its frame of ``shape``, and its pixel (column, row)."""
+    uv, _, front = project_points(view, xyz)
+    h, w = shape
+    u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    return front & (u >= 0) & (u < w) & (v >= 0) & (v < h), u, v
 
 
 # ----------------------------------------------------------------------------------------------
