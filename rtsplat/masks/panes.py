@@ -32,6 +32,7 @@ from rtsplat.masks.plane import (
     GlassPlane,
     _fit,
     cast_marks,
+    check_agreement,
     in_front_share,
     mark_agreement,
     outline_points,
@@ -165,11 +166,23 @@ def pane_plane(xyz: np.ndarray, pane: Marked, marked: Marked, single: GlassPlane
 
 def glass_panes(xyz: np.ndarray, marked: Marked, single: GlassPlane, band: float, scale: float) -> list[Pane]:
     """The marks' panes (:func:`match_pieces` through the ``single`` plane), each with its plane
-    (:func:`pane_plane`); one pane on the single plane when the marks form one."""
+    (:func:`pane_plane`); one pane on the single plane when the marks form one.
+    :class:`rtsplat.masks.plane.PlaneFitError` when the marks agree neither through the single plane nor through
+    the panes' planes (the agreement of each pane that more than one marked view holds, weighted by its marked
+    pixels; :func:`rtsplat.masks.plane.check_agreement`)."""
     panes = match_pieces(single, marked, scale)
     if len(panes) == 1:
+        check_agreement(single.agreement)
         return [Pane(marked, single)]
-    return [pane_plane(xyz, pane, marked, single, band, scale) for pane in panes]
+    fitted = [pane_plane(xyz, pane, marked, single, band, scale) for pane in panes]
+    held = [p for p in fitted if len(p.marked) > 1]
+    if held:  # the panes' agreement, each weighted by its marked pixels
+        agreements = [p.plane.agreement if p.own else mark_agreement(single, p.marked, scale) for p in held]
+        pixels = [sum(int(piece.sum()) for _, piece in p.marked) for p in held]
+        check_agreement(single.agreement, float(np.average(agreements, weights=pixels)))
+    else:
+        check_agreement(single.agreement)
+    return fitted
 
 
 def cast_panes(panes: list[Pane], marked: Marked, view: ColmapView, scale: float = 1.0,
@@ -195,8 +208,9 @@ def panes_text(panes: list[Pane]) -> str:
     for pane in panes:
         views = ", ".join(v.name for v, _ in pane.marked)
         if pane.own:
+            agree = f", its views agree through it at IoU {pane.plane.agreement:.2f}" if len(pane.marked) > 1 else ""
             parts.append(f"{views}: its own plane, {pane.plane.inliers} of {pane.plane.outline_points} SfM points "
-                         f"on its outline, RMS residual {pane.plane.relative_residual:.2%}")
+                         f"on its outline, RMS residual {pane.plane.relative_residual:.2%}{agree}")
         else:
             parts.append(f"{views}: the marks' plane")
     return f"; {len(panes)} panes ({'; '.join(parts)})"

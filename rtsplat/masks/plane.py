@@ -311,11 +311,11 @@ def _fit(outline: np.ndarray, normal: np.ndarray, offset: float, depth: float, t
 
 
 def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float, scale: float,
-                seed: int = 0, refine: bool = True) -> GlassPlane:
+                seed: int = 0, refine: bool = True, agree: bool = True) -> GlassPlane:
     """The plane of the glass the marks outline (see the module's description; ``refine``: whether the best
     proposed plane may be moved to where the marks agree); :class:`PlaneFitError` saying why when too few SfM
-    points lie on the outlines, every proposed plane passes between the marked cameras, or the marks agree on
-    none."""
+    points lie on the outlines, every proposed plane passes between the marked cameras, or (``agree``) the marks
+    agree on none (:func:`check_agreement`)."""
     outline = outline_points(xyz, marked, band)
     if len(outline) < MIN_INLIERS:
         raise PlaneFitError(f"{len(outline)} SfM point(s) lie on the marks' outlines (at least {MIN_INLIERS} "
@@ -346,7 +346,15 @@ def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], ba
     if share > MAX_IN_FRONT:
         raise PlaneFitError(f"every plane the marks agree on passes in front of what the marked views see through "
                             f"the glass ({share:.0%} of those points, at most {MAX_IN_FRONT:.0%} may lie in front)")
-    if plane.agreement < MIN_AGREEMENT:
-        raise PlaneFitError(f"the marks agree on no plane through the SfM points on their outlines (best mean IoU "
-                            f"between marked views {plane.agreement:.2f}, at least {MIN_AGREEMENT} is needed)")
+    if agree:
+        check_agreement(plane.agreement)
     return plane
+
+
+def check_agreement(agreement: float, best: float | None = None) -> None:
+    """:class:`PlaneFitError` when the marks agree at under :data:`MIN_AGREEMENT` (mean IoU between marked views
+    through their plane, or ``best`` through their panes' planes)."""
+    if max(agreement, best or 0.0) < MIN_AGREEMENT:
+        raise PlaneFitError(f"the marks agree on no plane through the SfM points on their outlines (best mean IoU "
+                            f"between marked views {max(agreement, best or 0.0):.2f}, at least {MIN_AGREEMENT} is "
+                            "needed)")

@@ -554,7 +554,7 @@ def _plane_carrier(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray
     from rtsplat.masks.plane import glass_plane
 
     scale = min(1.0, AGREEMENT_SIZE / max(max(v.width, v.height) for v, _ in marked))
-    plane = glass_plane(model.xyz, marked, settings.plane_band, scale, refine=refine)
+    plane = glass_plane(model.xyz, marked, settings.plane_band, scale, refine=refine, agree=False)
     panes = glass_panes(model.xyz, marked, plane, settings.plane_band, scale)
     occluders = model.xyz if settings.occlusion else None
     placed = "placed where the marks agree best near the plane of" if plane.refined else "fitted to"
