@@ -9,12 +9,16 @@ the single plane and those RANSAC proposes through the SfM points on its own out
 view to view (when more than one marked view holds it), and its consistency with the other marked views, those
 that see the plane from the pane's side: the share of the pane cast into them that lands inside their marks (a
 plane that carries the pane where another view marked nothing is not its plane). A plane in front of more than
-:data:`rtsplat.masks.plane.MAX_IN_FRONT` of the points seen through the pane loses as for the single plane. Ties
-(within :data:`rtsplat.masks.plane.AGREEMENT_TIE`) keep the single plane; a pane with fewer than
-:data:`rtsplat.masks.plane.MIN_INLIERS` SfM points on its outline keeps it too.
+:data:`rtsplat.masks.plane.MAX_IN_FRONT` of the points seen through the pane loses as for the single plane. Of
+planes about as consistent (within :data:`rtsplat.masks.plane.AGREEMENT_TIE`) the one on which most of the pane's
+outline points lie is kept, the single plane on a tie: a pane that only one marked view holds, where no other
+marked view sees its plane, is placed by its outline alone. A pane with fewer than
+:data:`rtsplat.masks.plane.MIN_INLIERS` SfM points on its outline keeps the single plane.
 
-A view's mask is the union of every pane cast through its plane into it (:func:`cast_panes`); a pane with its own
-plane reaches only the views on the side of its plane its marked views look from."""
+Marks that agree too little through the single plane (:func:`rtsplat.masks.plane.check_agreement`) are taken when
+they agree through their panes' planes. A view's mask is the union of every pane cast through its plane into it
+(:func:`cast_panes`); a pane with its own plane reaches only the views on the side of its plane its marked views
+look from."""
 
 from __future__ import annotations
 

@@ -15,7 +15,9 @@ A plane that passes in front of more than :data:`MAX_IN_FRONT` of the SfM points
 marks is not the glass (:func:`in_front_share`): what is seen through glass, or reflected in it, lies behind it;
 its agreement counts :data:`REFINE_PENALTY` times that excess less. Where few SfM points lie on the glass's own
 outline (a thin frame) no proposed plane may be the glass's; then the best one is moved to where the marks agree
-best (:func:`refine_plane`), and the plane is refused when they still agree at under :data:`MIN_AGREEMENT`.
+best (:func:`refine_plane`), and the plane is refused when they still agree at under :data:`MIN_AGREEMENT`
+(:func:`check_agreement`; marks of several panes may agree through their panes' planes instead,
+:mod:`rtsplat.masks.panes`).
 
 Every view then gets the marks cast onto the plane (:func:`cast_marks`): its pixels' rays meet the plane, and
 a pixel is inside when most of the marked views that have its plane point in frame see it inside their masks;
