@@ -885,10 +885,17 @@ def carried_text(summary: dict) -> str:
     if method != "plane":
         return ""
     plane = summary.get("glass_plane") or {}
-    return (f" through the glass's plane ({plane.get('inliers', '?')} of {plane.get('outline_points', '?')} SfM "
+    text = (f" through the glass's plane ({plane.get('inliers', '?')} of {plane.get('outline_points', '?')} SfM "
             f"points on the marks' outlines lie on it, RMS residual "
             f"{100 * float(plane.get('relative_residual', 0.0)):.2f}% of their depth; the marked views agree through "
             f"it at IoU {float(plane.get('agreement', 0.0)):.2f})")
+    panes = summary.get("glass_panes") or []
+    own = [p for p in panes if p.get("own_plane")]
+    if own:
+        residuals = ", ".join(f"{100 * float(p.get('relative_residual', 0.0)):.2f}%" for p in own)
+        text += (f", the marks being {len(panes)} panes, {len(own)} of them through a plane of its own (RMS "
+                 f"residual{'s' if len(own) > 1 else ''} {residuals})")
+    return text
 
 
 def polarity_text(summary: dict) -> str:

@@ -92,6 +92,65 @@ def test_the_rotation_tag_turns_the_frame_upright():
     assert upright(frame, 0) is frame
 
 
+# where the stored frame's red (top-left) and green (top-right) corners are seen, by the display matrix's rotation
+# (counter-clockwise degrees, as ffprobe prints it: -90 for a phone filming upright turns the frame clockwise)
+SEEN_CORNERS = {-90: ("top-right", "bottom-right"), 90: ("bottom-left", "top-left"),
+                180: ("bottom-right", "bottom-left")}
+
+
+def _corner(image: np.ndarray, corner: str) -> np.ndarray:
+    """The mean colour of a 6-pixel square inside ``corner`` of an RGB image."""
+    rows = slice(2, 8) if corner.startswith("top") else slice(-8, -2)
+    cols = slice(2, 8) if corner.endswith("left") else slice(-8, -2)
+    return image[rows, cols].reshape(-1, 3).mean(0)
+
+
+@pytest.mark.parametrize("rotation", sorted(SEEN_CORNERS))
+def test_a_video_with_a_rotation_tag_gives_upright_photos(rotation, tmp_path, capsys):
+    """A real MP4 whose stream carries a display matrix (PyAV writes it as a phone does): the photos written are
+    the frames as a player shows them: the size turned, the red and green corners where the tag puts them, and
+    the same pixels as OpenCV's own FFmpeg gives with its automatic rotation."""
+    import av
+
+    width, height = 64, 48
+    frames = []
+    for i in range(12):  # grey texture moving to the right, a red square top-left and a green one top-right
+        rng = np.random.default_rng(i)
+        frame = cv2.resize(rng.integers(60, 200, (6, 8, 3), dtype=np.uint8), (width, height),
+                           interpolation=cv2.INTER_NEAREST)
+        frame[:12, :12], frame[:12, -12:] = (255, 0, 0), (0, 255, 0)
+        frames.append(frame)
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    with av.open(str(scene / "walk.mp4"), "w") as container:
+        stream = container.add_stream("libx264", rate=10)
+        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+        stream.set_display_rotation(rotation)
+        for frame in frames + [None]:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24") if frame is not None
+                                        else None):
+                container.mux(packet)
+    with av.open(str(scene / "walk.mp4")) as container:  # the file carries the tag
+        assert abs(next(container.decode(video=0)).rotation) == abs(rotation)
+    assert cli_main(["frames", "--scene-dir", str(scene), "--count", "2"]) == 0
+    written = sorted((scene / "images").iterdir())
+    assert len(written) == 2
+    turned = rotation % 180 != 0
+    player = cv2.VideoCapture(str(scene / "walk.mp4"))  # rotates by the display matrix itself
+    assert player.get(cv2.CAP_PROP_ORIENTATION_AUTO) == 1
+    shown = []
+    while (read := player.read())[0]:
+        shown.append(read[1][..., ::-1])
+    red, green = SEEN_CORNERS[rotation]
+    for path in written:
+        image = cv2.imread(str(path))[..., ::-1].astype(float)
+        assert image.shape == ((width, height, 3) if turned else (height, width, 3)), path.name
+        assert _corner(image, red)[0] > 200 and _corner(image, red)[1:].max() < 60, (path.name, red)
+        assert _corner(image, green)[1] > 200 and _corner(image, green)[[0, 2]].max() < 60, (path.name, green)
+        index = int(path.stem.split("_")[1])
+        assert np.abs(image - shown[index]).mean() < 6, path.name  # as a player shows that frame
+
+
 def test_a_failed_extraction_leaves_no_images_folder(video, tmp_path, monkeypatch):
     scene = _scene(tmp_path, video)
     calls = []

@@ -15,7 +15,9 @@ A plane that passes in front of more than :data:`MAX_IN_FRONT` of the SfM points
 marks is not the glass (:func:`in_front_share`): what is seen through glass, or reflected in it, lies behind it;
 its agreement counts :data:`REFINE_PENALTY` times that excess less. Where few SfM points lie on the glass's own
 outline (a thin frame) no proposed plane may be the glass's; then the best one is moved to where the marks agree
-best (:func:`refine_plane`), and the plane is refused when they still agree at under :data:`MIN_AGREEMENT`.
+best (:func:`refine_plane`), and the plane is refused when they still agree at under :data:`MIN_AGREEMENT`
+(:func:`check_agreement`; marks of several panes may agree through their panes' planes instead,
+:mod:`rtsplat.masks.panes`).
 
 Every view then gets the marks cast onto the plane (:func:`cast_marks`): its pixels' rays meet the plane, and
 a pixel is inside when most of the marked views that have its plane point in frame see it inside their masks;
@@ -131,10 +133,7 @@ def seen_through(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]]) -
     behind the glass or is reflected in it (a reflection triangulates behind the glass too)."""
     seen = []
     for view, mask in marked:
-        uv, _, front = project_points(view, xyz)
-        h, w = mask.shape
-        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        ok, u, v = _in_frame(view, xyz, mask.shape)
         deep = ~_dilate(~mask, INSIDE_MARGIN)
         ok[ok] = deep[v[ok], u[ok]]
         seen.append((view, xyz[ok]))
@@ -153,21 +152,30 @@ def in_front_share(normal: np.ndarray, offset: float, seen: list[tuple[ColmapVie
     return front / total if total else 0.0
 
 
-def outline_points(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float) -> np.ndarray:
+def outline_points(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float,
+                   within: list[tuple[ColmapView, np.ndarray]] | None = None) -> np.ndarray:
     """The SfM points ``xyz`` on the marks' outlines: in front of a marked view within ``band`` of its longest
-    side just outside its mask, and not :data:`INSIDE_MARGIN` pixels inside any marked view's mask."""
+    side just outside its mask, and not :data:`INSIDE_MARGIN` pixels inside any marked view's mask (nor inside
+    any mask of ``within``: every mark, for the outline of one of its panes)."""
     near = np.zeros(len(xyz), bool)
     inside = np.zeros(len(xyz), bool)
     for view, mask in marked:
-        uv, _, front = project_points(view, xyz)
-        h, w = mask.shape
-        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        seen = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        ring = _dilate(mask, max(2, int(round(band * max(h, w))))) & ~mask
-        deep = ~_dilate(~mask, INSIDE_MARGIN)
+        seen, u, v = _in_frame(view, xyz, mask.shape)
+        ring = _dilate(mask, max(2, int(round(band * max(mask.shape))))) & ~mask
         near[seen] |= ring[v[seen], u[seen]]
+    for view, mask in marked + (within or []):
+        seen, u, v = _in_frame(view, xyz, mask.shape)
+        deep = ~_dilate(~mask, INSIDE_MARGIN)
         inside[seen] |= deep[v[seen], u[seen]]
     return xyz[near & ~inside]
+
+
+def _in_frame(view: ColmapView, xyz: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whether each point is in front of ``view`` and inside its frame of ``shape``, and its pixel (column, row)."""
+    uv, _, front = project_points(view, xyz)
+    h, w = shape
+    u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    return front & (u >= 0) & (u < w) & (v >= 0) & (v < h), u, v
 
 
 # ----------------------------------------------------------------------------------------------
@@ -305,11 +313,11 @@ def _fit(outline: np.ndarray, normal: np.ndarray, offset: float, depth: float, t
 
 
 def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], band: float, scale: float,
-                seed: int = 0, refine: bool = True) -> GlassPlane:
+                seed: int = 0, refine: bool = True, agree: bool = True) -> GlassPlane:
     """The plane of the glass the marks outline (see the module's description; ``refine``: whether the best
     proposed plane may be moved to where the marks agree); :class:`PlaneFitError` saying why when too few SfM
-    points lie on the outlines, every proposed plane passes between the marked cameras, or the marks agree on
-    none."""
+    points lie on the outlines, every proposed plane passes between the marked cameras, or (``agree``) the marks
+    agree on none (:func:`check_agreement`)."""
     outline = outline_points(xyz, marked, band)
     if len(outline) < MIN_INLIERS:
         raise PlaneFitError(f"{len(outline)} SfM point(s) lie on the marks' outlines (at least {MIN_INLIERS} "
@@ -340,7 +348,15 @@ def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], ba
     if share > MAX_IN_FRONT:
         raise PlaneFitError(f"every plane the marks agree on passes in front of what the marked views see through "
                             f"the glass ({share:.0%} of those points, at most {MAX_IN_FRONT:.0%} may lie in front)")
-    if plane.agreement < MIN_AGREEMENT:
-        raise PlaneFitError(f"the marks agree on no plane through the SfM points on their outlines (best mean IoU "
-                            f"between marked views {plane.agreement:.2f}, at least {MIN_AGREEMENT} is needed)")
+    if agree:
+        check_agreement(plane.agreement)
     return plane
+
+
+def check_agreement(agreement: float, best: float | None = None) -> None:
+    """:class:`PlaneFitError` when the marks agree at under :data:`MIN_AGREEMENT` (mean IoU between marked views
+    through their plane, or ``best`` through their panes' planes)."""
+    if max(agreement, best or 0.0) < MIN_AGREEMENT:
+        raise PlaneFitError(f"the marks agree on no plane through the SfM points on their outlines (best mean IoU "
+                            f"between marked views {max(agreement, best or 0.0):.2f}, at least {MIN_AGREEMENT} is "
+                            "needed)")

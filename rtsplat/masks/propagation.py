@@ -42,7 +42,7 @@ processed at ``work_size`` pixels on their longest side and the mask is scaled b
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -52,6 +52,7 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.colmap import ColmapModel, ColmapView
 
 if TYPE_CHECKING:
+    from rtsplat.masks.panes import Pane
     from rtsplat.masks.plane import GlassPlane
 
 MIN_MARKED = 3  # fewer marked views do not bound the object in depth
@@ -500,13 +501,15 @@ class Carrier:
     """How the marks reach the other views: ``method`` (``hull`` | ``plane``), why it was chosen, the marked views
     (view, mask) and ``carry(marked, view, scale)``, the silhouette in ``view`` (bool, its size times ``scale``)
     of some marked views (the refinement's choice leaves each out in turn), None where they bound nothing;
-    ``plane`` is the fitted plane of method ``plane``."""
+    ``plane`` is the fitted plane of method ``plane``, ``panes`` the marks' panes, each with its plane
+    (:mod:`rtsplat.masks.panes`)."""
 
     method: str
     reason: str
     marked: list[tuple[ColmapView, np.ndarray]]
     carry: Callable[[list[tuple[ColmapView, np.ndarray]], ColmapView, float], np.ndarray | None]
     plane: GlassPlane | None = None
+    panes: list[Pane] = field(default_factory=list)
 
     def silhouette(self, view: ColmapView, scale: float = 1.0) -> np.ndarray:
         """The silhouette of every marked view in ``view``."""
@@ -515,7 +518,8 @@ class Carrier:
     def record(self) -> dict:
         """The choice as the masks summary records it."""
         return {"method": self.method, "reason": self.reason,
-                "plane": self.plane.record() if self.plane is not None else None}
+                "plane": self.plane.record() if self.plane is not None else None,
+                "panes": [pane.record() for pane in self.panes] if len(self.panes) > 1 else []}
 
 
 def _names(marked: list[tuple[ColmapView, np.ndarray]]) -> tuple[str, ...]:
@@ -546,17 +550,20 @@ def _plane_carrier(model: ColmapModel, marked: list[tuple[ColmapView, np.ndarray
     """The glass plane's :class:`Carrier` (``why`` says why the plane was chosen; ``refine``: whether the plane
     may be moved to where the marks agree, :func:`rtsplat.masks.plane.glass_plane`);
     :class:`rtsplat.masks.plane.PlaneFitError` when no plane fits."""
-    from rtsplat.masks.plane import cast_marks, glass_plane
+    from rtsplat.masks.panes import cast_panes, glass_panes, panes_text
+    from rtsplat.masks.plane import glass_plane
 
     scale = min(1.0, AGREEMENT_SIZE / max(max(v.width, v.height) for v, _ in marked))
-    plane = glass_plane(model.xyz, marked, settings.plane_band, scale, refine=refine)
+    plane = glass_plane(model.xyz, marked, settings.plane_band, scale, refine=refine, agree=False)
+    panes = glass_panes(model.xyz, marked, plane, settings.plane_band, scale)
     occluders = model.xyz if settings.occlusion else None
     placed = "placed where the marks agree best near the plane of" if plane.refined else "fitted to"
     reason = (f"{why}: the marks are cast through the glass's plane, {placed} the SfM points on their outlines "
               f"({plane.inliers} of {plane.outline_points} within 1% of their depth of it, RMS residual "
-              f"{plane.relative_residual:.2%}; the marked views agree through it at mean IoU {plane.agreement:.2f})")
-    return Carrier("plane", reason, marked, lambda views, view, scale: cast_marks(plane, views, view, scale, occluders),
-                   plane)
+              f"{plane.relative_residual:.2%}; the marked views agree through it at mean IoU {plane.agreement:.2f})"
+              f"{panes_text(panes)}")
+    return Carrier("plane", reason, marked,
+                   lambda views, view, scale: cast_panes(panes, views, view, scale, occluders), plane, panes)
 
 
 def _left_out(carrier: Carrier, settings: MaskPropagationConfig) -> Iterator[tuple[ColmapView, np.ndarray, np.ndarray]]:

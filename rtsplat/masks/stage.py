@@ -82,6 +82,7 @@ class MasksSummary:
     propagation_method: str = ""  # propagate: how the marks reached the other photos, hull | plane
     propagation_reason: str = ""  # propagate: why (rtsplat.masks.propagation.carry_marks)
     glass_plane: dict = field(default_factory=dict)  # propagate through a plane: its fit (GlassPlane.record)
+    glass_panes: list[dict] = field(default_factory=list)  # marks of several panes: each with its plane (Pane.record)
     scene_dir: str = ""  # the dataset scene they were made for (for messages)
     images_fingerprint: str = ""  # rtsplat.io.manifest.photos_fingerprint of its photos
     photos: dict[str, str] = field(default_factory=dict)  # rtsplat.io.manifest.photo_fingerprints of its photos
@@ -278,6 +279,7 @@ def make_masks(
             propagation_method=carried.get("method", ""),
             propagation_reason=carried.get("reason", ""),
             glass_plane=carried.get("plane") or {},
+            glass_panes=carried.get("panes") or [],
             scene_dir=str(scene_dir.resolve()),
             images_fingerprint=photos_fingerprint(photos),
             photos=photos,
