@@ -12,6 +12,7 @@ budget, marked so, where either method had not converged by it).
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 from dataclasses import dataclass
@@ -70,7 +71,7 @@ def gains(budgets: list[Budget], side: str) -> list[dict[str, float | None]]:
     """Per budget, the :data:`REGIONS` gains per doubling of one method (``side``: ``ours`` or ``theirs``) over
     the budget before it (none for the first)."""
     found: list[dict[str, float | None]] = [{}]
-    for before, after in zip(budgets, budgets[1:], strict=False):
+    for before, after in itertools.pairwise(budgets):
         doublings = math.log2(after.factor / before.factor)
         found.append({key: gain_per_doubling(getattr(before, side), getattr(after, side), doublings, key)
                       for key in REGIONS})
