@@ -21,7 +21,9 @@ machine, or, when the runs mix commits, trees with uncommitted changes or machin
 (:mod:`rtsplat.provenance`, from each run's ``summary.json``). Then a summary across scenes (the
 :func:`comparison_pairs`: the main method minus the baseline ``2dgs``, and ``<main>_<suffix>`` minus
 ``2dgs_<suffix>``, PSNR on the transparent region and the entire image, beside the seed noise that
-repeats with another seed measured), the scene family when there is one, then the provenance of every run
+repeats with another seed measured), the scene family when there is one, the convergence of both methods over
+the budgets that ran (:mod:`rtsplat.report_convergence`: the gap and the layers at the demo budget and at
+convergence, with the time each took) when a scene has more than one, then the provenance of every run
 (commit, machine, device, packages; and the code that computed the metrics). Per scene: the SfM
 table (registered/total views, reprojection error and time of every attempt, and for scenes whose
 dataset ships reference cameras the rotation and centre errors after a similarity fit), the transparent masks
@@ -793,13 +795,17 @@ def scene_layer_references(prepared: Path, names: set[str] | None) -> dict[str, 
     return ceilings(views, sigmas=(2.0,))
 
 
+FLAT_REFERENCE = "truth's mean"  # the keys of scene_layer_references: the true reflection painted flat,
+BLURRED_REFERENCE = "truth blurred 2 px"  # and blurred by 2 px (rtsplat.layer_references.ceilings)
+
+
 def layer_reference_rows(ref: dict[str, float] | None) -> tuple[list[list[str]], str]:
     """Rows of a scene's :func:`scene_layer_references` for the decomposition table, and a sentence on what
     they mean; none without layers."""
     if ref is None:
         return [], ""
-    rows = [["(reference) the true reflection's mean colour, flat", _fmt(ref["truth's mean"]), "-"],
-            ["(reference) the true reflection blurred 2 px", _fmt(ref["truth blurred 2 px"]), "-"]]
+    rows = [["(reference) the true reflection's mean colour, flat", _fmt(ref[FLAT_REFERENCE]), "-"],
+            ["(reference) the true reflection blurred 2 px", _fmt(ref[BLURRED_REFERENCE]), "-"]]
     text = ("The reference rows are made from the ground truth itself: its reflection painted flat in its mean "
             "colour (what a reflection without any structure scores) and blurred by 2 pixels (what one right "
             "down to that scale scores). The ground truth's reflection plus transmission scores "
@@ -1244,6 +1250,9 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
     family = family_scenes(scenes, roles, results, references)
     if family:
         _family_section(doc, family, out)
+    from rtsplat.report_convergence import convergence_section
+
+    convergence_section(doc, scenes, roles, references)
     any_metrics = next((r.metrics for runs in scenes.values() for r in runs.values() if r.metrics), {})
     _provenance_section(doc, groups, scenes, any_metrics)
     doc.paragraph("LPIPS: " + str(any_metrics.get("lpips", "not computed")))

@@ -99,6 +99,33 @@ def test_the_budget_curves_over_the_demo_pair_both_methods_at_every_budget():
             2, trees["rtsplat"]["schedule"]["densify_from"], demo)
 
 
+def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tuning_scene_per_kind():
+    """benchmarks/convergence.yaml, a config of its own: seed 0 of every kind of the family (tuning scenes, never
+    seen or held out), RT-Splatting and 2DGS at 1, 2, 4 and 8 times the demo's 600 iterations, training seed 0,
+    which the report's convergence section reads as one curve per method."""
+    from rtsplat.config import roles_json, trainer_options
+    from rtsplat.report import Roles, Run
+    from rtsplat.report_convergence import scene_budgets
+    from rtsplat.synth.family import KINDS, parse_name
+
+    cfg = load_config(ROOT / "benchmarks" / "convergence.yaml")
+    members = [parse_name(scene) for scene in cfg.scenes]
+    assert sorted(m.kind for m in members) == sorted(KINDS) and {m.split for m in members} == {"tuning"}
+    for scene in cfg.scenes:
+        for budget in (1, 2, 4, 8):
+            ours, theirs = (TrainConfig.from_dict(trainer_options(cfg, scene, m if budget == 1 else f"{m}_x{budget}"))
+                            for m in ("rtsplat", "2dgs"))
+            assert ours.schedule.iterations == theirs.schedule.iterations == 600 * budget
+            assert ours.schedule.eval_every == 100 * budget and ours.seed == theirs.seed == 0
+            assert (ours.effects.transmission, theirs.effects.transmission, theirs.effects.specular) == (
+                "auto", "off", "off")
+    roles = Roles.from_dict(json.loads(roles_json(cfg, quote=False)))
+    budgets = scene_budgets({m: Run(cfg.scenes[0], m) for m in cfg.methods}, roles)
+    assert [(b.factor, b.ours.method, b.theirs.method) for b in budgets] == [
+        (1.0, "rtsplat", "2dgs"), (2.0, "rtsplat_x2", "2dgs_x2"), (4.0, "rtsplat_x4", "2dgs_x4"),
+        (8.0, "rtsplat_x8", "2dgs_x8")]
+
+
 @pytest.mark.parametrize("layer", ["targets.yaml", "targets_quick.yaml"])
 def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
     """`make targets` layers benchmarks/<layer> over demo/config.yaml: every method must build a valid
