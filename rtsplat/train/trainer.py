@@ -47,7 +47,7 @@ from rtsplat.model.appearance import apply_appearance
 from rtsplat.model.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
 from rtsplat.model.mirror import empty_planes, is_bent
-from rtsplat.model.rtmodel import GBUFFER, RTModel
+from rtsplat.model.rtmodel import GBUFFER, RenderResult, RTModel
 from rtsplat.model.surfels import (
     PARAMETERS,
     SurfelParameters,
@@ -364,7 +364,7 @@ class Trainer:
                 group["lr"] = position_lr(it, cfg.lr, self.extent)
         return previous, it
 
-    def _render_training_view(self, camera, stage: str, it: int):
+    def _render_training_view(self, camera: Camera, stage: str, it: int) -> RenderResult:
         """The model's render of a training view at the plan's iteration ``it``: its spherical harmonics
         degree, a random background (``model.background: random``) and the mirror planes being learnt."""
         cfg = self.cfg
@@ -375,8 +375,8 @@ class Trainer:
                                  backend=cfg.backend, sh_degree=sh_degree, background=background,
                                  mirror_planes=planes)
 
-    def _loss_terms(self, it: int, result, color: Tensor, target: Tensor, mask: Tensor | None,
-                    weight: Tensor | None, camera, appearance_view: int | None) -> dict[str, Tensor]:
+    def _loss_terms(self, it: int, result: RenderResult, color: Tensor, target: Tensor, mask: Tensor | None,
+                    weight: Tensor | None, camera: Camera, appearance_view: int | None) -> dict[str, Tensor]:
         """The weighted loss terms of one training view by name, in the order they are summed: the image term
         (pixels weighted by ``weight``) and those whose weight, iteration and inputs switch them on;
         ``appearance_view``: the view whose appearance correction is learnt (its prior term), None: none is."""
@@ -417,7 +417,7 @@ class Trainer:
                 (self.model.surfels.occupancy * visible).sum() / visible.sum().clamp_min(1))
         return terms
 
-    def _update(self, result, it: int, previous: int, refine_pose: bool, learn_appearance: bool,
+    def _update(self, result: RenderResult, it: int, previous: int, refine_pose: bool, learn_appearance: bool,
                 loss: Tensor) -> DensityEvents:
         """After the backward pass: the optimizer steps (surfels, poses, mirror planes, appearance), density
         control, and the divergence watch's record of the step; returns the density events."""
