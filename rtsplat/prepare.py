@@ -430,21 +430,25 @@ def _test_split(names: list[str], test_every: int) -> dict[str, str]:
     return {n: ("test" if i % test_every == 0 else "train") for i, n in enumerate(sorted(names))}
 
 
-def prepare_scene(
-    scene_dir: str | Path,
-    sfm_dir: str | Path,
-    out_dir: str | Path,
-    cfg: PrepareConfig | None = None,
-    masks_dir: str | Path | None = None,
-    progress: bool = True,
-) -> PrepareSummary:
-    """Write the prepared scene for ``scene_dir`` into ``out_dir`` (atomically); see the module docstring."""
-    from tqdm import tqdm
+@dataclass
+class _Inputs:
+    """What prepare reads and checks before it writes anything (:func:`_read_inputs`)."""
 
-    cfg = cfg or PrepareConfig()
-    scene_dir = Path(scene_dir)
-    inputs = [scene_dir, sfm_dir, masks_dir]
-    check_output_dir(out_dir, "prepare", inputs=inputs)
+    sfm: dict  # the summary.json of rtsplat sfm
+    masks: dict  # the summary.json of rtsplat masks; {"has_masks": False} without a masks folder
+    model: ColmapModel  # the SfM model, with each photo's observations (they measure its exposure)
+    image_dir: Path  # the photos the model belongs to
+    views: list[ColmapView]  # the model's views, each with its photo in image_dir
+    stems: list[str]  # their names without extension (unique): the prepared views' names
+    made_from: dict[str, str | None]  # content fingerprints of the photos, the SfM model and the masks folder
+
+    @property
+    def has_masks(self) -> bool:
+        return bool(self.masks.get("has_masks"))
+
+
+def _read_inputs(scene_dir: Path, sfm_dir: str | Path, masks_dir: str | Path | None) -> _Inputs:
+    """The sfm and masks outputs, checked to belong to the scene's photos, and the SfM model's views."""
     sfm = load_stage_summary(sfm_dir, "sfm")
     masks = load_stage_summary(masks_dir, "masks") if masks_dir is not None else {"has_masks": False}
     photos = photo_fingerprints(scene_dir / "images")
@@ -453,25 +457,31 @@ def prepare_scene(
         check_made_from_photos(masks_dir, masks, "masks", scene_dir / "images", photos, "--masks")
     model = load_model(sfm["model_dir"], observations=True)  # the observations measure each photo's exposure
     image_dir = Path(sfm["image_dir"])
-    has_masks = bool(masks.get("has_masks"))
     made_from = {
         "images": photos_fingerprint(photos),
         "sfm": folder_fingerprint(sfm["model_dir"]),
         "masks": folder_fingerprint(masks_dir, skip=("summary.json",)) if masks_dir is not None else None,
     }
+    views, stems = _registered_views(model, image_dir, sfm["model_dir"])
+    return _Inputs(sfm=sfm, masks=masks, model=model, image_dir=image_dir, views=views, stems=stems,
+                   made_from=made_from)
 
+
+def _registered_views(model: ColmapModel, image_dir: Path, model_dir: str) -> tuple[list[ColmapView], list[str]]:
+    """The model's views and their file stems; an error when a view's photo is missing, when fewer than
+    two views are registered, or when two photos share a stem."""
     missing = [v.name for v in model.views if not (image_dir / v.name).is_file()]
     views = [v for v in model.views if v.name not in missing]
     if missing:
         raise PipelineError(
             f"the COLMAP model lists {len(missing)} image(s) that are not in {image_dir}, e.g. {missing[0]}",
-            path=sfm["model_dir"],
+            path=model_dir,
             fix="restore the images or re-run 'rtsplat sfm' so the model matches the image folder",
         )
     if len(views) < 2:
         raise PipelineError(
             "fewer than 2 registered images",
-            path=sfm["model_dir"],
+            path=model_dir,
             fix="add more overlapping images and re-run 'rtsplat sfm'",
         )
     stems = [Path(v.name).stem for v in views]
@@ -481,173 +491,291 @@ def prepare_scene(
             path=image_dir,
             fix="rename the images so their names without extension are unique",
         )
-    f, downsample_reason = downsample_factor({(v.width, v.height) for v in views}, cfg, image_dir)
+    return views, stems
 
-    # masks belong to the original images: when SfM undistorted those, undistort the masks too
+
+@dataclass
+class _Sources:
+    """Where each prepared view's image, mask and ground-truth layers come from (:func:`_sources`)."""
+
+    image_dir: Path
+    factor: int  # the downsample factor
+    prescaled_dir: Path | None  # the dataset's images_<factor>/ when its images are used, else None
+    masks_dir: Path | None  # None: the scene has no masks
+    # masks belong to the original images: when SfM undistorted those, the distorted views undistort the masks too
+    distorted: dict[str, ColmapView] | None
+    propagated: set[str]  # the photos whose masks were propagated (masks.source: propagate)
+    layer_dir: Path | None  # ground-truth layers of a synthetic dataset; None when SfM undistorted the images
+    split: dict[str, str]  # "train" or "test" by view name
+
+
+def _sources(scene_dir: Path, sfm_dir: str | Path, masks_dir: str | Path | None, read: _Inputs, factor: int,
+             cfg: PrepareConfig) -> _Sources:
+    undistorted = bool(read.sfm.get("undistorted", False))
     distorted = None
-    if has_masks and sfm.get("undistorted"):
+    if read.has_masks and read.sfm.get("undistorted"):
         distorted = {v.name: v for v in load_model(Path(sfm_dir) / "sparse" / "0").views}
-    prescaled_dir = scene_dir / f"images_{f}"
+    prescaled_dir = scene_dir / f"images_{factor}"
     use_prescaled = (
-        f > 1
+        factor > 1
         and cfg.use_prescaled
-        and not sfm.get("undistorted", False)
+        and not undistorted
         and prescaled_dir.is_dir()
-        and all((prescaled_dir / v.name).is_file() for v in views)
+        and all((prescaled_dir / v.name).is_file() for v in read.views)
     )
-    split = _test_split(stems, cfg.test_every)
-    roi = (
-        Roi(center=[float(x) for x in cfg.roi.center], radius=float(cfg.roi.radius), source="config")
-        if cfg.roi is not None
-        else estimate_roi(model, cfg.roi_percentile)
+    return _Sources(
+        image_dir=read.image_dir, factor=factor, prescaled_dir=prescaled_dir if use_prescaled else None,
+        masks_dir=Path(masks_dir) if read.has_masks else None, distorted=distorted,
+        propagated={n for n, src in (read.masks.get("mask_sources") or {}).items() if src == "propagated"},
+        layer_dir=None if undistorted else scene_dir / "layers" / "linear",
+        split=_test_split(read.stems, cfg.test_every),
     )
 
-    cameras: list[CameraRecord] = []
-    coverage: list[float] = []
-    mask_views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # what the hull is carved from
-    marked_names = {Path(n).stem for n in masks.get("marked") or []}  # set only by masks.source: propagate
-    propagated = {n for n, src in (masks.get("mask_sources") or {}).items() if src == "propagated"}
-    layer_source = scene_dir / "layers" / "linear"
-    exposure: dict[str, list[float] | None] = {}
-    exposure_points: dict[str, int] = {}
-    exposure_error: dict[str, float | None] = {}
-    gt_layer_views = 0
-    out_dir = Path(out_dir)
-    with output_dir(out_dir, "prepare", inputs=inputs) as tmp:
-        (tmp / IMAGES_DIR).mkdir()
-        if has_masks:
-            (tmp / MASKS_DIR).mkdir()
-        for view, stem in tqdm(list(zip(views, stems, strict=True)), desc="prepare", unit="img", disable=not progress):
-            src = image_dir / view.name
-            header = read_header(src)
-            if (header.width, header.height) != (view.width, view.height):
-                raise PipelineError(
-                    f"image is {header.width}x{header.height} but its COLMAP camera is {view.width}x{view.height}",
-                    path=src,
-                    fix="use the images the model was computed from (or re-run 'rtsplat sfm'); "
-                    "all images of a scene must have the size of their camera",
-                )
-            K = view.K.copy()
-            if use_prescaled:
-                image = read_image(prescaled_dir / view.name)
-                h, w = image.shape[:2]
-                if abs(w * f - view.width) >= f or abs(h * f - view.height) >= f:
-                    raise PipelineError(
-                        f"pre-scaled image is {w}x{h}, expected about {view.width // f}x{view.height // f}",
-                        path=prescaled_dir / view.name,
-                        fix=f"delete {prescaled_dir} or set prepare.use_prescaled: false",
-                    )
-                K[0] *= w / view.width
-                K[1] *= h / view.height
-                full = image
-            else:
-                full = read_image(src)
-                image = area_downsample(full, f)
-                h, w = image.shape[:2]
-                K[:2] /= f
-            write_png(tmp / IMAGES_DIR / f"{stem}.png", image, bits=cfg.bit_depth)
-            npz = layer_source / f"{Path(view.name).stem}.npz"
-            if split[stem] == "test" and npz.is_file() and not sfm.get("undistorted", False):
-                layers = ground_truth_layers(npz, image, f)
-                for name, layer in (layers or {}).items():
-                    (tmp / GT_LAYERS_DIR / name).mkdir(parents=True, exist_ok=True)
-                    write_png(tmp / GT_LAYERS_DIR / name / f"{stem}.png", layer, bits=16)
-                gt_layer_views += layers is not None
-            if has_masks:
-                mpath = Path(masks_dir) / f"{stem}.png"
-                if not mpath.is_file():
-                    raise PipelineError("mask missing", path=mpath, fix="re-run 'rtsplat masks'")
-                mask = read_mask(mpath)
-                if distorted is not None and view.name in distorted:
-                    d = distorted[view.name]
-                    if mask.shape != (d.height, d.width):
-                        raise PipelineError(
-                            f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {d.width}x{d.height}",
-                            path=mpath,
-                            fix="re-run 'rtsplat masks' on the scene's images",
-                        )
-                    mask = undistort_mask(mask, d, (view.width, view.height))
-                if mask.shape != (view.height, view.width):
-                    raise PipelineError(
-                        f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {view.width}x{view.height}",
-                        path=mpath,
-                        fix="re-run 'rtsplat masks' on the images the model uses",
-                    )
-                small = area_downsample(mask.astype(np.float32), f) >= 0.5
-                if small.shape != (h, w):  # pre-scaled images rounded differently
-                    import cv2
 
-                    small = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
-                write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
-                coverage.append(float(small.mean()))
-                mask_views.append((K, view.world_to_camera, hull_mask(small, view.name in propagated)))
-            gain = _exposure(full, model.observations.get(view.name), (view.width, view.height),
-                             mask if has_masks else None)
-            exposure[stem] = None if gain.log_gain is None else [round(float(g), 5) for g in gain.log_gain]
-            exposure_points[stem] = gain.points
-            exposure_error[stem] = None if gain.error is None else round(gain.error, 6)
-            cameras.append(
-                CameraRecord(
-                    name=stem,
-                    split=split[stem],
-                    width=int(w),
-                    height=int(h),
-                    K=K.tolist(),
-                    world_to_camera=view.world_to_camera.tolist(),
-                    image=view.name,
-                )
-            )
-        reach = _dataset_reflection_reach(scene_dir) if gt_layer_views else None
-        if reach is not None:
-            (tmp / GT_LAYERS_DIR / REFLECTION_REACH_FILE).write_text(json.dumps(reach, indent=1))
-        if has_masks and not any(coverage):  # masks without a single transparent pixel
-            import shutil
+def _initial_roi(cfg: PrepareConfig, model: ColmapModel) -> Roi:
+    """The configured region of interest, else the one estimated from the cameras and SfM points."""
+    if cfg.roi is not None:
+        return Roi(center=[float(x) for x in cfg.roi.center], radius=float(cfg.roi.radius), source="config")
+    return estimate_roi(model, cfg.roi_percentile)
 
-            shutil.rmtree(tmp / MASKS_DIR)
-            has_masks = False
-        roi_warning = ""
-        if has_masks and cfg.roi is None and cfg.roi_from_masks:
-            roi, roi_warning = checked_mask_roi(roi_from_masks(mask_views, roi, cfg.roi_mask_agreement), roi,
-                                                mask_views)
-        if has_masks and cfg.transparent_surface and not roi_warning:  # a hull away from the glass seeds nothing
-            hull = mask_hull(mask_views, roi, cfg.roi_mask_agreement, grid=64)
-            if hull is not None:
-                xyz, normal = hull_surface(hull, mask_views)
-                np.savez(tmp / TRANSPARENT_SURFACE_FILE, xyz=xyz.astype(np.float32), normal=normal.astype(np.float32))
-        write_points_ply(tmp / POINTS_FILE, model.xyz, model.rgb)
-        versions = {"rtsplat": __version__, "scene_format": "1"}
-        scene = PreparedScene(
-            cameras=sorted(cameras, key=lambda c: c.name),
-            roi=roi,
-            downsample=f,
-            resolution=cfg.resolution,
-            source=str(scene_dir.resolve()),
-            has_transparency=has_masks,
-            versions=versions,
-            inputs=made_from,
-            exposure=exposure,
-            exposure_points=exposure_points,
-            exposure_error=exposure_error,
-            marked_views=sorted(c.name for c in cameras if c.name in marked_names),
-            roi_warning=roi_warning,
+
+@dataclass
+class _View:
+    """One prepared view, as :func:`_write_view` wrote it."""
+
+    camera: CameraRecord
+    gain: GainEstimate  # its photo's exposure (:func:`_exposure`)
+    gt_layers: bool  # ground-truth layers were written for it
+    coverage: float | None = None  # the share of its prepared mask's pixels that are see-through; None: no mask
+    # (K, world_to_camera, mask) that carves the masks' visual hull (:func:`hull_mask`); None: no mask
+    hull_view: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def _write_views(tmp: Path, read: _Inputs, src: _Sources, cfg: PrepareConfig, progress: bool) -> list[_View]:
+    from tqdm import tqdm
+
+    (tmp / IMAGES_DIR).mkdir()
+    if src.masks_dir is not None:
+        (tmp / MASKS_DIR).mkdir()
+    views = []
+    for view, stem in tqdm(list(zip(read.views, read.stems, strict=True)), desc="prepare", unit="img",
+                           disable=not progress):
+        views.append(_write_view(tmp, view, stem, read.model, src, cfg))
+    return views
+
+
+def _write_view(tmp: Path, view: ColmapView, stem: str, model: ColmapModel, src: _Sources,
+                cfg: PrepareConfig) -> _View:
+    """Write the view's image, its ground-truth layers (test views of a synthetic dataset) and its mask."""
+    image, full, K = _view_image(view, src)
+    h, w = image.shape[:2]
+    write_png(tmp / IMAGES_DIR / f"{stem}.png", image, bits=cfg.bit_depth)
+    gt_layers = _write_ground_truth_layers(tmp, view, stem, image, src)
+    mask, coverage, hull_view = None, None, None
+    if src.masks_dir is not None:
+        mask = _view_mask(view, stem, src)
+        small = _downsample_mask(mask, src.factor, (h, w))
+        write_mask(tmp / MASKS_DIR / f"{stem}.png", small)
+        coverage = float(small.mean())
+        hull_view = (K, view.world_to_camera, hull_mask(small, view.name in src.propagated))
+    gain = _exposure(full, model.observations.get(view.name), (view.width, view.height), mask)
+    camera = CameraRecord(name=stem, split=src.split[stem], width=int(w), height=int(h), K=K.tolist(),
+                          world_to_camera=view.world_to_camera.tolist(), image=view.name)
+    return _View(camera=camera, gain=gain, gt_layers=gt_layers, coverage=coverage, hull_view=hull_view)
+
+
+def _view_image(view: ColmapView, src: _Sources) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The prepared image, the image the exposure is measured on (the full-size photo, or the pre-scaled
+    image) and the prepared intrinsics K; an error when the photo does not have its camera's size."""
+    path = src.image_dir / view.name
+    header = read_header(path)
+    if (header.width, header.height) != (view.width, view.height):
+        raise PipelineError(
+            f"image is {header.width}x{header.height} but its COLMAP camera is {view.width}x{view.height}",
+            path=path,
+            fix="use the images the model was computed from (or re-run 'rtsplat sfm'); "
+            "all images of a scene must have the size of their camera",
         )
+    K = view.K.copy()
+    f = src.factor
+    if src.prescaled_dir is not None:
+        image = read_image(src.prescaled_dir / view.name)
+        h, w = image.shape[:2]
+        if abs(w * f - view.width) >= f or abs(h * f - view.height) >= f:
+            raise PipelineError(
+                f"pre-scaled image is {w}x{h}, expected about {view.width // f}x{view.height // f}",
+                path=src.prescaled_dir / view.name,
+                fix=f"delete {src.prescaled_dir} or set prepare.use_prescaled: false",
+            )
+        K[0] *= w / view.width
+        K[1] *= h / view.height
+        return image, image, K
+    full = read_image(path)
+    K[:2] /= f
+    return area_downsample(full, f), full, K
+
+
+def _write_ground_truth_layers(tmp: Path, view: ColmapView, stem: str, image: np.ndarray, src: _Sources) -> bool:
+    """Write a test view's ground-truth layers (:func:`ground_truth_layers`) when the dataset has them;
+    whether it wrote them."""
+    if src.layer_dir is None or src.split[stem] != "test":
+        return False
+    npz = src.layer_dir / f"{Path(view.name).stem}.npz"
+    if not npz.is_file():
+        return False
+    layers = ground_truth_layers(npz, image, src.factor)
+    for name, layer in (layers or {}).items():
+        (tmp / GT_LAYERS_DIR / name).mkdir(parents=True, exist_ok=True)
+        write_png(tmp / GT_LAYERS_DIR / name / f"{stem}.png", layer, bits=16)
+    return layers is not None
+
+
+def _view_mask(view: ColmapView, stem: str, src: _Sources) -> np.ndarray:
+    """The view's mask at its camera's size (undistorted when SfM undistorted the photo), checked."""
+    path = src.masks_dir / f"{stem}.png"
+    if not path.is_file():
+        raise PipelineError("mask missing", path=path, fix="re-run 'rtsplat masks'")
+    mask = read_mask(path)
+    if src.distorted is not None and view.name in src.distorted:
+        d = src.distorted[view.name]
+        if mask.shape != (d.height, d.width):
+            raise PipelineError(
+                f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {d.width}x{d.height}",
+                path=path,
+                fix="re-run 'rtsplat masks' on the scene's images",
+            )
+        mask = undistort_mask(mask, d, (view.width, view.height))
+    if mask.shape != (view.height, view.width):
+        raise PipelineError(
+            f"mask is {mask.shape[1]}x{mask.shape[0]}, image is {view.width}x{view.height}",
+            path=path,
+            fix="re-run 'rtsplat masks' on the images the model uses",
+        )
+    return mask
+
+
+def _downsample_mask(mask: np.ndarray, factor: int, size: tuple[int, int]) -> np.ndarray:
+    """The mask at the prepared image's ``size`` (height, width), binarised."""
+    small = area_downsample(mask.astype(np.float32), factor) >= 0.5
+    if small.shape != size:  # pre-scaled images rounded differently
+        import cv2
+
+        small = cv2.resize(mask.astype(np.uint8), (size[1], size[0]), interpolation=cv2.INTER_AREA) >= 0.5
+    return small
+
+
+def _carry_reflection_reach(tmp: Path, scene_dir: Path) -> None:
+    """Carry what a synthetic dataset's glass reflects beside its ground-truth layers."""
+    reach = _dataset_reflection_reach(scene_dir)
+    if reach is not None:
+        (tmp / GT_LAYERS_DIR / REFLECTION_REACH_FILE).write_text(json.dumps(reach, indent=1))
+
+
+def _masks_kept(tmp: Path, views: list[_View]) -> bool:
+    """Whether the prepared scene has masks: written, and not one without a single see-through pixel
+    (then the masks folder is removed)."""
+    coverage = [v.coverage for v in views if v.coverage is not None]
+    if not coverage:
+        return False
+    if not any(coverage):
+        import shutil
+
+        shutil.rmtree(tmp / MASKS_DIR)
+        return False
+    return True
+
+
+def _region_of_interest(roi: Roi, hull_views: list, has_masks: bool, cfg: PrepareConfig) -> tuple[Roi, str]:
+    """The sphere around the masks' visual hull when the scene has masks and no configured region
+    (:func:`checked_mask_roi`), else ``roi``; with why the masks' one was not used, in words ('' when it was)."""
+    if has_masks and cfg.roi is None and cfg.roi_from_masks:
+        return checked_mask_roi(roi_from_masks(hull_views, roi, cfg.roi_mask_agreement), roi, hull_views)
+    return roi, ""
+
+
+def _write_transparent_surface(tmp: Path, hull_views: list, roi: Roi, cfg: PrepareConfig) -> None:
+    """The points of the masks' visual hull that face the cameras, with their normals (:func:`hull_surface`)."""
+    hull = mask_hull(hull_views, roi, cfg.roi_mask_agreement, grid=64)
+    if hull is not None:
+        xyz, normal = hull_surface(hull, hull_views)
+        np.savez(tmp / TRANSPARENT_SURFACE_FILE, xyz=xyz.astype(np.float32), normal=normal.astype(np.float32))
+
+
+def _scene_record(views: list[_View], read: _Inputs, roi: Roi, roi_warning: str, has_masks: bool, scene_dir: Path,
+                  factor: int, cfg: PrepareConfig) -> PreparedScene:
+    """``scene.json``'s content."""
+    cameras = [v.camera for v in views]
+    marked = {Path(n).stem for n in read.masks.get("marked") or []}  # set only by masks.source: propagate
+    gains = {v.camera.name: v.gain for v in views}
+    return PreparedScene(
+        cameras=sorted(cameras, key=lambda c: c.name),
+        roi=roi,
+        downsample=factor,
+        resolution=cfg.resolution,
+        source=str(scene_dir.resolve()),
+        has_transparency=has_masks,
+        versions={"rtsplat": __version__, "scene_format": "1"},
+        inputs=read.made_from,
+        exposure={n: None if g.log_gain is None else [round(float(x), 5) for x in g.log_gain]
+                  for n, g in gains.items()},
+        exposure_points={n: g.points for n, g in gains.items()},
+        exposure_error={n: None if g.error is None else round(g.error, 6) for n, g in gains.items()},
+        marked_views=sorted(c.name for c in cameras if c.name in marked),
+        roi_warning=roi_warning,
+    )
+
+
+def prepare_scene(
+    scene_dir: str | Path,
+    sfm_dir: str | Path,
+    out_dir: str | Path,
+    cfg: PrepareConfig | None = None,
+    masks_dir: str | Path | None = None,
+    progress: bool = True,
+) -> PrepareSummary:
+    """Write the prepared scene for ``scene_dir`` into ``out_dir`` (atomically); see the module docstring."""
+    cfg = cfg or PrepareConfig()
+    scene_dir = Path(scene_dir)
+    inputs = [scene_dir, sfm_dir, masks_dir]
+    check_output_dir(out_dir, "prepare", inputs=inputs)
+    read = _read_inputs(scene_dir, sfm_dir, masks_dir)
+    f, downsample_reason = downsample_factor({(v.width, v.height) for v in read.views}, cfg, read.image_dir)
+    src = _sources(scene_dir, sfm_dir, masks_dir, read, f, cfg)
+    roi = _initial_roi(cfg, read.model)
+    with output_dir(Path(out_dir), "prepare", inputs=inputs) as tmp:
+        views = _write_views(tmp, read, src, cfg, progress)
+        if any(v.gt_layers for v in views):
+            _carry_reflection_reach(tmp, scene_dir)
+        has_masks = _masks_kept(tmp, views)
+        hull_views = [v.hull_view for v in views if v.hull_view is not None]
+        roi, roi_warning = _region_of_interest(roi, hull_views, has_masks, cfg)
+        if has_masks and cfg.transparent_surface and not roi_warning:  # a hull away from the glass seeds nothing
+            _write_transparent_surface(tmp, hull_views, roi, cfg)
+        write_points_ply(tmp / POINTS_FILE, read.model.xyz, read.model.rgb)
+        scene = _scene_record(views, read, roi, roi_warning, has_masks, scene_dir, f, cfg)
         scene.save(tmp)
         scene.validate(check_files=True, where=tmp / "scene.json")
+    return _summary(scene, views, src, read.model, downsample_reason)
+
+
+def _summary(scene: PreparedScene, views: list[_View], src: _Sources, model: ColmapModel,
+             downsample_reason: str) -> PrepareSummary:
+    coverage = [v.coverage for v in views if v.coverage is not None]
     return PrepareSummary(
         num_train=len(scene.train_cameras),
         num_test=len(scene.test_cameras),
-        width=cameras[0].width,
-        height=cameras[0].height,
-        downsample=f,
-        roi=roi,
-        has_transparency=has_masks,
+        width=views[0].camera.width,
+        height=views[0].camera.height,
+        downsample=scene.downsample,
+        roi=scene.roi,
+        has_transparency=scene.has_transparency,
         mask_coverage=float(np.mean(coverage)) if coverage else 0.0,
         num_points=len(model.xyz),
-        used_prescaled=use_prescaled,
-        gt_layer_views=gt_layer_views,
-        resolution=cfg.resolution,
+        used_prescaled=src.prescaled_dir is not None,
+        gt_layer_views=sum(v.gt_layers for v in views),
+        resolution=scene.resolution,
         downsample_reason=downsample_reason,
-        roi_warning=roi_warning,
+        roi_warning=scene.roi_warning,
     )
 
 

@@ -1,5 +1,6 @@
-"""The training loop, kept small: data, model, losses, density control, the divergence watch,
-checkpoints and logging each live in their own module; this file only sequences them.
+"""The training loop, kept small: data, model, losses, density control, the divergence watch, the
+mirror-plane fit, evaluation, checkpoints, resuming and logging each live in their own module; this file
+only sequences them.
 
 Run directory layout::
 
@@ -37,15 +38,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rtsplat.camera import Camera
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
 from rtsplat.io.atomic import write_errors, write_text_atomic
-from rtsplat.io.train_log import LOG_NAME, read_log
-from rtsplat.model.appearance import apply_appearance, fit_appearance, remove_appearance
-from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
+from rtsplat.io.train_log import LOG_NAME
+from rtsplat.model.appearance import apply_appearance
+from rtsplat.model.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
 from rtsplat.model.export import write_surfel_ply
-from rtsplat.model.mirror import empty_planes, fit_planes, is_bent
-from rtsplat.model.rtmodel import GBUFFER, RTModel, image_ray_directions
+from rtsplat.model.mirror import empty_planes, is_bent
+from rtsplat.model.rtmodel import GBUFFER, RenderResult, RTModel
 from rtsplat.model.surfels import (
     PARAMETERS,
     SurfelParameters,
@@ -56,39 +58,39 @@ from rtsplat.provenance import collect as collect_provenance
 from rtsplat.provenance import commit_label, machine_label, run_record, same_source
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
-from rtsplat.raster import default_backend, rasterize
+from rtsplat.raster import default_backend
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.appearance import (
     APPEARANCE_SPREAD,
     PROJECTED_SPREAD,
     AppearanceCorrections,
+    AppearanceDecision,
+    ExposureSpread,
     decide_appearance,
     exposure_spread,
     scene_log_gains,
     view_log_gains,
 )
-from rtsplat.train.cameras import PoseCorrections, fit_corrections
+from rtsplat.train.cameras import PoseCorrections
 from rtsplat.train.clock import ScheduleClock, passed
 from rtsplat.train.data import ViewSet, load_views, scene_extent
-from rtsplat.train.density import DensityControl
+from rtsplat.train.density import DensityControl, DensityEvents
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import (
-    NEAR_COVERAGE_VIEWS,
     decide_effects,
     decide_near_planes,
-    planes_seen_edge_on,
-    see_through_planes,
 )
+from rtsplat.train.evaluation import best_test_psnr, fit_test_appearance, fit_test_poses, views_psnr
+from rtsplat.train.glass_planes import glass_planes, glass_samples, marked_centres, near_coverage
 from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train.planes import PlaneRefinement
-from rtsplat.train_config import TrainConfig, resume_differences
+from rtsplat.train.resume import check_resumable, restore_log
+from rtsplat.train_config import TrainConfig
 from rtsplat.usage import Usage, UsageClock, compute_threads
 
-PLANE_TOLERANCE = 0.01  # mirror planes: thickness tolerance, a fraction of the glass points' diagonal
 MIN_COARSE_SIDE = 8  # progressive resolution: the coarsest training views keep at least this many pixels a side
-MAX_PLANE_POINTS = 50_000  # glass points the mirror planes are fitted to (a random subset beyond)
 
 
 @dataclass
@@ -166,24 +168,11 @@ class Trainer:
         )
         self.near_fit: dict | None = None  # the mirror-plane fit (fit_mirror_planes), once it ran
         self.plane_refinement: PlaneRefinement | None = None  # the planes learnt from the images, once fitted
-        xyz, rgb = scene.load_points()
-        self.points = (torch.as_tensor(np.asarray(xyz), dtype=torch.float32),
-                       torch.as_tensor(np.asarray(rgb), dtype=torch.float32) / 255.0)
-        if self.points[0].shape[0] == 0:
-            raise PipelineError("the point cloud is empty; cannot initialise surfels", path=scene.points_path,
-                                fix="rerun `rtsplat prepare` on a scene whose SfM produced points")
+        self.points = _scene_points(scene)  # the SfM points [N,3] and their colours [N,3] in [0, 1]
         train_pixels = sum(int(image.shape[0]) * int(image.shape[1]) for image in self.train_views.images)
         self.starting = plan_starting_surfels(self.points[0].shape[0], cfg.densify.initial_copies,
                                               starting_cap(cfg.densify, train_pixels))
-        gains, source, threshold = (scene_log_gains(scene.exposure or {}, self.train_views.names,
-                                                    scene.exposure_points, scene.exposure_error),
-                                    "SfM observations", APPEARANCE_SPREAD)
-        if gains is None:  # a scene prepared without the measurement
-            gains = view_log_gains(self.train_views.cameras, self.train_views.images, self.train_views.masks,
-                                   self.points[0].to(self.device), self.points[1].to(self.device))
-            source, threshold = "the points projected", PROJECTED_SPREAD
-        self.exposure = exposure_spread(gains)
-        self.appearance_decision = decide_appearance(cfg.effects.appearance, self.exposure, source, threshold)
+        self.exposure, self.appearance_decision = self._decide_appearance()
         self.effect_reasons["appearance"] = self.appearance_decision.reason
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
                            if self.appearance_decision.on else None)
@@ -214,6 +203,20 @@ class Trainer:
         self.provenance: list[dict] = []
 
     # -- construction ------------------------------------------------------------------------
+    def _decide_appearance(self) -> tuple[ExposureSpread, AppearanceDecision]:
+        """The spread of the training photos' exposures, measured by prepare from the SfM observations (else
+        from the points projected into the photos), and whether per-view appearance is learnt."""
+        views, scene = self.train_views, self.scene
+        gains, source, threshold = (scene_log_gains(scene.exposure or {}, views.names, scene.exposure_points,
+                                                    scene.exposure_error),
+                                    "SfM observations", APPEARANCE_SPREAD)
+        if gains is None:  # a scene prepared without the measurement
+            gains = view_log_gains(views.cameras, views.images, views.masks, self.points[0].to(self.device),
+                                   self.points[1].to(self.device))
+            source, threshold = "the points projected", PROJECTED_SPREAD
+        exposure = exposure_spread(gains)
+        return exposure, decide_appearance(self.cfg.effects.appearance, exposure, source, threshold)
+
     def _init_surfels(self) -> SurfelParameters:
         m = self.cfg.model
         surfels = initial_surfels(
@@ -234,7 +237,8 @@ class Trainer:
 
         The points are the surface depth of every training view's transparent pixels (mask > 0.5,
         surface alpha > 0.5) with the surface normals, at most ``MAX_PLANE_POINTS`` of them; the planes
-        are fitted within ``PLANE_TOLERANCE`` of the points' diagonal (:func:`rtsplat.model.mirror.fit_planes`).
+        are fitted within ``PLANE_TOLERANCE`` of the points' diagonal (:func:`rtsplat.model.mirror.fit_planes`;
+        :mod:`rtsplat.train.glass_planes`).
         A plane is glass only if the scene seen through it lies behind it: of the pixels whose ray meets
         the plane first, most must have their volume depth (what the transmission shows) beyond the plane
         by more than its thickness (:data:`BEHIND_SHARE`). A floor seen through a dome, or the floor inside
@@ -242,43 +246,13 @@ class Trainer:
         propagated masks, a plane a marked view sees edge-on is a face of the hull the glass was seeded on,
         not a pane (:func:`rtsplat.train.effects.planes_seen_edge_on`), and is left out too."""
         start = time.perf_counter()
-        points, normals, rays = [], [], []
-        masked = [i for i, m in enumerate(self.train_views.masks) if m is not None]
-        sampled = set(masked[::max(1, len(masked) // NEAR_COVERAGE_VIEWS)][:NEAR_COVERAGE_VIEWS])
-        coverage_views = []  # (camera, see-through pixels, surface depth) of the views the coverage is measured on
-        for index in masked:
-            camera, mask = self.train_views.cameras[index], self.train_views.masks[index]
-            out = rasterize(self.model.rasterizer_surfels(camera), camera, self.cfg.raster, backend=self.cfg.backend)
-            chosen = ((mask > 0.5) & (out.alpha > 0.5))[..., 0]
-            if index in sampled:
-                coverage_views.append((camera, chosen, out.depth[..., 0]))
-            directions = image_ray_directions(camera)[chosen]
-            seen_through = losses.depth_to_points(out.volume_depth, camera)[chosen]  # what the transmission shows
-            points.append(losses.depth_to_points(out.depth, camera)[chosen])
-            normals.append(torch.nn.functional.normalize(out.normal[chosen], dim=-1))
-            rays.append(torch.cat([camera.center.expand_as(directions), directions,
-                                   (seen_through - camera.center).norm(dim=-1, keepdim=True)], -1))
-        # in the render's precision until the subset is drawn: all views' transparent pixels of a real
-        # capture are millions of points
-        xyz, normal, rays = (torch.cat(x).cpu() if x else torch.zeros(0, w)
-                             for x, w in ((points, 3), (normals, 3), (rays, 7)))
-        ok = torch.isfinite(xyz).all(-1) & torch.isfinite(normal).all(-1) & torch.isfinite(rays).all(-1)
-        xyz, normal, rays = xyz[ok], normal[ok], rays[ok]
-        if xyz.shape[0] > MAX_PLANE_POINTS:
-            keep = torch.randperm(xyz.shape[0], generator=self.rng)[:MAX_PLANE_POINTS]
-            xyz, normal, rays = xyz[keep], normal[keep], rays[keep]
-        xyz, normal, rays = xyz.double(), normal.double(), rays.double()
-        planes, share, dropped, hull_faces = empty_planes(), None, 0, 0
-        if xyz.shape[0] >= 16:
-            diagonal = float((xyz.max(0).values - xyz.min(0).values).norm())
-            planes, shares = fit_planes(xyz, normal, tolerance=PLANE_TOLERANCE * diagonal, seed=self.cfg.seed)
-            glass = see_through_planes(planes, rays)
-            faces = planes_seen_edge_on(planes, self._marked_centres()) & glass
-            dropped, hull_faces = int((~glass).sum()), int(faces.sum())
-            keep = glass & ~faces
-            planes, share = planes[keep], float(shares[keep].sum())
-        coverage = self._near_coverage(planes, coverage_views) if planes.shape[0] else None
-        use, why = decide_near_planes(self.cfg.effects.near_reflection, planes.shape[0], share, coverage)
+        cfg = self.cfg
+        xyz, normal, rays, coverage_views = glass_samples(self.model, self.train_views, cfg.raster, cfg.backend,
+                                                          self.rng)
+        planes, share, dropped, hull_faces = glass_planes(xyz, normal, rays, marked_centres(self.scene), cfg.seed)
+        coverage = (near_coverage(self.model, planes, coverage_views, cfg.raster, cfg.backend)
+                    if planes.shape[0] else None)
+        use, why = decide_near_planes(cfg.effects.near_reflection, planes.shape[0], share, coverage)
         if dropped:
             why += f" ({dropped} plane(s) with nothing behind them left out)"
         if hull_faces:
@@ -293,32 +267,6 @@ class Trainer:
                  f"fitted in {self.near_fit['seconds']:.1f} s)")
         self._write_effects()
         return self.near_fit
-
-    def _near_coverage(self, planes: Tensor, views: list[tuple]) -> float:
-        """The mean coverage (volume alpha) of the near reflection in ``planes`` over the see-through pixels
-        (mask > 0.5, surface alpha > 0.5) of ``views`` (camera, those pixels [H,W], surface depth [H,W]; at
-        most ``NEAR_COVERAGE_VIEWS`` training views spread over the capture, rasterized by the plane fit):
-        how much of the model the glass would reflect."""
-        held = self.model.mirror_planes
-        self.model.set_mirror_planes(planes)
-        covered, pixels = 0.0, 0
-        try:
-            for camera, wanted, surface_depth in views:
-                _, alpha = self.model.near_reflection(camera, wanted, self.cfg.raster, self.cfg.backend,
-                                                      surface_depth=surface_depth)
-                covered += float(alpha[..., 0][wanted].sum())
-                pixels += int(wanted.sum())
-        finally:
-            self.model.set_mirror_planes(held)
-        return covered / max(pixels, 1)
-
-    def _marked_centres(self) -> Tensor:
-        """The camera centres [C,3] of the views whose masks were marked, when the others' were propagated
-        from them (``PreparedScene.marked_views``); none otherwise."""
-        records = [c for c in self.scene.cameras if c.name in set(self.scene.marked_views)]
-        if not records:
-            return torch.zeros(0, 3, dtype=torch.float64)
-        return torch.stack([c.to_camera(dtype=torch.float64).center for c in records])
 
     def _start_plane_refinement(self) -> None:
         """Learn the mirror planes from the images from here on (:mod:`rtsplat.train.planes`) when near
@@ -376,12 +324,7 @@ class Trainer:
         cfg = self.cfg
         self.iteration += 1
         # it: the plan's iteration this step stands at (the run's iteration without a time budget)
-        previous, it = self.clock.advance(self.elapsed)
-        if not cfg.ablations.joint_optimization and previous <= cfg.schedule.background_phase_end() < it:
-            self._freeze_background()
-        for group in self.optimizer.param_groups:
-            if group.get("name") == "means":
-                group["lr"] = position_lr(it, cfg.lr, self.extent)
+        previous, it = self._advance()
         idx = self._next_view()
         views = self.train_levels[cfg.schedule.downsample_at(it)]
         camera, target, mask = views.cameras[idx], views.images[idx], views.masks[idx]
@@ -393,21 +336,54 @@ class Trainer:
             self.fit_mirror_planes()  # once, as the reflections start: the glass has its shape by then
         background_phase = self._background_phase()
         stage = "volume" if background_phase else stage_at(it, cfg)
-        sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
-        background = torch.rand(3, generator=self.rng) if cfg.model.background == "random" else None
-        refine_planes = self.plane_refinement is not None  # only made where near reflections are on
-        result = self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
-                                   backend=cfg.backend, sh_degree=sh_degree, background=background,
-                                   mirror_planes=self.plane_refinement.planes() if refine_planes else None)
+        result = self._render_training_view(camera, stage, it)
         weight = (1.0 - mask) if (background_phase and mask is not None) else None
         color = result.color
         learn_appearance = self.appearance is not None and it > cfg.appearance.start(cfg.schedule)
         if learn_appearance:
             color = apply_appearance(color, self.appearance.correction(idx))
+        terms = self._loss_terms(it, result, color, target, mask, weight, camera,
+                                 idx if learn_appearance else None)
+        loss = sum(terms.values())
+        loss.backward()
+        events = self._update(result, it, previous, refine_pose, learn_appearance, loss)
+        with torch.no_grad():
+            value = psnr(color.detach().clamp(0, 1), target)
+        return StepResult(self.iteration, (previous, it), loss.detach(), value,
+                          {k: v.detach() for k, v in terms.items()}, stage, events.to_dict() if events.any() else {})
+
+    def _advance(self) -> tuple[int, int]:
+        """Move the plan's clock on by one step (:meth:`ScheduleClock.advance`): the plan's iterations before
+        and at this step; freeze the background as its phase ends and set the position learning rate."""
+        cfg = self.cfg
+        previous, it = self.clock.advance(self.elapsed)
+        if not cfg.ablations.joint_optimization and previous <= cfg.schedule.background_phase_end() < it:
+            self._freeze_background()
+        for group in self.optimizer.param_groups:
+            if group.get("name") == "means":
+                group["lr"] = position_lr(it, cfg.lr, self.extent)
+        return previous, it
+
+    def _render_training_view(self, camera: Camera, stage: str, it: int) -> RenderResult:
+        """The model's render of a training view at the plan's iteration ``it``: its spherical harmonics
+        degree, a random background (``model.background: random``) and the mirror planes being learnt."""
+        cfg = self.cfg
+        sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
+        background = torch.rand(3, generator=self.rng) if cfg.model.background == "random" else None
+        planes = self.plane_refinement.planes() if self.plane_refinement is not None else None
+        return self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
+                                 backend=cfg.backend, sh_degree=sh_degree, background=background,
+                                 mirror_planes=planes)
+
+    def _loss_terms(self, it: int, result: RenderResult, color: Tensor, target: Tensor, mask: Tensor | None,
+                    weight: Tensor | None, camera: Camera, appearance_view: int | None) -> dict[str, Tensor]:
+        """The weighted loss terms of one training view by name, in the order they are summed: the image term
+        (pixels weighted by ``weight``) and those whose weight, iteration and inputs switch them on;
+        ``appearance_view``: the view whose appearance correction is learnt (its prior term), None: none is."""
+        cfg, L = self.cfg, self.cfg.losses
         terms = {"image": losses.image_loss(color, target, cfg.losses.ssim_weight, weight)}
-        if learn_appearance and cfg.appearance.prior_weight > 0:
-            terms["appearance"] = cfg.appearance.prior_weight * self.appearance.prior(idx)
-        L = cfg.losses
+        if appearance_view is not None and cfg.appearance.prior_weight > 0:
+            terms["appearance"] = cfg.appearance.prior_weight * self.appearance.prior(appearance_view)
         if L.normal_weight > 0 and it > L.normal_from:
             depth = result.raster.depth_median if L.normal_depth == "median" else result.raster.depth
             terms["normal"] = L.normal_weight * losses.normal_consistency(
@@ -439,24 +415,25 @@ class Trainer:
             visible = result.raster.visible.to(self.model.surfels.occupancy.dtype)
             terms["occupancy_decay"] = L.occupancy_decay_weight * (
                 (self.model.surfels.occupancy * visible).sum() / visible.sum().clamp_min(1))
-        loss = sum(terms.values())
-        loss.backward()
+        return terms
+
+    def _update(self, result: RenderResult, it: int, previous: int, refine_pose: bool, learn_appearance: bool,
+                loss: Tensor) -> DensityEvents:
+        """After the backward pass: the optimizer steps (surfels, poses, mirror planes, appearance), density
+        control, and the divergence watch's record of the step; returns the density events."""
         trainable = (~self.frozen).float()
         self.density.observe(result.raster, trainable)
         gradients = self._optimizer_step()
         if refine_pose:
             self.poses.step()
-        if refine_planes:
+        if self.plane_refinement is not None:
             self.model.set_mirror_planes(self.plane_refinement.step())
         if learn_appearance:
             self.appearance.step()
         events, self.frozen = self.density.step(it, self.model.surfels, self.optimizer, self.rng, self.frozen,
                                                 previous=previous)
         self.watch.record(self.iteration, loss, gradients, self.optimizer)
-        with torch.no_grad():
-            value = psnr(color.detach().clamp(0, 1), target)
-        return StepResult(self.iteration, (previous, it), loss.detach(), value,
-                          {k: v.detach() for k, v in terms.items()}, stage, events.to_dict() if events.any() else {})
+        return events
 
     def _optimizer_step(self) -> Tensor:
         """Adam on the unfrozen rows; returns the gradients' group sums for the divergence watch."""
@@ -490,9 +467,10 @@ class Trainer:
         self.log(f"joint_optimization off: froze {n_old} background surfels, added {len(fresh)} new ones")
 
     # -- evaluation --------------------------------------------------------------------------
-    def _render_for_evaluation(self, camera):
+    def _evaluation_color(self, camera: Camera) -> Tensor:
+        """The model's colour at ``camera`` in the stage the plan stands at (no random background)."""
         return self.model.render(camera, stage=stage_at(max(self.clock.position, 1), self.cfg),
-                                 raster_settings=self.cfg.raster, backend=self.cfg.backend)
+                                 raster_settings=self.cfg.raster, backend=self.cfg.backend).color
 
     def fit_test_cameras(self, steps: int) -> None:
         """Fit the test views' pose corrections to their images (model fixed), continuing from the
@@ -503,19 +481,15 @@ class Trainer:
         if len(self.test_views) == 0:
             return
         start = time.perf_counter()
+        render = self._evaluation_color
         if self.poses is not None and steps > 0:
-            images = self.test_views.images
-            if self.appearance is not None:
-                images = [remove_appearance(image, correction)
-                          for image, correction in zip(images, self.test_appearance, strict=True)]
-            self.test_corrections = fit_corrections(
-                lambda camera: self._render_for_evaluation(camera).color, self.test_views.cameras,
-                images, self.test_corrections, self.extent, steps, self.cfg.cameras.test_fit_lr)
+            self.test_corrections = fit_test_poses(
+                render, self.test_views, self.test_corrections,
+                self.test_appearance if self.appearance is not None else None, self.extent, steps,
+                self.cfg.cameras.test_fit_lr)
         if self.appearance is not None:
-            with torch.no_grad():
-                for index, (camera, image) in enumerate(zip(self.test_cameras(), self.test_views.images, strict=True)):
-                    rendered = self._render_for_evaluation(camera).color
-                    self.test_appearance[index] = fit_appearance(rendered, image, self.cfg.appearance.test_prior)
+            fit_test_appearance(render, self.test_cameras(), self.test_views.images, self.cfg.appearance.test_prior,
+                                self.test_appearance)
         self.test_fit_seconds += time.perf_counter() - start
 
     def test_cameras(self) -> list:
@@ -526,29 +500,13 @@ class Trainer:
     @torch.no_grad()
     def evaluate(self, views: ViewSet | None = None) -> dict[str, float]:
         """Test PSNR (entire image, transparent region) of ``views`` (default: the test views, with
-        their fitted pose corrections)."""
+        their fitted pose and appearance corrections; :func:`rtsplat.train.evaluation.views_psnr`)."""
         appearance = self.test_appearance if views is None and self.appearance is not None else None
         cameras = views.cameras if views is not None else self.test_cameras()
         views = views or self.test_views
         if len(views) == 0:
             return {}
-        full, region = [], []
-        for index, (camera, image, mask) in enumerate(zip(cameras, views.images, views.masks, strict=True)):
-            color = self._render_for_evaluation(camera).color
-            if appearance is not None:
-                color = apply_appearance(color, appearance[index])
-            color = color.clamp(0, 1)
-            full.append(psnr(color, image))
-            if mask is not None:  # NaN marks a view without transparent pixels
-                has_region = mask.sum() > 0
-                region.append(torch.where(has_region, psnr(color, image, mask), torch.full_like(full[-1], math.nan)))
-        # one transfer from the device for all views
-        full_values = torch.stack(full).tolist()
-        region_values = [v for v in (torch.stack(region).tolist() if region else []) if not math.isnan(v)]
-        out = {"test_psnr": float(np.mean(full_values))}
-        if region_values:
-            out["test_psnr_transparent"] = float(np.mean(region_values))
-        return out
+        return views_psnr(self._evaluation_color, cameras, views, appearance)
 
     def camera_corrections(self) -> dict[str, list[float]]:
         """Every view's pose correction by name (rotation vector in radians, translation), for
@@ -661,34 +619,16 @@ class Trainer:
         :data:`rtsplat.train_config.RESUME_MAY_CHANGE`) is an error naming the keys, unless
         ``new_config`` (``--resume-with-new-config``), which logs them and trains on with this config."""
         checkpoint = read_checkpoint(path, self.device)
-        if not checkpoint.training:
-            raise CheckpointError("has no training state to resume from; delete it to start over", path=path)
-        recorded = checkpoint.training.get("data") or {}
-        fingerprint = recorded.get("fingerprint")
-        if self.data is not None and fingerprint and fingerprint != self.data["fingerprint"]:
-            raise CheckpointError(
-                f"was written training on another prepared scene: {recorded.get('path', '?')} (fingerprint "
-                f"{recorded['fingerprint']}); this run's data {self.data['path']} has fingerprint "
-                f"{self.data['fingerprint']}",
-                path=path, fix="pass the --data it was trained on to resume it, or use a new --out directory or "
-                "--no-resume to start over on this data",
-            )
-        if checkpoint.effects != self.effects:
-            raise CheckpointError(
-                f"written with effects {checkpoint.effects.to_dict()}, this run uses {self.effects.to_dict()}; "
-                "use a new --out directory or delete the checkpoint", path=path,
-            )
-        state = checkpoint.training
-        changed = resume_differences(state.get("config", {}), self.cfg)
-        if changed and not new_config:
-            raise CheckpointError(
-                "was written with a different config than this run's:\n    " + "\n    ".join(changed),
-                path=path, fix="pass --resume-with-new-config to resume with this config (Trainer.train("
-                "new_config=True)), restore the checkpoint's config (its run's config.json), or use a new --out "
-                "directory or --no-resume to start over",
-            )
+        changed = check_resumable(checkpoint, path, self.data, self.effects, self.cfg, new_config)
         if changed:
             self.log("resuming with a changed config: " + "; ".join(changed))
+        self._restore_model(checkpoint)
+        self._restore_progress(checkpoint.training)
+
+    def _restore_model(self, checkpoint: Checkpoint) -> None:
+        """The model and what trains it, from a checkpoint: optimizer, density control, frozen rows, the pose,
+        appearance and mirror-plane corrections, the plane fit, and what trained each part of the run."""
+        state = checkpoint.training
         self.model = checkpoint.build_model(self.device, ablations=self.cfg.ablations, settings=self.cfg.model)
         self.optimizer = build_optimizer(self.model, self.model.surfels, self.cfg.lr, self.extent)
         self.optimizer.load_state_dict(state["optimizer"])
@@ -706,6 +646,10 @@ class Trainer:
         self._start_plane_refinement()
         if self.plane_refinement is not None and state.get("plane_refinement") is not None:
             self.plane_refinement.load_state_dict(state["plane_refinement"])
+
+    def _restore_progress(self, state: dict) -> None:
+        """Where the run stood at the checkpoint: the view order, the random generators, the iteration and the
+        plan's position, and the time spent."""
         self.order = list(state["order"])
         # generator states are CPU byte tensors (the checkpoint was read onto self.device)
         self.rng.set_state(state["rng"].cpu())
@@ -727,31 +671,11 @@ class Trainer:
         self.run_clock.restart()
         self.out.mkdir(parents=True, exist_ok=True)
         log_path = self.out / LOG_NAME
-        if resume and self.checkpoint_path.exists():
-            self.load_checkpoint(self.checkpoint_path, new_config)
-            self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
-            if self.kept_log_path is not None and self.kept_log_path.exists() and not log_path.exists():
-                write_text_atomic(log_path, self.kept_log_path.read_text())
-            _truncate_log(log_path, self.iteration, self.log)
-        else:
-            log_path.unlink(missing_ok=True)
-        here = collect_provenance(str(self.device))
-        if not self.provenance or not same_source(self.provenance[-1], here):
-            self.provenance.append(here)
-        self.log(f"trained by: {commit_label(here)} on {machine_label(here)}")
+        self._resume_or_start(resume, new_config, log_path)
+        self._record_provenance()
         _write_json(self.out / "config.json", cfg.to_dict())
         self._write_effects()
-        self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
-                 f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
-        self.log(f"near reflection: {self.effects.near_reflection} ({self.effect_reasons['near_reflection']})")
-        self.log(f"per-view appearance: {self.appearance is not None} ({self.effect_reasons['appearance']})")
-        self.log(f"perceptual loss: {self.perceptual_note}")
-        self.log(f"starting surfels: {self.starting.surfels} ({self.starting.reason})")
-        backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
-        self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
-        if cfg.schedule.seconds is not None:
-            self.log(f"time budget: {cfg.schedule.seconds:g} s of training steps, the plan of "
-                     f"{cfg.schedule.iterations} iterations placed by the share spent")
+        self._log_settings()
         # reading the divergence record waits for the device: on a CPU that costs nothing, elsewhere it
         # is read where the loop reads the device anyway (logging steps) and before every write
         watch_every_step = self.device.type == "cpu"
@@ -763,53 +687,104 @@ class Trainer:
                                            **self.evaluate()}) + "\n")
             last = self.clock.done(self.iteration, self.elapsed)  # a resumed run may be done already
             while not last:
-                start, cpu_start = time.perf_counter(), time.process_time()
-                try:
-                    step = self.step()
-                except Exception:  # a diverged state can break the step itself: name the divergence
-                    self.stop_if_diverged()
-                    raise
-                last = self.clock.done(step.iteration, self.elapsed + time.perf_counter() - start)
-                evaluate_now = cfg.schedule.eval_every > 0 and (
-                    last or passed(*step.positions, cfg.schedule.eval_every) is not None)
-                logging = step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now or bool(step.density)
-                # the loop reads the device only on logging steps; that read waits for the queued work,
-                # so the seconds logged there include it
-                numbers = step.numbers() if logging else None
-                if logging or watch_every_step:
-                    self.stop_if_diverged()
-                self.elapsed += time.perf_counter() - start
-                if self.cpu_elapsed is not None:
-                    self.cpu_elapsed += time.process_time() - cpu_start
+                step, numbers, last, evaluate_now = self._timed_step(watch_every_step)
                 bar.update(step.positions[1] - step.positions[0])
                 if numbers is not None:
                     bar.set_postfix(loss=f"{numbers['loss']:.4f}", psnr=f"{numbers['psnr']:.2f}",
                                     surfels=len(self.model.surfels))
-                    record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4),
-                              "cpu_seconds": _rounded(self.cpu_elapsed, 4), **numbers,
-                              "surfels": len(self.model.surfels), "stage": step.stage}
-                    if cfg.schedule.seconds is not None:  # the plan's iteration this step stood at
-                        record["position"] = step.positions[1]
-                    if cfg.schedule.coarse_downsample > 1:  # the progressive resolution's factor of this step
-                        record["downsample"] = cfg.schedule.downsample_at(step.positions[1])
-                    if step.density:
-                        record["density"] = step.density
-                    if evaluate_now:
-                        self.fit_test_cameras(cfg.cameras.final_fit_steps if last else cfg.cameras.test_fit_steps)
-                        record.update(self.evaluate())
-                    log_file.write(json.dumps(record) + "\n")
+                    log_file.write(json.dumps(self._log_record(step, numbers, last, evaluate_now)) + "\n")
                     log_file.flush()
                 stop = self.stop_signal
                 if stop is not None or passed(*step.positions, cfg.schedule.checkpoint_every) is not None:
                     log_file.flush()
-                    if self.kept_log_path is not None:  # before the checkpoint: never older than it
-                        write_text_atomic(self.kept_log_path, log_path.read_text())
-                    self.save_checkpoint()
+                    self._write_checkpoint_and_log(log_path)
                 if stop is not None and not last:
                     bar.close()
                     raise TrainingStopped(stop, self.iteration, self.checkpoint_path)
         bar.close()
         return self.finish()
+
+    def _resume_or_start(self, resume: bool, new_config: bool, log_path: Path) -> None:
+        """Resume from the checkpoint when asked and there is one (the train log cut back to it), else start
+        over (without a train log)."""
+        if resume and self.checkpoint_path.exists():
+            self.load_checkpoint(self.checkpoint_path, new_config)
+            self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
+            restore_log(log_path, self.kept_log_path, self.iteration, self.log)
+        else:
+            log_path.unlink(missing_ok=True)
+
+    def _record_provenance(self) -> None:
+        """Add what trains this part of the run (:func:`rtsplat.provenance.collect`) when it differs from what
+        trained the part it resumes."""
+        here = collect_provenance(str(self.device))
+        if not self.provenance or not same_source(self.provenance[-1], here):
+            self.provenance.append(here)
+        self.log(f"trained by: {commit_label(here)} on {machine_label(here)}")
+
+    def _log_settings(self) -> None:
+        """Say which branches run and why, the starting surfels, the device and the time budget."""
+        cfg = self.cfg
+        self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
+                 f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
+        self.log(f"near reflection: {self.effects.near_reflection} ({self.effect_reasons['near_reflection']})")
+        self.log(f"per-view appearance: {self.appearance is not None} ({self.effect_reasons['appearance']})")
+        self.log(f"perceptual loss: {self.perceptual_note}")
+        self.log(f"starting surfels: {self.starting.surfels} ({self.starting.reason})")
+        backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
+        self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
+        if cfg.schedule.seconds is not None:
+            self.log(f"time budget: {cfg.schedule.seconds:g} s of training steps, the plan of "
+                     f"{cfg.schedule.iterations} iterations placed by the share spent")
+
+    def _timed_step(self, watch_every_step: bool) -> tuple[StepResult, dict[str, float] | None, bool, bool]:
+        """One training step, its wall and CPU seconds added to the run's: the step, its numbers (read from the
+        device on logging steps only, else None), whether it is the last and whether an evaluation follows.
+        The divergence watch is read on logging steps, and on every step with ``watch_every_step``."""
+        cfg = self.cfg
+        start, cpu_start = time.perf_counter(), time.process_time()
+        try:
+            step = self.step()
+        except Exception:  # a diverged state can break the step itself: name the divergence
+            self.stop_if_diverged()
+            raise
+        last = self.clock.done(step.iteration, self.elapsed + time.perf_counter() - start)
+        evaluate_now = cfg.schedule.eval_every > 0 and (
+            last or passed(*step.positions, cfg.schedule.eval_every) is not None)
+        logging = step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now or bool(step.density)
+        # the loop reads the device only on logging steps; that read waits for the queued work,
+        # so the seconds logged there include it
+        numbers = step.numbers() if logging else None
+        if logging or watch_every_step:
+            self.stop_if_diverged()
+        self.elapsed += time.perf_counter() - start
+        if self.cpu_elapsed is not None:
+            self.cpu_elapsed += time.process_time() - cpu_start
+        return step, numbers, last, evaluate_now
+
+    def _log_record(self, step: StepResult, numbers: dict[str, float], last: bool, evaluate_now: bool) -> dict:
+        """The train log's line of a logging step; with ``evaluate_now``, the test views are fitted and
+        evaluated first (with the final fit's steps on the ``last`` step)."""
+        cfg = self.cfg
+        record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4),
+                  "cpu_seconds": _rounded(self.cpu_elapsed, 4), **numbers,
+                  "surfels": len(self.model.surfels), "stage": step.stage}
+        if cfg.schedule.seconds is not None:  # the plan's iteration this step stood at
+            record["position"] = step.positions[1]
+        if cfg.schedule.coarse_downsample > 1:  # the progressive resolution's factor of this step
+            record["downsample"] = cfg.schedule.downsample_at(step.positions[1])
+        if step.density:
+            record["density"] = step.density
+        if evaluate_now:
+            self.fit_test_cameras(cfg.cameras.final_fit_steps if last else cfg.cameras.test_fit_steps)
+            record.update(self.evaluate())
+        return record
+
+    def _write_checkpoint_and_log(self, log_path: Path) -> None:
+        """The checkpoint, after the kept copy of the train log (:attr:`kept_log_path`): never older than it."""
+        if self.kept_log_path is not None:
+            write_text_atomic(self.kept_log_path, log_path.read_text())
+        self.save_checkpoint()
 
     def run_usage(self) -> Usage | None:
         """Wall and CPU seconds, threads and the other processes' CPU time of the whole run so far (this
@@ -857,29 +832,15 @@ def _rounded(value: float | None, digits: int) -> float | None:
     return None if value is None else round(value, digits)
 
 
-def best_test_psnr(log_path: Path, iteration: int, final: dict[str, float]) -> dict:
-    """The best entire-image test PSNR among the log's evaluations (iteration 0 is the initialisation)
-    and the final one, with the iteration it was seen at and the final's distance to it."""
-    seen = [(final["test_psnr"], iteration)] if "test_psnr" in final else []
-    if log_path.exists():
-        seen += [(record["test_psnr"], record["iteration"]) for record, _ in read_log(log_path, lambda _: None)
-                 if "test_psnr" in record]
-    if not seen:
-        return {}
-    best, at = max(seen, key=lambda pair: (pair[0], -pair[1]))
-    out = {"best_test_psnr": best, "best_test_psnr_iteration": at}
-    if "test_psnr" in final:
-        out["final_minus_best_test_psnr"] = final["test_psnr"] - best
-    return out
-
-
-def _truncate_log(path: Path, iteration: int, log: Callable[[str], None]) -> None:
-    """Drop log lines written after the checkpoint (they will be written again), and a last line that
-    a killed run or a full disk left half-written (:func:`rtsplat.io.train_log.read_log`)."""
-    if not path.exists():
-        return
-    kept = [line for record, line in read_log(path, log) if record["iteration"] <= iteration]
-    write_text_atomic(path, "".join(line + "\n" for line in kept))
+def _scene_points(scene: PreparedScene) -> tuple[Tensor, Tensor]:
+    """The prepared scene's SfM points [N,3] and their colours [N,3] in [0, 1]; an error when there are none."""
+    xyz, rgb = scene.load_points()
+    points = (torch.as_tensor(np.asarray(xyz), dtype=torch.float32),
+              torch.as_tensor(np.asarray(rgb), dtype=torch.float32) / 255.0)
+    if points[0].shape[0] == 0:
+        raise PipelineError("the point cloud is empty; cannot initialise surfels", path=scene.points_path,
+                            fix="rerun `rtsplat prepare` on a scene whose SfM produced points")
+    return points
 
 
 def _progress(total: int, initial: int, enabled: bool):
