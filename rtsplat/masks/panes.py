@@ -29,18 +29,17 @@ import numpy as np
 from rtsplat.io.colmap import ColmapView
 from rtsplat.masks.plane import (
     AGREEMENT_TIE,
-    MAX_IN_FRONT,
     MIN_INLIERS,
     RANSAC_TOLERANCE,
-    REFINE_PENALTY,
     GlassPlane,
     _fit,
     cast_marks,
     check_agreement,
+    facing_planes,
+    in_front_penalty,
     in_front_share,
     mark_agreement,
     outline_points,
-    ransac_planes,
     seen_through,
 )
 from rtsplat.masks.propagation import _resize_mask
@@ -127,15 +126,14 @@ def consistency(plane: GlassPlane, pane: Marked, others: Marked, scale: float) -
 def _pane_score(plane: GlassPlane, pane: Marked, others: Marked, scale: float, behind: Marked,
                 tolerance: float) -> float:
     """The pane's agreement between its views (with two or more) and its consistency with the other marked views
-    (:func:`consistency`), averaged; less :data:`REFINE_PENALTY` times the share of what is seen through it in
-    front of the plane beyond :data:`MAX_IN_FRONT`."""
+    (:func:`consistency`), averaged; less :func:`rtsplat.masks.plane.in_front_penalty` of the share of what is seen
+    through it in front of the plane."""
     terms = [mark_agreement(plane, pane, scale)] if len(pane) > 1 else []
     consistent = consistency(plane, pane, others, scale)
     if consistent is not None:
         terms.append(consistent)
     score = float(np.mean(terms)) if terms else 1.0
-    return score - REFINE_PENALTY * max(0.0, in_front_share(plane.normal, plane.offset, behind, tolerance)
-                                        - MAX_IN_FRONT)
+    return score - in_front_penalty(in_front_share(plane.normal, plane.offset, behind, tolerance))
 
 
 def pane_plane(xyz: np.ndarray, pane: Marked, marked: Marked, single: GlassPlane, band: float, scale: float,
@@ -151,11 +149,7 @@ def pane_plane(xyz: np.ndarray, pane: Marked, marked: Marked, single: GlassPlane
     depth = float(np.median(np.linalg.norm(outline[:, None] - centres[None], axis=2)))
     tolerance = RANSAC_TOLERANCE * depth
     behind = seen_through(xyz, pane)
-    candidates = [(single.normal, single.offset)]
-    for normal, offset, _ in ransac_planes(outline, tolerance, np.random.default_rng(seed)):
-        sign = 1.0 if float(np.median(centres @ normal + offset)) >= 0 else -1.0
-        if np.all(centres @ (sign * normal) + sign * offset > 0):  # not between the pane's marked cameras
-            candidates.append((sign * normal, sign * offset))
+    candidates = [(single.normal, single.offset), *facing_planes(outline, centres, tolerance, seed)]
     scores = [_pane_score(GlassPlane(n, o, 0.0, 0.0, 0, 0, 0.0), pane, others, scale, behind, 3 * tolerance)
               for n, o in candidates]
     support = [int((np.abs(outline @ n + o) < tolerance).sum()) for n, o in candidates]

@@ -271,6 +271,25 @@ def mark_agreement(plane: GlassPlane, marked: list[tuple[ColmapView, np.ndarray]
     return float(np.mean(scores)) if scores else 0.0
 
 
+def facing_planes(outline: np.ndarray, centres: np.ndarray, tolerance: float,
+                  seed: int = 0) -> list[tuple[np.ndarray, float]]:
+    """The planes :func:`ransac_planes` proposes through the ``outline`` points, each oriented so that the marked
+    cameras at ``centres`` lie on its positive side; a plane that passes between those cameras is left out."""
+    facing = []
+    for normal, offset, _ in ransac_planes(outline, tolerance, np.random.default_rng(seed)):
+        sign = 1.0 if float(np.median(centres @ normal + offset)) >= 0 else -1.0
+        normal, offset = sign * normal, sign * offset
+        if not np.any(centres @ normal + offset <= 0):
+            facing.append((normal, offset))
+    return facing
+
+
+def in_front_penalty(share: float) -> float:
+    """The agreement a plane loses for the ``share`` of what the marks see through the glass in front of it:
+    :data:`REFINE_PENALTY` times the share beyond :data:`MAX_IN_FRONT`."""
+    return REFINE_PENALTY * max(0.0, share - MAX_IN_FRONT)
+
+
 def _plane_score(normal: np.ndarray, offset: float, marked: list[tuple[ColmapView, np.ndarray]], scale: float,
                  behind: list[tuple[ColmapView, np.ndarray]], tolerance: float) -> tuple[float, float]:
     """(the marks' agreement through the plane, the share of what they see through the glass in front of it)."""
@@ -295,7 +314,7 @@ def refine_plane(normal: np.ndarray, offset: float, marked: list[tuple[ColmapVie
         if np.any(centres @ n + d <= 0):
             return 1.0
         agreement, share = _plane_score(n, d, marked, scale, behind, tolerance)
-        return -agreement + REFINE_PENALTY * max(0.0, share - MAX_IN_FRONT)
+        return -agreement + in_front_penalty(share)
 
     x0 = np.array([np.arccos(np.clip(normal[2], -1.0, 1.0)), np.arctan2(normal[1], normal[0]), offset])
     simplex = np.stack([x0, x0 + [0.15, 0, 0], x0 + [0, 0.15, 0], x0 + [0, 0, 10 * tolerance]])
@@ -327,13 +346,9 @@ def glass_plane(xyz: np.ndarray, marked: list[tuple[ColmapView, np.ndarray]], ba
     tolerance = RANSAC_TOLERANCE * depth
     behind = seen_through(xyz, marked)
     best, best_score = None, -np.inf
-    for normal, offset, _ in ransac_planes(outline, tolerance, np.random.default_rng(seed)):
-        sign = 1.0 if float(np.median(centres @ normal + offset)) >= 0 else -1.0
-        normal, offset = sign * normal, sign * offset
-        if np.any(centres @ normal + offset <= 0):  # a plane between the marked cameras
-            continue
+    for normal, offset in facing_planes(outline, centres, tolerance, seed):
         agreement, share = _plane_score(normal, offset, marked, scale, behind, 3 * tolerance)
-        score = agreement - REFINE_PENALTY * max(0.0, share - MAX_IN_FRONT)
+        score = agreement - in_front_penalty(share)
         if score > best_score + AGREEMENT_TIE:  # ties keep the plane of more points
             best, best_score = (normal, offset), score
     if best is None:
