@@ -207,6 +207,11 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
     return flags
 
 
+def _signed(value: float | None) -> str:
+    """A difference with its sign and two decimals; "-" for None."""
+    return "-" if value is None else f"{value:+.2f}"
+
+
 def _fmt(value, digits: int = 2) -> str:
     if isinstance(value, bool) or value is None:
         return "-" if value is None else str(value)
@@ -537,14 +542,14 @@ def summary_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) 
         row = [scene, f"{ours} - {theirs}"]
         for key in ("psnr_transparent", "psnr"):
             gap = _difference(runs[ours].mean.get(key), runs[theirs].mean.get(key))
-            row.append("-" if gap is None else f"{gap:+.2f}")
+            row.append(_signed(gap))
         for key in ("psnr_transparent", "psnr"):
             measured = [d[key] for d in noise if d[key] is not None]
             row.append(_fmt(max(measured), 3) if measured else "not measured")
         row.append(", ".join(d["method"] for d in noise) or "-")
         for key in ("test_psnr_transparent", "test_psnr"):
             gap = equal_time_gap(runs[ours], runs[theirs], key, measure)
-            row.append("-" if gap is None else f"{gap:+.2f}")
+            row.append(_signed(gap))
         a, b = runs[ours].seconds(measure), runs[theirs].seconds(measure)
         row.append(f"{a / b:.2f}x" if a and b else "-")
         rows.append(row)
@@ -641,7 +646,7 @@ def family_scene_rows(family: list[FamilyScene]) -> list[list[str]]:
         row = [f.scene, f.kind, str(f.seed), f.split.replace("_", " ")]
         for key, _ in FAMILY_KEYS:
             gap = f.gap.get(key)
-            row += ["-" if gap is None else f"{gap:+.2f}", _fmt(f.noise.get(key), 3), f.verdict(key)]
+            row += [_signed(gap), _fmt(f.noise.get(key), 3), f.verdict(key)]
         rows.append(row + [_fmt(f.no_reflection_psnr)])
     return rows
 

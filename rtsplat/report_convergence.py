@@ -27,6 +27,7 @@ from rtsplat.report import (
     TimeMeasure,
     _difference,
     _fmt,
+    _signed,
     comparison_pairs,
     time_measure,
 )
@@ -109,10 +110,6 @@ def budget_rows(scene: str, budgets: list[Budget], reference: dict[str, float] |
                            for name in (FLAT_REFERENCE, BLURRED_REFERENCE)),
                          _fmt(run.mean.get("psnr_transmission_layer")), _seconds(run, measure)])
     return rows
-
-
-def _signed(value: float | None) -> str:
-    return "-" if value is None else f"{value:+.2f}"
 
 
 def _converged_text(budgets: list[Budget], side: str) -> str:
