@@ -14,7 +14,7 @@ PYTEST_ARGS ?=
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.rtsplat-installed
 
-.PHONY: demo targets family heldout convergence results-page raster-demo test test-fast test-slurm lint bench clean-venv chromium
+.PHONY: demo targets family heldout convergence results-page family-page raster-demo test test-fast test-slurm lint bench clean-venv chromium
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; run 'make PYTHON=python3' with Python >= 3.10"; exit 1; }
@@ -75,6 +75,18 @@ heldout:
 # beside the demo budget's, and the time each took. About 4 hours on 2 cores (40 trainings; estimated, not measured).
 convergence:
 	$(MAKE) family FAMILY_CONFIG=benchmarks/convergence.yaml FAMILY_DIR=convergence
+
+# docs/results_family.md (and docs/results_family.report.json): the family in one report from one commit, both halves
+# (benchmarks/family_page.yaml: seed 0 and held-out seed 100 of every kind, both methods with a seed repeat, 40
+# views) in family-page/ (removed first, so that every run is trained by this commit; about 80 minutes on 2 cores,
+# estimated). Refuses a tree with uncommitted changes, as results-page does.
+FAMILY_PAGE_DIR ?= family-page
+family-page: $(STAMP)
+	@test -z "$$(git status --porcelain --untracked-files=no)" || { echo "error: the tree has uncommitted changes;" \
+	  "commit or stash them first (docs/results_family.md names the commit its numbers come from)"; exit 1; }
+	rm -rf $(FAMILY_PAGE_DIR)
+	$(MAKE) family FAMILY_CONFIG=benchmarks/family_page.yaml FAMILY_DIR=$(FAMILY_PAGE_DIR) DEMO_VIEWS=40
+	$(BIN)/python -m rtsplat.results_page --report $(FAMILY_PAGE_DIR)/results/report --out docs/results_family.md
 
 # docs/results.md (and docs/results.report.json, the report's record it is written from) and the README's picture,
 # from one run at the checked-out commit: benchmarks/targets_quick.yaml over the demo's dome and cabin in

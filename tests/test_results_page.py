@@ -1,22 +1,32 @@
-"""docs/results.md is generated: it is what `python -m rtsplat.results_page` writes from the record kept beside it."""
+"""docs/results.md (and every docs page with a record kept beside it) is generated: it is what
+`python -m rtsplat.results_page` writes from that record."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from rtsplat.results_page import kept_json, read_report, results_markdown
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGE = "docs/results.md"
+KEPT = sorted((ROOT / "docs").glob("*.report.json"))  # every generated page's record (docs/results.report.json, ...)
 
 
-def test_docs_results_is_what_its_kept_record_gives():
-    """A hand edit of docs/results.md (or of its record without writing the page again) fails here."""
-    record = read_report(kept_json(ROOT / PAGE))
-    assert kept_json(ROOT / PAGE) == ROOT / "docs" / "results.report.json"
-    assert results_markdown(record, PAGE) == (ROOT / PAGE).read_text(), (
-        "docs/results.md is not what its record gives: write it with `python -m rtsplat.results_page --report "
-        "docs/results.report.json --out docs/results.md` (or `make results-page`), never by hand")
+def test_docs_results_keeps_its_record():
+    assert kept_json(ROOT / PAGE) == ROOT / "docs" / "results.report.json" and kept_json(ROOT / PAGE) in KEPT
+
+
+@pytest.mark.parametrize("record", KEPT, ids=[path.name for path in KEPT])
+def test_a_generated_page_is_what_its_kept_record_gives(record):
+    """A hand edit of docs/results.md (or of any page with a record beside it, or of the record without writing
+    the page again) fails here."""
+    page = record.with_name(record.name.removesuffix(".report.json") + ".md")
+    relative = page.relative_to(ROOT).as_posix()
+    assert results_markdown(read_report(record), relative) == page.read_text(), (
+        f"{relative} is not what its record gives: write it with `python -m rtsplat.results_page --report "
+        f"{record.relative_to(ROOT).as_posix()} --out {relative}` (or its make target), never by hand")
 
 
 def test_the_kept_record_is_written_beside_the_page_but_never_over_a_users_json(tmp_path, capsys):

@@ -238,6 +238,26 @@ def test_the_held_out_list_is_fixed_in_benchmarks_and_says_it_decides_nothing():
     assert not {json.dumps(draw_params(m), sort_keys=True) for m in held} & seen
 
 
+def test_the_family_page_holds_both_halves_at_the_family_settings():
+    """benchmarks/family_page.yaml (`make family-page`): one tuning and one held-out member of every kind, never a
+    seen one, with the family benchmark's methods (a seed repeat of each) and settings, a valid config of its own."""
+    import yaml
+
+    from rtsplat.config import load_config
+
+    root = Path(__file__).resolve().parent.parent
+    config = yaml.safe_load((root / "benchmarks" / "family_page.yaml").read_text())
+    family = yaml.safe_load((root / "benchmarks" / "family.yaml").read_text())
+    chosen = [parse_name(scene) for scene in config["scenes"]]
+    for split in ("tuning", "held_out"):
+        assert sorted(m.kind for m in chosen if m.split == split) == sorted(KINDS), split
+    assert len(chosen) == 2 * len(KINDS) and {m.dataset_name for m in chosen} <= (
+        {m.dataset_name for m in held_out_members()} | set(family["scenes"]))
+    assert {k: v for k, v in config.items() if k != "scenes"} == {k: v for k, v in family.items() if k != "scenes"}
+    assert {"rtsplat_seed1", "2dgs_seed1"} <= set(config["methods"])
+    assert load_config(root / "benchmarks" / "family_page.yaml").scenes == config["scenes"]
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_held_out_member_builds_a_scene_whose_cameras_see_its_glass(tmp_path, kind):
     """The held-out seeds build (geometry, textures, cameras; nothing rendered) and, over pixel rays of four of
