@@ -111,7 +111,8 @@ results-page: $(STAMP)
 	$(BIN)/rtsplat train --data $(STRIP)/prepared --out $(STRIP)/run --config demo/config.yaml --scene dome --method rtsplat --quiet
 	$(BIN)/rtsplat render --run $(STRIP)/run --data $(STRIP)/prepared --out $(STRIP)/renders
 	$(BIN)/rtsplat metrics --renders $(STRIP)/renders --data $(STRIP)/prepared --out $(STRIP)/metrics.json
-	$(BIN)/python -m rtsplat.bench.layer_strip --data $(STRIP)/prepared --renders $(STRIP)/renders --out docs/images/demo_strip.png
+	$(BIN)/python -m rtsplat.bench.layer_strip --data $(STRIP)/prepared --renders $(STRIP)/renders --out $(STRIP)/demo_strip.png
+	cp $(STRIP)/demo_strip.png docs/images/demo_strip.png
 	@echo "wrote docs/results.md, docs/results.report.json and docs/images/demo_strip.png at commit $$(git rev-parse --short=12 HEAD);"
 	@echo "the picture's caption in README.md quotes $(STRIP)/metrics.json (test PSNR, layers) and that commit"
 
