@@ -78,8 +78,8 @@ convergence:
 
 # docs/results_family.md (and docs/results_family.report.json): the family in one report from one commit, both halves
 # (benchmarks/family_page.yaml: seed 0 and held-out seed 100 of every kind, both methods with a seed repeat, 40
-# views) in family-page/ (removed first, so that every run is trained by this commit; about 80 minutes on 2 cores,
-# estimated). Refuses a tree with uncommitted changes, as results-page does.
+# views) in family-page/ (removed first, so that every run is trained by this commit; about 95 minutes on 2 cores).
+# Refuses a tree with uncommitted changes, as results-page does.
 FAMILY_PAGE_DIR ?= family-page
 family-page: $(STAMP)
 	@test -z "$$(git status --porcelain --untracked-files=no)" || { echo "error: the tree has uncommitted changes;" \
