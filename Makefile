@@ -76,14 +76,17 @@ heldout:
 convergence:
 	$(MAKE) family FAMILY_CONFIG=benchmarks/convergence.yaml FAMILY_DIR=convergence
 
+# the page-writing targets refuse a tree with uncommitted changes: the page ($(1)) names the commit its numbers come from
+refuse_uncommitted = @test -z "$$(git status --porcelain --untracked-files=no)" || { echo "error: the tree has \
+  uncommitted changes; commit or stash them first ($(1) names the commit its numbers come from)"; exit 1; }
+
 # docs/results_family.md (and docs/results_family.report.json): the family in one report from one commit, both halves
 # (benchmarks/family_page.yaml: seed 0 and held-out seed 100 of every kind, both methods with a seed repeat, 40
 # views) in family-page/ (removed first, so that every run is trained by this commit; about 95 minutes on 2 cores).
 # Refuses a tree with uncommitted changes, as results-page does.
 FAMILY_PAGE_DIR ?= family-page
 family-page: $(STAMP)
-	@test -z "$$(git status --porcelain --untracked-files=no)" || { echo "error: the tree has uncommitted changes;" \
-	  "commit or stash them first (docs/results_family.md names the commit its numbers come from)"; exit 1; }
+	$(call refuse_uncommitted,docs/results_family.md)
 	rm -rf $(FAMILY_PAGE_DIR)
 	$(MAKE) family FAMILY_CONFIG=benchmarks/family_page.yaml FAMILY_DIR=$(FAMILY_PAGE_DIR) DEMO_VIEWS=40
 	$(BIN)/python -m rtsplat.results_page --report $(FAMILY_PAGE_DIR)/results/report --out docs/results_family.md
@@ -96,8 +99,7 @@ family-page: $(STAMP)
 RESULTS_PAGE_DIR ?= results-page
 STRIP := $(RESULTS_PAGE_DIR)/strip
 results-page: $(STAMP)
-	@test -z "$$(git status --porcelain --untracked-files=no)" || { echo "error: the tree has uncommitted changes;" \
-	  "commit or stash them first (docs/results.md names the commit its numbers come from)"; exit 1; }
+	$(call refuse_uncommitted,docs/results.md)
 	rm -rf $(RESULTS_PAGE_DIR)
 	for scene in dome cabin; do $(BIN)/rtsplat synth --scene $$scene --out $(RESULTS_PAGE_DIR)/data/$$scene \
 	  --views $(DEMO_VIEWS) --layers-every 8 --no-progress || exit 1; done
