@@ -15,6 +15,7 @@ import pytest
 from rtsplat.config import load_config, roles_json
 from rtsplat.io.images import write_png
 from rtsplat.report import Roles, build_report
+from rtsplat.report_convergence import series_at
 
 ROOT = Path(__file__).resolve().parent.parent
 VIEWS = ("test_000", "test_001")
@@ -191,3 +192,28 @@ def test_no_convergence_section_without_a_second_budget(tmp_path):
         write_run(copy, "case-0", method, 1, values, CPU_SECONDS[method])
     md = build_report(copy, tmp_path / "report", roles=Roles.from_dict(json.loads(_convergence_roles())))
     assert "Convergence" not in md.with_suffix(".md").read_text()
+
+
+def test_equal_time_compares_each_budget_with_the_2dgs_budget_of_the_same_time(report):
+    """rtsplat costs twice 2dgs per budget (CPU_SECONDS): its Nx run took as long as 2dgs's 2Nx run, so each gap is
+    read at a 2dgs run, and the 8x run, dearer than 2dgs's largest budget, has none."""
+    section = report.split("## Convergence")[1].split("\n## ")[0]
+    rows = {(r["scene"], r["rtsplat budget"]): r for r in _table(section, "| scene | rtsplat budget |")}
+    for scene, curves in CURVES.items():
+        for budget in (1, 2, 4):
+            row, ours, theirs = rows[(scene, f"{budget}x")], curves["rtsplat"][budget], curves["2dgs"][2 * budget]
+            assert row["2dgs budget in that time"] == f"{2 * budget}x"
+            assert float(row["dPSNR transp. at equal time"]) == pytest.approx(ours[1] - theirs[1], abs=0.006)
+            assert float(row["dPSNR at equal time"]) == pytest.approx(ours[0] - theirs[0], abs=0.006)
+        beyond = rows[(scene, "8x")]
+        assert beyond["2dgs budget in that time"] == beyond["dPSNR transp. at equal time"] == "-"
+    assert not {scene for scene, _ in rows} - set(CURVES)  # case-0 (one budget) and the half-size pair: no rows
+
+
+def test_a_series_is_read_linearly_in_log_time_and_never_beyond_its_runs():
+    series = [(100.0, 20.0), (400.0, 22.0), (800.0, 22.5)]
+    assert series_at(series, 200.0) == pytest.approx(21.0)  # one of two doublings from 100 s to 400 s
+    assert series_at(series, 400.0) == pytest.approx(22.0)
+    assert series_at(series, 800.0 / 2 ** 0.5) == pytest.approx(22.25)
+    assert series_at(series, 99.0) is None and series_at(series, 801.0) is None and series_at(series, None) is None
+    assert series_at([(100.0, 20.0), (400.0, None)], 200.0) is None
