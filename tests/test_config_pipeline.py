@@ -101,7 +101,7 @@ def test_the_budget_curves_over_the_demo_pair_both_methods_at_every_budget():
 
 def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tuning_scene_per_kind():
     """benchmarks/convergence.yaml, a config of its own: seed 0 of every kind of the family (tuning scenes, never
-    seen or held out), RT-Splatting and 2DGS at 1, 2, 4 and 8 times the demo's 600 iterations, training seed 0,
+    seen or held out), RT-Splatting and 2DGS at 0.5, 1, 2, 4 and 8 times the demo's 600 iterations, training seed 0,
     which the report's convergence section reads as one curve per method."""
     from rtsplat.config import roles_json, trainer_options
     from rtsplat.report import Roles, Run
@@ -112,8 +112,8 @@ def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tun
     members = [parse_name(scene) for scene in cfg.scenes]
     assert sorted(m.kind for m in members) == sorted(KINDS) and {m.split for m in members} == {"tuning"}
     for scene in cfg.scenes:
-        for budget in (1, 2, 4, 8):
-            ours, theirs = (TrainConfig.from_dict(trainer_options(cfg, scene, m if budget == 1 else f"{m}_x{budget}"))
+        for budget in (0.5, 1, 2, 4, 8):
+            ours, theirs = (TrainConfig.from_dict(trainer_options(cfg, scene, m if budget == 1 else f"{m}_x{budget:g}"))
                             for m in ("rtsplat", "2dgs"))
             assert ours.schedule.iterations == theirs.schedule.iterations == 600 * budget
             assert ours.schedule.eval_every == 100 * budget and ours.seed == theirs.seed == 0
@@ -122,7 +122,7 @@ def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tun
     roles = Roles.from_dict(json.loads(roles_json(cfg, quote=False)))
     budgets = scene_budgets({m: Run(cfg.scenes[0], m) for m in cfg.methods}, roles)
     assert [(b.factor, b.ours.method, b.theirs.method) for b in budgets] == [
-        (1.0, "rtsplat", "2dgs"), (2.0, "rtsplat_x2", "2dgs_x2"), (4.0, "rtsplat_x4", "2dgs_x4"),
+        (0.5, "rtsplat_x0.5", "2dgs_x0.5"), (1.0, "rtsplat", "2dgs"), (2.0, "rtsplat_x2", "2dgs_x2"), (4.0, "rtsplat_x4", "2dgs_x4"),
         (8.0, "rtsplat_x8", "2dgs_x8")]
 
 
