@@ -3,9 +3,9 @@
 ``rtsplat report`` writes its tables as data (``report.json``: every table with the headings above it, what
 trained each run: commit, uncommitted changes, machine, device, packages, and whether they mix). This module
 keeps the tables a reader of the project asks for first (RT-Splatting against 2DGS, the scene family, quality,
-speed and training time, accuracy against time, ablations, the decomposition) and writes them as one Markdown
-page that says where they come from, with the report's record kept beside it (``docs/results.report.json``
-beside ``docs/results.md``: the page is what that JSON gives, which a test checks)::
+speed and training time, accuracy against time, ablations, the decomposition, the convergence section) and
+writes them as one Markdown page that says where they come from, with the report's record kept beside it
+(``docs/results.report.json`` beside ``docs/results.md``: the page is what that JSON gives, which a test checks)::
 
     python -m rtsplat.results_page --report demo/results/report --out docs/results.md
     python -m rtsplat.results_page --report docs/results.report.json --out docs/results.md   # the same page again
@@ -35,6 +35,7 @@ KEPT_HEADINGS = (
     "Accuracy against training time",
     "Ablations (transparent-region PSNR)",
     "Decomposition against the ground-truth layers (PSNR in the transparent region, test views)",
+    "Convergence: RT-Splatting and plain 2DGS at several budgets",
 )
 PROGRAM = "python -m rtsplat.results_page"
 COMMAND = PROGRAM + " --report REPORT_DIR --out {page}"

@@ -122,8 +122,8 @@ def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tun
     roles = Roles.from_dict(json.loads(roles_json(cfg, quote=False)))
     budgets = scene_budgets({m: Run(cfg.scenes[0], m) for m in cfg.methods}, roles)
     assert [(b.factor, b.ours.method, b.theirs.method) for b in budgets] == [
-        (0.5, "rtsplat_x0.5", "2dgs_x0.5"), (1.0, "rtsplat", "2dgs"), (2.0, "rtsplat_x2", "2dgs_x2"), (4.0, "rtsplat_x4", "2dgs_x4"),
-        (8.0, "rtsplat_x8", "2dgs_x8")]
+        (0.5, "rtsplat_x0.5", "2dgs_x0.5"), (1.0, "rtsplat", "2dgs"), (2.0, "rtsplat_x2", "2dgs_x2"),
+        (4.0, "rtsplat_x4", "2dgs_x4"), (8.0, "rtsplat_x8", "2dgs_x8")]
 
 
 @pytest.mark.parametrize("layer", ["targets.yaml", "targets_quick.yaml"])

@@ -210,6 +210,19 @@ def test_equal_time_compares_each_budget_with_the_2dgs_budget_of_the_same_time(r
     assert not {scene for scene, _ in rows} - set(CURVES)  # case-0 (one budget) and the half-size pair: no rows
 
 
+def test_the_results_page_keeps_the_convergence_tables(results, tmp_path):
+    """`python -m rtsplat.results_page` writes a report's convergence section onto its page, all three tables."""
+    from rtsplat.results_page import read_report, results_markdown
+
+    out = tmp_path / "report"
+    build_report(results, out, roles=Roles.from_dict(json.loads(_convergence_roles())))
+    page = results_markdown(read_report(out), "docs/results_convergence.md")
+    section = page.split("## Convergence: RT-Splatting and plain 2DGS at several budgets")[1]
+    for header in ("| scene | budget |", "| scene | run | budget |", "| scene | rtsplat budget |"):
+        assert _table(section, header), header
+    assert {r["run"] for r in _table(section, "| scene | run | budget |")} >= {"rtsplat_x8", "2dgs_x8"}
+
+
 def test_a_series_is_read_linearly_in_log_time_and_never_beyond_its_runs():
     series = [(100.0, 20.0), (400.0, 22.0), (800.0, 22.5)]
     assert series_at(series, 200.0) == pytest.approx(21.0)  # one of two doublings from 100 s to 400 s
