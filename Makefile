@@ -69,10 +69,11 @@ family: $(STAMP)
 heldout:
 	$(MAKE) family FAMILY_CONFIG=benchmarks/heldout.yaml FAMILY_DIR=heldout
 
-# converged results (benchmarks/convergence.yaml): RT-Splatting and plain 2DGS at 1, 2, 4 and 8 times the demo's
+# converged results (benchmarks/convergence.yaml): RT-Splatting and plain 2DGS at 0.5, 1, 2, 4 and 8 times the demo's
 # budget on five tuning scenes of the family (seed 0 of every kind), synthesised into convergence/data/ first; the
 # report's convergence section gives the budget at which each method stops gaining, the gap and the layers there
-# beside the demo budget's, and the time each took. About 4 hours on 2 cores (40 trainings; estimated, not measured).
+# beside the demo budget's, the time each took and the gap at equal time. About 3 hours on 2 cores (50 trainings;
+# measured on four of the five scenes at 40 views, docs/benchmarks.md).
 convergence:
 	$(MAKE) family FAMILY_CONFIG=benchmarks/convergence.yaml FAMILY_DIR=convergence
 
