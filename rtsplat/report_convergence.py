@@ -131,7 +131,7 @@ def series_at(series: list[tuple[float, float | None]], seconds: float | None) -
 def equal_time_rows(scene: str, budgets: list[Budget], measure: TimeMeasure) -> list[list[str]]:
     """One row per budget of the main method: its training time, the budget 2DGS's series reaches in that time,
     and RT-Splatting minus 2DGS's finished series there (transparent, entire); "-" beyond 2DGS's series."""
-    timed = sorted((t, b) for b in budgets if (t := b.theirs.seconds(measure)) is not None)
+    timed = [(t, b) for b in budgets if (t := b.theirs.seconds(measure)) is not None]  # budgets: by factor
     if any(t0 >= t1 for (t0, _), (t1, _) in itertools.pairwise(timed)):
         timed = []  # a larger 2DGS budget that took no longer (a run beside heavy load): no series to read
     factors = [(t, math.log2(b.factor)) for t, b in timed]

@@ -223,6 +223,19 @@ def test_the_results_page_keeps_the_convergence_tables(results, tmp_path):
     assert {r["run"] for r in _table(section, "| scene | run | budget |")} >= {"rtsplat_x8", "2dgs_x8"}
 
 
+def test_no_equal_time_gap_where_a_larger_2dgs_budget_took_no_longer(tmp_path):
+    """2dgs's 2x run timed at its 1x run's seconds (a run beside heavy load): its series has no time axis."""
+    copy = tmp_path / "results"
+    for method in ("rtsplat", "2dgs"):
+        for budget in (1, 2):
+            seconds = 100.0 if method == "2dgs" else CPU_SECONDS[method] * budget / 2
+            write_run(copy, "car-0", _name(method, budget), budget, CURVES["car-0"][method][budget], seconds)
+    md = build_report(copy, tmp_path / "report", roles=Roles.from_dict(json.loads(_convergence_roles())))
+    rows = _table(md.with_suffix(".md").read_text(), "| scene | rtsplat budget |")
+    assert [r["rtsplat budget"] for r in rows] == ["1x", "2x"]
+    assert {r["dPSNR transp. at equal time"] for r in rows} == {r["2dgs budget in that time"] for r in rows} == {"-"}
+
+
 def test_a_series_is_read_linearly_in_log_time_and_never_beyond_its_runs():
     series = [(100.0, 20.0), (400.0, 22.0), (800.0, 22.5)]
     assert series_at(series, 200.0) == pytest.approx(21.0)  # one of two doublings from 100 s to 400 s
