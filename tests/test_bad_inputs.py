@@ -581,6 +581,9 @@ ENTRY_CASES = {
     "bench.iteration --state-dir a user folder": Case(
         ["--scene", "{R}/res/prepared", "--state-dir", "{R}/user"], ["{R}/user", "the --state-dir folder exists"],
         entry="rtsplat.bench.iteration"),
+    "bench.iteration --methods an unknown name": Case(
+        ["--scene", "{R}/res/prepared", "--methods", "rtsplat,rtsplat_mlp96", "--state-dir", "{R}/new_state"],
+        ["--methods", "unknown rtsplat_mlp96", "choose from", "rtsplat_mlp128"], entry="rtsplat.bench.iteration"),
 }
 
 

@@ -61,6 +61,8 @@ METHODS = {
     # the specular network's matrix products in float32 and in bfloat16 (model.specular_precision)
     "rtsplat_float32": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "float32"}},
     "rtsplat_bfloat16": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "bfloat16"}},
+    # the specular network's hidden width halved (model.mlp_width)
+    "rtsplat_mlp128": {"model": {**DEMO_OPTIONS["model"], "mlp_width": 128}},
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
 }
 PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",
@@ -193,6 +195,17 @@ def _worker(args) -> int:
     return 0
 
 
+def _check_methods(methods: list[str], given: str) -> None:
+    """Refuse a ``--methods`` list that is empty or names a method this script does not know, before any
+    worker starts."""
+    from rtsplat.errors import PipelineError
+
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        raise PipelineError(f"--methods {given!r}: unknown {', '.join(unknown) or '(none given)'}",
+                            fix=f"choose from {', '.join(METHODS)}")
+
+
 def _send(data: dict) -> None:
     sys.stdout.write("@@" + json.dumps(data) + "\n")
     sys.stdout.flush()
@@ -204,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", type=Path, required=False, help="prepared scene directory")
     parser.add_argument("--checkout", type=Path, action="append",
                         help="source tree to time (repeatable; default: this one); ratios are first / last")
-    parser.add_argument("--methods", default="rtsplat,2dgs")
+    parser.add_argument("--methods", default="rtsplat,2dgs",
+                        help="comma-separated method names, from: " + ", ".join(METHODS))
     parser.add_argument("--warmup", type=int, default=300, help="untimed iterations first (default 300)")
     parser.add_argument("--iterations", type=int, default=20, help="timed iterations per round (default 20)")
     parser.add_argument("--rounds", type=int, default=3)
@@ -231,6 +245,11 @@ def main(argv: list[str] | None = None) -> int:
     from rtsplat.errors import run_command
     from rtsplat.io.outputs import check_output_dir, mark_output
 
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    status = run_command(parser.prog, lambda: _check_methods(methods, args.methods))
+    if status:
+        return status
+
     if args.state_dir is not None:  # a folder of its own: created with the marker, reused when it has it
         status = run_command(parser.prog, lambda: check_output_dir(args.state_dir, "bench.iteration",
                                                                    flag="--state-dir"))
@@ -242,7 +261,6 @@ def main(argv: list[str] | None = None) -> int:
         args.options = json.dumps(merged)
 
     checkouts = [c.resolve() for c in (args.checkout or [Path(__file__).resolve().parents[2]])]
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     workers: dict[tuple[int, str], CheckoutWorker] = {}
     tmp = None
     if args.state_dir is None:
