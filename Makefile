@@ -73,7 +73,7 @@ heldout:
 # budget on five tuning scenes of the family (seed 0 of every kind), synthesised into convergence/data/ first; the
 # report's convergence section gives the budget at which each method stops gaining, the gap and the layers there
 # beside the demo budget's, the time each took and the gap at equal time. About 3 hours on 2 cores (50 trainings;
-# measured on four of the five scenes at 40 views, docs/benchmarks.md).
+# measured on the five scenes at 40 views, docs/benchmarks.md).
 convergence:
 	$(MAKE) family FAMILY_CONFIG=benchmarks/convergence.yaml FAMILY_DIR=convergence
 
