@@ -4,20 +4,20 @@ from __future__ import annotations
 
 import pytest
 
-from rtsplat.bench.iteration import DEMO_OPTIONS, METHODS
+from rtsplat.bench.iteration import DEMO_OPTIONS, METHODS, method_options
 from rtsplat.train_config import TrainConfig
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))
 def test_every_method_is_a_valid_config_with_the_demo_map(method):
-    cfg = TrainConfig.from_dict({**DEMO_OPTIONS, **METHODS[method]})
-    # a method that sets a model option must not drop the demo's environment map (the worker merges shallowly)
+    cfg = TrainConfig.from_dict(method_options(method))
+    # a method that sets a model option must keep the demo's map (method_options replaces whole sections)
     assert (cfg.model.env_height, cfg.model.env_width, cfg.model.env_levels) == (128, 256, 7)
     assert cfg.schedule.specular_from == DEMO_OPTIONS["schedule"]["specular_from"]
 
 
 def test_the_width_method_halves_the_network_and_2dgs_turns_both_effects_off():
-    assert TrainConfig.from_dict({**DEMO_OPTIONS, **METHODS["rtsplat_mlp128"]}).model.mlp_width == 128
-    assert TrainConfig.from_dict(DEMO_OPTIONS).model.mlp_width == 256
-    effects = TrainConfig.from_dict({**DEMO_OPTIONS, **METHODS["2dgs"]}).effects
+    assert TrainConfig.from_dict(method_options("rtsplat_mlp128")).model.mlp_width == 128
+    assert TrainConfig.from_dict(method_options("rtsplat")).model.mlp_width == 256
+    effects = TrainConfig.from_dict(method_options("2dgs")).effects
     assert (effects.transmission, effects.specular) == ("off", "off")

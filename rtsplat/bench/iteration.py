@@ -146,7 +146,7 @@ def _worker(args) -> int:
     sections = _Sections()
     _instrument(sections)
     options = json.loads(args.options)
-    cfg = TrainConfig.from_dict({**DEMO_OPTIONS, **METHODS[args.method], **options})
+    cfg = TrainConfig.from_dict(method_options(args.method, options))
     scene = PreparedScene.load(args.scene)
     with tempfile.TemporaryDirectory(prefix="rtsplat_bench_iteration_") as tmp:
         trainer = Trainer(scene, cfg, tmp, progress=False, log=lambda m: None)
@@ -193,6 +193,12 @@ def _worker(args) -> int:
             elif request["cmd"] == "quit":
                 break
     return 0
+
+
+def method_options(method: str, options: dict | None = None) -> dict:
+    """The training options a worker of ``method`` trains with: the demo's sections, then the method's, then
+    ``options`` (``--options``), each replacing a whole top-level section."""
+    return {**DEMO_OPTIONS, **METHODS[method], **(options or {})}
 
 
 def _check_methods(methods: list[str], given: str) -> None:
