@@ -58,6 +58,7 @@ import datetime
 import html
 import itertools
 import json
+import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -506,6 +507,19 @@ def _repeat_differences(scene: str, runs: dict[str, Run], roles: Roles, results:
     return found
 
 
+def interpolate_between(points: list[tuple[float, float | None]], x: float, log_axis: bool = False) -> float | None:
+    """The value at ``x`` of ``points`` (``(position, value)`` by increasing position), linear between the two
+    points around it (in log2 of the position with ``log_axis``); None outside the points (no extrapolation)
+    or where a point around it has no value."""
+    for (t0, v0), (t1, v1) in itertools.pairwise(points):
+        if t0 <= x <= t1 and v0 is not None and v1 is not None:
+            if t1 == t0:
+                return v0
+            share = math.log2(x / t0) / math.log2(t1 / t0) if log_axis else (x - t0) / (t1 - t0)
+            return v0 + share * (v1 - v0)
+    return None
+
+
 def psnr_at_time(run: Run, seconds: float, key: str, measure: TimeMeasure) -> float | None:
     """The run's test PSNR ``key`` (``test_psnr``, ``test_psnr_transparent``) after ``seconds`` of training by
     ``measure``, read from its log's evaluations (iteration 0: the initialisation), linearly between the two
@@ -514,10 +528,9 @@ def psnr_at_time(run: Run, seconds: float, key: str, measure: TimeMeasure) -> fl
                     if isinstance(r.get(key), (int, float)) and isinstance(r.get(measure.log_key), (int, float)))
     if not points or points[0][0] > seconds:
         return None
-    for (t0, v0), (t1, v1) in itertools.pairwise(points):
-        if t0 <= seconds <= t1:
-            return v0 if t1 == t0 else v0 + (v1 - v0) * (seconds - t0) / (t1 - t0)
-    return points[-1][1]
+    if seconds >= points[-1][0]:
+        return points[-1][1]
+    return interpolate_between(points, seconds)
 
 
 def equal_time_gap(ours: Run, theirs: Run, key: str, measure: TimeMeasure) -> float | None:

@@ -32,6 +32,7 @@ from rtsplat.report import (
     _fmt,
     _signed,
     comparison_pairs,
+    interpolate_between,
     time_measure,
 )
 
@@ -119,13 +120,7 @@ def series_at(series: list[tuple[float, float | None]], seconds: float | None) -
     """A value of a budget series of finished runs, ``(training time, value)`` by increasing time, at ``seconds``:
     linear in log2 of the time between the two runs around it (a doubling of the budget about doubles the time).
     None outside the series' times (no extrapolation), or where a run around it has no value."""
-    if seconds is None:
-        return None
-    for (t0, v0), (t1, v1) in itertools.pairwise(series):
-        if t0 <= seconds <= t1 and v0 is not None and v1 is not None:
-            share = 0.0 if t1 == t0 else math.log2(seconds / t0) / math.log2(t1 / t0)
-            return v0 + share * (v1 - v0)
-    return None
+    return None if seconds is None else interpolate_between(series, seconds, log_axis=True)
 
 
 def equal_time_rows(scene: str, budgets: list[Budget], measure: TimeMeasure) -> list[list[str]]:
