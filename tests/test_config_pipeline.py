@@ -126,6 +126,31 @@ def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tun
         (4.0, "rtsplat_x4", "2dgs_x4"), (8.0, "rtsplat_x8", "2dgs_x8")]
 
 
+def test_the_held_out_time_benchmark_pairs_both_methods_at_three_budgets_on_held_out_scenes_only():
+    """benchmarks/heldout_time.yaml: one held-out seed of every kind of the family (no tuning or seen scene),
+    RT-Splatting and 2DGS at 0.5, 1 and 2 times the demo's 600 iterations with convergence.yaml's settings,
+    which the report's convergence section reads as one budget series per method."""
+    from rtsplat.config import roles_json, trainer_options
+    from rtsplat.report import Roles, Run
+    from rtsplat.report_convergence import scene_budgets
+    from rtsplat.synth.family import KINDS, parse_name
+
+    cfg = load_config(ROOT / "benchmarks" / "heldout_time.yaml")
+    members = [parse_name(scene) for scene in cfg.scenes]
+    assert sorted(m.kind for m in members) == sorted(KINDS) and {m.split for m in members} == {"held_out"}
+    convergence = load_config(ROOT / "benchmarks" / "convergence.yaml")
+    for method in ("rtsplat", "2dgs"):
+        for budget in (0.5, 1, 2):
+            name = method if budget == 1 else f"{method}_x{budget:g}"
+            options = trainer_options(cfg, cfg.scenes[0], name)
+            assert options == trainer_options(convergence, convergence.scenes[0], name)
+            assert TrainConfig.from_dict(options).schedule.iterations == 600 * budget
+    roles = Roles.from_dict(json.loads(roles_json(cfg, quote=False)))
+    budgets = scene_budgets({m: Run(cfg.scenes[0], m) for m in cfg.methods}, roles)
+    assert [(b.factor, b.ours.method, b.theirs.method) for b in budgets] == [
+        (0.5, "rtsplat_x0.5", "2dgs_x0.5"), (1.0, "rtsplat", "2dgs"), (2.0, "rtsplat_x2", "2dgs_x2")]
+
+
 @pytest.mark.parametrize("layer", ["targets.yaml", "targets_quick.yaml"])
 def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
     """`make targets` layers benchmarks/<layer> over demo/config.yaml: every method must build a valid
