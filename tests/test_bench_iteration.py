@@ -21,3 +21,19 @@ def test_the_width_method_halves_the_network_and_2dgs_turns_both_effects_off():
     assert TrainConfig.from_dict(method_options("rtsplat")).model.mlp_width == 256
     effects = TrainConfig.from_dict(method_options("2dgs")).effects
     assert (effects.transmission, effects.specular) == ("off", "off")
+
+
+def test_the_demo_options_are_demo_config_yaml_s_training_settings():
+    """The benchmark times the demo's training: its options build demo/config.yaml's trainer config, less the
+    evaluations, checkpoints and logging it switches off."""
+    from pathlib import Path
+
+    from rtsplat.config import load_config, trainer_options
+
+    demo = load_config(Path(__file__).resolve().parent.parent / "demo" / "config.yaml")
+    ours = TrainConfig.from_dict(method_options("rtsplat")).to_dict()
+    theirs = TrainConfig.from_dict(trainer_options(demo, demo.scenes[0], "rtsplat")).to_dict()
+    for tree in (ours, theirs):
+        for key in ("eval_every", "checkpoint_every", "log_every"):
+            tree["schedule"].pop(key)
+    assert ours == theirs

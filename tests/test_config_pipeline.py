@@ -28,6 +28,9 @@ from rtsplat.config import (
 from rtsplat.train_config import TrainConfig
 
 ROOT = Path(__file__).resolve().parent.parent
+DEMO = yaml.safe_load((ROOT / "demo" / "config.yaml").read_text())
+DEMO_ITERATIONS = DEMO["defaults"]["train"]["iterations"]
+DEMO_EVAL_EVERY = DEMO["defaults"]["train"]["options"]["schedule"]["eval_every"]
 
 
 def test_schema_file_is_generated_from_the_dataclasses():
@@ -101,7 +104,7 @@ def test_the_budget_curves_over_the_demo_pair_both_methods_at_every_budget():
 
 def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tuning_scene_per_kind():
     """benchmarks/convergence.yaml, a config of its own: seed 0 of every kind of the family (tuning scenes, never
-    seen or held out), RT-Splatting and 2DGS at 0.5, 1, 2, 4 and 8 times the demo's 600 iterations, training seed 0,
+    seen or held out), RT-Splatting and 2DGS at 0.5, 1, 2, 4 and 8 times the demo's iterations, training seed 0,
     which the report's convergence section reads as one curve per method."""
     from rtsplat.config import roles_json, trainer_options
     from rtsplat.report import Roles, Run
@@ -115,8 +118,8 @@ def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tun
         for budget in (0.5, 1, 2, 4, 8):
             ours, theirs = (TrainConfig.from_dict(trainer_options(cfg, scene, m if budget == 1 else f"{m}_x{budget:g}"))
                             for m in ("rtsplat", "2dgs"))
-            assert ours.schedule.iterations == theirs.schedule.iterations == 600 * budget
-            assert ours.schedule.eval_every == 100 * budget and ours.seed == theirs.seed == 0
+            assert ours.schedule.iterations == theirs.schedule.iterations == DEMO_ITERATIONS * budget
+            assert ours.schedule.eval_every == round(DEMO_EVAL_EVERY * budget) and ours.seed == theirs.seed == 0
             assert (ours.effects.transmission, theirs.effects.transmission, theirs.effects.specular) == (
                 "auto", "off", "off")
     roles = Roles.from_dict(json.loads(roles_json(cfg, quote=False)))
@@ -126,9 +129,26 @@ def test_the_convergence_benchmark_pairs_both_methods_at_every_budget_on_one_tun
         (4.0, "rtsplat_x4", "2dgs_x4"), (8.0, "rtsplat_x8", "2dgs_x8")]
 
 
+@pytest.mark.parametrize("name", ["family", "family_page", "family_quick", "heldout", "heldout_time", "convergence",
+                                  "real"])
+def test_every_standalone_benchmark_config_trains_at_the_demo_budget(name):
+    """The standalone configs repeat demo/config.yaml's training settings (its compressed schedule, environment
+    map and pruning): RT-Splatting and 2DGS build the same trainer configs as in the demo, the stated seed aside,
+    so that "the demo's budget" means one thing in every benchmark."""
+    from rtsplat.config import trainer_options
+
+    demo = load_config_dict(DEMO, source="demo/config.yaml")
+    cfg = load_config(ROOT / "benchmarks" / f"{name}.yaml")
+    for method in ("rtsplat", "2dgs"):
+        ours = trainer_options(cfg, cfg.scenes[0], method)
+        reference = trainer_options(demo, demo.scenes[0], method)
+        assert ours.pop("seed", 0) == reference.pop("seed", 0) == 0
+        assert ours == reference, f"benchmarks/{name}.yaml's {method} differs from the demo's"
+
+
 def test_the_held_out_time_benchmark_pairs_both_methods_at_three_budgets_on_held_out_scenes_only():
     """benchmarks/heldout_time.yaml: one held-out seed of every kind of the family (no tuning or seen scene),
-    RT-Splatting and 2DGS at 0.5, 1 and 2 times the demo's 600 iterations with convergence.yaml's settings,
+    RT-Splatting and 2DGS at 0.5, 1 and 2 times the demo's iterations with convergence.yaml's settings,
     which the report's convergence section reads as one budget series per method."""
     from rtsplat.config import roles_json, trainer_options
     from rtsplat.report import Roles, Run
@@ -144,7 +164,7 @@ def test_the_held_out_time_benchmark_pairs_both_methods_at_three_budgets_on_held
             name = method if budget == 1 else f"{method}_x{budget:g}"
             options = trainer_options(cfg, cfg.scenes[0], name)
             assert options == trainer_options(convergence, convergence.scenes[0], name)
-            assert TrainConfig.from_dict(options).schedule.iterations == 600 * budget
+            assert TrainConfig.from_dict(options).schedule.iterations == DEMO_ITERATIONS * budget
     roles = Roles.from_dict(json.loads(roles_json(cfg, quote=False)))
     budgets = scene_budgets({m: Run(cfg.scenes[0], m) for m in cfg.methods}, roles)
     assert [(b.factor, b.ours.method, b.theirs.method) for b in budgets] == [
@@ -168,9 +188,10 @@ def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
     assert trees[("cabin", "rtsplat_init1")]["densify"]["initial_copies"] == 1
     if layer == "targets.yaml":
         assert trees[("dome", "rtsplat_densify_more")]["densify"]["grad_threshold"] == 1e-4
-        longer = trees[("dome", "rtsplat_prune_longer")]
-        assert longer["densify"]["prune_occupancy"] == 0.2
-        assert longer["schedule"]["iterations"] == 1.25 * demo_iterations
+        light = trees[("dome", "rtsplat_prune_light")]
+        assert trees[("dome", "rtsplat")]["densify"]["prune_occupancy"] == 0.2
+        assert light["densify"]["prune_occupancy"] == 0.05
+        assert light["schedule"]["iterations"] == 0.8 * demo_iterations
     assert trees[("dome", "2dgs_x4")]["effects"] == {"transmission": "off", "specular": "off",
                                                       "near_reflection": "off", "appearance": "auto"}
 

@@ -31,7 +31,8 @@ CAPTURE = Path(__file__).parent / "data" / "glass"
 OUTLINES = json.loads((CAPTURE / "outlines.json").read_text())  # the glass's outline per photo, pixels
 MARKED = ["frame_00001.jpg", "frame_00009.jpg", "frame_00015.jpg", "frame_00023.jpg", "frame_00035.jpg"]
 
-# the demo's 600-iteration schedule shortened to 300, at the capture's 168x126 (prepare.downsample 2)
+# the demo's schedule (demo/config.yaml) in its proportions at 300 iterations, at the capture's 168x126
+# (prepare.downsample 2)
 TRAIN = {
     "schedule": {"iterations": 300, "volume_until": 50, "specular_from": 100, "densify_from": 75,
                  "densify_every": 25, "reset_every": 0, "eval_every": 300, "checkpoint_every": 0,

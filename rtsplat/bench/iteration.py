@@ -1,11 +1,12 @@
 """Time of one training iteration, per phase: ``python -m rtsplat.bench.iteration --scene DIR``.
 
 Trains rtsplat and 2dgs (transmission and specular off) on a prepared scene at the demo's
-settings (demo/config.yaml: 600 iterations, 128x256 environment map with 7 levels, volume until
-100, specular from 200, densification every 50 from 150, SH degree up by one every 100). Each
-(checkout, method) pair runs in its own worker process: it first trains ``--warmup`` iterations
-(default 300: past ``specular_from``, so the full model runs, at SH degree 3, after two
-densifications, so the surfel count is a trained one), then times ``--iterations`` iterations per
+settings (demo/config.yaml: 750 iterations, 128x256 environment map with 7 levels, volume until
+125, specular from 250, densification every 62 from 188 pruning below occupancy 0.2, SH degree up by
+one every 125; evaluations, checkpoints and logging off). Each (checkout, method) pair runs in its own
+worker process: it first trains ``--warmup`` iterations (default 300: past ``specular_from``, so the
+full model runs, at SH degree 2, after two densifications, so the surfel count is a trained one), then
+times ``--iterations`` iterations per
 round. Rounds are interleaved over the workers (the order alternates), so every worker sees the same
 load; the median over the rounds is reported, and with two checkouts the median of the per-round
 ratios first / last.
@@ -39,9 +40,11 @@ from pathlib import Path
 
 DEMO_OPTIONS = {
     "model": {"env_height": 128, "env_width": 256, "env_levels": 7},
-    "schedule": {"iterations": 600, "volume_until": 100, "specular_from": 200, "densify_from": 150,
-                 "densify_every": 50, "reset_every": 0, "eval_every": 0, "checkpoint_every": 0,
-                 "sh_degree_every": 100, "log_every": 10**9},
+    "schedule": {"iterations": 750, "volume_until": 125, "specular_from": 250, "densify_from": 188,
+                 "densify_every": 62, "reset_every": 0, "eval_every": 0, "checkpoint_every": 0,
+                 "sh_degree_every": 125, "log_every": 10**9},
+    "cameras": {"refine_from": 125},
+    "densify": {"prune_occupancy": 0.2},
 }
 METHODS = {
     "rtsplat": {},
