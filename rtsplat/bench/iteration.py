@@ -6,10 +6,9 @@ settings (demo/config.yaml: 750 iterations, 128x256 environment map with 7 level
 one every 125; evaluations, checkpoints and logging off). Each (checkout, method) pair runs in its own
 worker process: it first trains ``--warmup`` iterations (default 300: past ``specular_from``, so the
 full model runs, at SH degree 2, after two densifications, so the surfel count is a trained one), then
-times ``--iterations`` iterations per
-round. Rounds are interleaved over the workers (the order alternates), so every worker sees the same
-load; the median over the rounds is reported, and with two checkouts the median of the per-round
-ratios first / last.
+times ``--iterations`` iterations per round. Rounds are interleaved over the workers (the order
+alternates), so every worker sees the same load; the median over the rounds is reported, and with
+two checkouts the median of the per-round ratios first / last.
 
 ``--checkout DIR`` (repeatable; default: the checkout this script belongs to) names source trees
 whose ``rtsplat`` package is timed: the worker runs this file with ``PYTHONPATH=DIR``, so a second
