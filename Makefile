@@ -70,7 +70,7 @@ heldout:
 	$(MAKE) family FAMILY_CONFIG=benchmarks/heldout.yaml FAMILY_DIR=heldout
 
 # accuracy against time on held-out scenes (benchmarks/heldout_time.yaml): both methods at 0.5, 1 and 2 times the
-# demo's budget on seed 101 of every kind; the report's convergence section gives each RT-Splatting budget against
+# demo's budget on seed 102 of every kind; the report's convergence section gives each RT-Splatting budget against
 # 2DGS's finished runs at the same training time. Run once, when the work it judges is done.
 heldout-time:
 	$(MAKE) family FAMILY_CONFIG=benchmarks/heldout_time.yaml FAMILY_DIR=heldout_time
