@@ -5,7 +5,8 @@ Each stage lives in its own module that exposes two functions:
 * ``add_arguments(parser: argparse.ArgumentParser) -> None``
 * ``run(args: argparse.Namespace) -> int``  (the exit status)
 
-The CLI only parses arguments and calls ``run``; the work is done by the stage's function API.
+The CLI only parses arguments, sets the C heap to keep what it frees (:mod:`rtsplat.heap`) and calls
+``run``; the work is done by the stage's function API.
 Stage modules are imported lazily, so ``rtsplat --help`` stays fast and a stage's heavy
 dependencies (pycolmap, mitsuba, onnxruntime, ...) are loaded only when that stage runs.
 
@@ -29,6 +30,7 @@ import sys
 from dataclasses import dataclass
 
 from rtsplat.errors import BAD_INPUT_EXIT, INTERRUPTED_EXIT, run_command  # noqa: F401 (the exit statuses)
+from rtsplat.heap import keep_freed_memory
 
 NOT_IMPLEMENTED_EXIT = 3
 
@@ -108,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         return NOT_IMPLEMENTED_EXIT
     args = stage_parser(stage, module).parse_args(argv[1:])
+    keep_freed_memory()  # a stage's large torch buffers reuse their pages from one step to the next
     return run_command(f"rtsplat {stage.name}", lambda: module.run(args))
 
 

@@ -22,7 +22,10 @@ specular network forward, image loss forward (L1 + SSIM, SSIM alone listed too),
 render (SH colours, G-buffer arithmetic, gating), backward outside the rasterizer (autograd of the
 network, environment map, losses, projection), density control, optimizer step, and the rest of
 the iteration. Each time is exclusive of the sections nested inside it. ``--torch-profile N``
-adds a torch.profiler table (self CPU time per operator, N iterations) per worker.
+adds a torch.profiler table (self CPU time per operator, N iterations) per worker. Each worker also
+gives its system CPU time (the kernel's, inside the total) and its minor page faults per iteration.
+Workers set the C heap as ``rtsplat train`` does (:mod:`rtsplat.heap`); a checkout without that module
+runs with glibc's defaults, so ``--checkout <before> --checkout .`` measures the setting too.
 
 ``--finish`` trains every worker to the end of the schedule afterwards and prints its test PSNR.
 """
@@ -31,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import statistics
 import sys
 import tempfile
@@ -145,6 +149,12 @@ def _worker(args) -> int:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    try:  # the C heap as `rtsplat train` sets it (a --checkout from before rtsplat.heap runs glibc's defaults)
+        from rtsplat.heap import keep_freed_memory
+    except ImportError:
+        pass
+    else:
+        keep_freed_memory()
     sections = _Sections()
     _instrument(sections)
     options = json.loads(args.options)
@@ -173,12 +183,15 @@ def _worker(args) -> int:
             if request["cmd"] == "run":
                 sections.reset()
                 times = []
+                usage = resource.getrusage(resource.RUSAGE_SELF)
                 for _ in range(request["iterations"]):
                     t0 = time.perf_counter()
                     trainer.step()
                     times.append(time.perf_counter() - t0)
+                after = resource.getrusage(resource.RUSAGE_SELF)
                 _send({"times": times, "phases": sections.totals, "surfels": len(trainer.model.surfels),
-                       "iteration": trainer.iteration})
+                       "iteration": trainer.iteration, "system_s": after.ru_stime - usage.ru_stime,
+                       "page_faults": after.ru_minflt - usage.ru_minflt})
             elif request["cmd"] == "profile":
                 from torch.profiler import ProfilerActivity, profile
 
@@ -329,6 +342,10 @@ def _print_results(checkouts, methods, runs, args) -> None:
             print(f"{phase:28s} " + " ".join(f"{v:14.2f}" for v in vals))
         totals = [statistics.median(1e3 * sum(r["times"]) / len(r["times"]) for r in per[ci]) for ci in per]
         print(f"{'total ms/iteration':28s} " + " ".join(f"{v:14.2f}" for v in totals))
+        system = [statistics.median(1e3 * r["system_s"] / len(r["times"]) for r in per[ci]) for ci in per]
+        print(f"{'of which system CPU ms':28s} " + " ".join(f"{v:14.2f}" for v in system))
+        faults = [statistics.median(r["page_faults"] / len(r["times"]) for r in per[ci]) for ci in per]
+        print(f"{'page faults/iteration':28s} " + " ".join(f"{v:14.0f}" for v in faults))
         surf = [per[ci][-1]["surfels"] for ci in per]
         print(f"{'surfels (last round)':28s} " + " ".join(f"{v:14d}" for v in surf))
         if len(checkouts) > 1:
