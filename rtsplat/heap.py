@@ -4,9 +4,10 @@ A training step allocates and frees the same large buffers every iteration: the 
 activations and their gradients are [pixels, 256] float32 arrays, about 7.7 MB each at 100x75. With
 glibc's defaults, blocks that large are either mapped afresh for every allocation (above the mmap
 threshold) or handed back to the kernel when freed (the top of the heap is trimmed past the trim
-threshold), so every iteration faults their pages in again and the kernel zeroes them: on a glass
-scene of the family at the demo's settings about 6000-8000 page faults and 9-14 ms of system time per
-rtsplat iteration (docs/performance.md, "The C heap keeps what it frees").
+threshold), so an iteration can fault their pages in again and the kernel zeroes them. How often
+depends on what the process freed before (glibc's thresholds follow the largest block it has freed):
+a whole rtsplat training of a glass scene at the demo's settings took 1.58 million page faults and 2.9 s
+of system time (docs/performance.md, "The C heap keeps what it frees").
 
 :func:`keep_freed_memory` raises both thresholds, so that blocks up to :data:`MMAP_THRESHOLD` come from
 the heap and freed memory stays with the process up to :data:`TRIM_THRESHOLD`: the next iteration

@@ -24,8 +24,10 @@ network, environment map, losses, projection), density control, optimizer step, 
 the iteration. Each time is exclusive of the sections nested inside it. ``--torch-profile N``
 adds a torch.profiler table (self CPU time per operator, N iterations) per worker. Each worker also
 gives its system CPU time (the kernel's, inside the total) and its minor page faults per iteration.
-Workers set the C heap as ``rtsplat train`` does (:mod:`rtsplat.heap`); a checkout without that module
-runs with glibc's defaults, so ``--checkout <before> --checkout .`` measures the setting too.
+Workers set the C heap as ``rtsplat train`` does (:mod:`rtsplat.heap`; a checkout without that module
+runs with glibc's defaults). Whether glibc's defaults fault pages depends on what the process freed
+before, and a worker's history is not a training's: the setting's saving is measured on whole
+``rtsplat train`` runs (docs/performance.md, "The C heap keeps what it frees").
 
 ``--finish`` trains every worker to the end of the schedule afterwards and prints its test PSNR.
 """
