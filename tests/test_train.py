@@ -745,9 +745,9 @@ def test_a_run_with_a_busy_neighbour_records_the_cpu_time_the_neighbour_used(gla
     window = {}
 
     class Watched(Trainer):
-        def finish(self):  # inside the run's clock: read the neighbour's CPU time before the summary
+        def run_usage(self):  # the run's clock is read here; the summary's reading is the last one
             window["end"] = _cpu_seconds_of(spinner.pid)
-            return super().finish()
+            return super().run_usage()
 
     def log(message: str) -> None:
         if message.startswith("effects:") and "start" not in window:  # logged after train() started its clock

@@ -120,7 +120,8 @@ def trainer_config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def run(args: argparse.Namespace) -> int:
     from rtsplat.scene import PreparedScene
-    from rtsplat.train.trainer import Trainer, TrainingStopped
+    from rtsplat.train.run import TrainingStopped
+    from rtsplat.train.trainer import Trainer
 
     cfg = trainer_config_from_args(args)
     if args.iterations is not None:

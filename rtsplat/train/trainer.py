@@ -1,33 +1,11 @@
-"""The training loop, kept small: data, model, losses, density control, the divergence watch, the
-mirror-plane fit, evaluation, checkpoints, resuming and logging each live in their own module; this file
-only sequences them.
-
-Run directory layout::
-
-    <out>/config.json        resolved TrainConfig
-    <out>/effects.json       which branches run and why (effects: auto)
-    <out>/train_log.jsonl    one JSON line per logging step: losses, PSNR, surfels, seconds, cpu_seconds
-    <out>/checkpoints/last.pt  resumable state (rtsplat.model.checkpoint, written atomically; never
-                             a diverged one, and resuming needs the same config, see load_checkpoint);
-                             with a checkpoint_dir: <checkpoint_dir>/last.pt and a copy of train_log.jsonl
-    <out>/model.pt           final state, same format;  <out>/point_cloud.ply  3DGS-viewer PLY
-    <out>/summary.json       written last: a run without it is not finished; its starting_surfels says how
-                             many surfels the SfM points started and why (rtsplat.train.initial), its
-                             provenance the commit, uncommitted changes, machine, device and packages that
-                             trained it (rtsplat.provenance; earlier_parts when a resume ran other code)
-
-Time, in the log and the summary (:mod:`rtsplat.usage` says what each measure means): ``seconds`` /
-``train_seconds`` are the wall seconds of the training steps (not the evaluations, test-view pose fits and
-checkpoints between them), ``cpu_seconds`` / ``train_cpu_seconds`` this process's CPU seconds over the
-same steps, which depend much less on what else the machine runs. The summary adds ``threads``,
-``cpu_share`` (train_cpu_seconds / (train_seconds x threads)) and ``run_usage``: the usage of
-:meth:`Trainer.train` as a whole (steps, evaluations, checkpoints; every resumed part included), with
-``other_busy_cores``, the mean number of cores other processes kept busy meanwhile: how much ran beside it.
-"""
+"""The trainer, kept small: data, model, losses, density control, the divergence watch, the mirror-plane
+fit, evaluation, checkpoints and resuming each live in their own module; this file sequences a training
+step and holds the state a checkpoint resumes (the model, the optimizer, the clock and the time spent).
+What a run folder holds and when it is written (the train log, checkpoints on the schedule, the summary)
+is :mod:`rtsplat.train.run`'s; :meth:`Trainer.train` runs it."""
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable
@@ -41,11 +19,9 @@ from torch import Tensor
 from rtsplat.camera import Camera
 from rtsplat.devices import resolve_device
 from rtsplat.errors import PipelineError
-from rtsplat.io.atomic import write_errors, write_text_atomic
 from rtsplat.io.train_log import LOG_NAME
 from rtsplat.model.appearance import apply_appearance
 from rtsplat.model.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
-from rtsplat.model.export import write_surfel_ply
 from rtsplat.model.mirror import empty_planes, is_bent
 from rtsplat.model.rtmodel import GBUFFER, RenderResult, RTModel
 from rtsplat.model.surfels import (
@@ -54,11 +30,8 @@ from rtsplat.model.surfels import (
     concat_surfels,
     init_from_points,
 )
-from rtsplat.provenance import collect as collect_provenance
-from rtsplat.provenance import commit_label, machine_label, run_record, same_source
 from rtsplat.quality import masked_mean, psnr
 from rtsplat.quality.lpips import load_lpips
-from rtsplat.raster import default_backend
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.appearance import (
@@ -73,7 +46,7 @@ from rtsplat.train.appearance import (
     view_log_gains,
 )
 from rtsplat.train.cameras import PoseCorrections
-from rtsplat.train.clock import ScheduleClock, passed
+from rtsplat.train.clock import ScheduleClock
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl, DensityEvents
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
@@ -81,12 +54,13 @@ from rtsplat.train.effects import (
     decide_effects,
     decide_near_planes,
 )
-from rtsplat.train.evaluation import best_test_psnr, fit_test_appearance, fit_test_poses, views_psnr
+from rtsplat.train.evaluation import fit_test_appearance, fit_test_poses, views_psnr
 from rtsplat.train.glass_planes import glass_planes, glass_samples, marked_centres, near_coverage
 from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, position_lr
 from rtsplat.train.planes import PlaneRefinement
-from rtsplat.train.resume import check_resumable, restore_log
+from rtsplat.train.resume import check_resumable
+from rtsplat.train.run import TrainingRun, write_effects
 from rtsplat.train_config import TrainConfig
 from rtsplat.usage import Usage, UsageClock, compute_threads
 
@@ -122,21 +96,6 @@ def stage_at(iteration: int, cfg: TrainConfig) -> str:
     return "full"
 
 
-def _write_json(path: Path, data) -> None:
-    write_text_atomic(path, json.dumps(data, indent=1, default=str) + "\n")
-
-
-class TrainingStopped(Exception):
-    """:meth:`Trainer.train` stopped on request (:attr:`Trainer.stop_signal`) at an iteration boundary,
-    after writing the checkpoint the next run resumes from."""
-
-    def __init__(self, signal_number: int, iteration: int, checkpoint: Path):
-        super().__init__(f"stopped by signal {signal_number} at iteration {iteration}; checkpoint {checkpoint}")
-        self.signal_number = signal_number
-        self.iteration = iteration
-        self.checkpoint = checkpoint
-
-
 class Trainer:
     def __init__(
         self, scene: PreparedScene, cfg: TrainConfig, out_dir: str | Path, *, log: Callable[[str], None] = print,
@@ -151,7 +110,7 @@ class Trainer:
         self.log = log
         self.progress = progress
         # set (to a signal number) from outside, e.g. a signal handler: the loop writes the checkpoint at the
-        # end of the current iteration and raises TrainingStopped (rtsplat train: SIGTERM, SIGUSR1)
+        # end of the current iteration and raises run.TrainingStopped (rtsplat train: SIGTERM, SIGUSR1)
         self.stop_signal: int | None = None
         self.device = resolve_device(cfg.device, key="train.device")
         torch.manual_seed(cfg.seed)
@@ -265,7 +224,7 @@ class Trainer:
                          "seconds": round(time.perf_counter() - start, 3)}
         self.log(f"near reflection at iteration {self.iteration}: {'on' if use else 'off'} ({why}; "
                  f"fitted in {self.near_fit['seconds']:.1f} s)")
-        self._write_effects()
+        write_effects(self)
         return self.near_fit
 
     def _start_plane_refinement(self) -> None:
@@ -548,7 +507,7 @@ class Trainer:
                     out[f"{split}_mean_abs_offset"] = float(values[:, 3:].abs().mean())
         return out
 
-    def _correction_sizes(self) -> dict[str, float]:
+    def correction_sizes(self) -> dict[str, float]:
         """Mean rotation (degrees) and translation (scene units) of the training and test views'
         corrections, for the run summary."""
         if self.poses is None:
@@ -661,175 +620,16 @@ class Trainer:
         self.usage_before = None if state.get("run_usage") is None else Usage.from_dict(state["run_usage"])
         self.checkpoint_iteration = self.iteration
 
-    # -- the loop ------------------------------------------------------------------------------
+    # -- the run -------------------------------------------------------------------------------
     def train(self, resume: bool = True, new_config: bool = False) -> dict:
-        """Train to ``schedule.iterations``, resuming from ``checkpoints/last.pt`` when ``resume``
-        (``new_config``: even if the config differs, see :meth:`load_checkpoint`). A loss, gradient or
-        parameter that goes non-finite stops the run with
-        :class:`~rtsplat.train.divergence.TrainingDiverged` before anything of that state is written."""
-        cfg = self.cfg
-        self.run_clock.restart()
-        self.out.mkdir(parents=True, exist_ok=True)
-        log_path = self.out / LOG_NAME
-        self._resume_or_start(resume, new_config, log_path)
-        self._record_provenance()
-        _write_json(self.out / "config.json", cfg.to_dict())
-        self._write_effects()
-        self._log_settings()
-        # reading the divergence record waits for the device: on a CPU that costs nothing, elsewhere it
-        # is read where the loop reads the device anyway (logging steps) and before every write
-        watch_every_step = self.device.type == "cpu"
-        bar = _progress(cfg.schedule.iterations, self.clock.position, self.progress)
-        with write_errors(log_path), open(log_path, "a") as log_file:
-            if cfg.schedule.eval_every > 0 and self.iteration == 0:  # the initialisation, for comparison
-                log_file.write(json.dumps({"iteration": 0, "seconds": 0.0, "cpu_seconds": 0.0,
-                                           "surfels": len(self.model.surfels),
-                                           **self.evaluate()}) + "\n")
-            last = self.clock.done(self.iteration, self.elapsed)  # a resumed run may be done already
-            while not last:
-                step, numbers, last, evaluate_now = self._timed_step(watch_every_step)
-                bar.update(step.positions[1] - step.positions[0])
-                if numbers is not None:
-                    bar.set_postfix(loss=f"{numbers['loss']:.4f}", psnr=f"{numbers['psnr']:.2f}",
-                                    surfels=len(self.model.surfels))
-                    log_file.write(json.dumps(self._log_record(step, numbers, last, evaluate_now)) + "\n")
-                    log_file.flush()
-                stop = self.stop_signal
-                if stop is not None or passed(*step.positions, cfg.schedule.checkpoint_every) is not None:
-                    log_file.flush()
-                    self._write_checkpoint_and_log(log_path)
-                if stop is not None and not last:
-                    bar.close()
-                    raise TrainingStopped(stop, self.iteration, self.checkpoint_path)
-        bar.close()
-        return self.finish()
-
-    def _resume_or_start(self, resume: bool, new_config: bool, log_path: Path) -> None:
-        """Resume from the checkpoint when asked and there is one (the train log cut back to it), else start
-        over (without a train log)."""
-        if resume and self.checkpoint_path.exists():
-            self.load_checkpoint(self.checkpoint_path, new_config)
-            self.log(f"resumed from {self.checkpoint_path} at iteration {self.iteration}")
-            restore_log(log_path, self.kept_log_path, self.iteration, self.log)
-        else:
-            log_path.unlink(missing_ok=True)
-
-    def _record_provenance(self) -> None:
-        """Add what trains this part of the run (:func:`rtsplat.provenance.collect`) when it differs from what
-        trained the part it resumes."""
-        here = collect_provenance(str(self.device))
-        if not self.provenance or not same_source(self.provenance[-1], here):
-            self.provenance.append(here)
-        self.log(f"trained by: {commit_label(here)} on {machine_label(here)}")
-
-    def _log_settings(self) -> None:
-        """Say which branches run and why, the starting surfels, the device and the time budget."""
-        cfg = self.cfg
-        self.log(f"effects: transmission={self.effects.transmission} ({self.effect_reasons['transmission']}), "
-                 f"specular={self.effects.specular} ({self.effect_reasons['specular']})")
-        self.log(f"near reflection: {self.effects.near_reflection} ({self.effect_reasons['near_reflection']})")
-        self.log(f"per-view appearance: {self.appearance is not None} ({self.effect_reasons['appearance']})")
-        self.log(f"perceptual loss: {self.perceptual_note}")
-        self.log(f"starting surfels: {self.starting.surfels} ({self.starting.reason})")
-        backend = default_backend(self.device) if cfg.backend == "auto" else cfg.backend
-        self.log(f"device: {self.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
-        if cfg.schedule.seconds is not None:
-            self.log(f"time budget: {cfg.schedule.seconds:g} s of training steps, the plan of "
-                     f"{cfg.schedule.iterations} iterations placed by the share spent")
-
-    def _timed_step(self, watch_every_step: bool) -> tuple[StepResult, dict[str, float] | None, bool, bool]:
-        """One training step, its wall and CPU seconds added to the run's: the step, its numbers (read from the
-        device on logging steps only, else None), whether it is the last and whether an evaluation follows.
-        The divergence watch is read on logging steps, and on every step with ``watch_every_step``."""
-        cfg = self.cfg
-        start, cpu_start = time.perf_counter(), time.process_time()
-        try:
-            step = self.step()
-        except Exception:  # a diverged state can break the step itself: name the divergence
-            self.stop_if_diverged()
-            raise
-        last = self.clock.done(step.iteration, self.elapsed + time.perf_counter() - start)
-        evaluate_now = cfg.schedule.eval_every > 0 and (
-            last or passed(*step.positions, cfg.schedule.eval_every) is not None)
-        logging = step.iteration % cfg.schedule.log_every == 0 or last or evaluate_now or bool(step.density)
-        # the loop reads the device only on logging steps; that read waits for the queued work,
-        # so the seconds logged there include it
-        numbers = step.numbers() if logging else None
-        if logging or watch_every_step:
-            self.stop_if_diverged()
-        self.elapsed += time.perf_counter() - start
-        if self.cpu_elapsed is not None:
-            self.cpu_elapsed += time.process_time() - cpu_start
-        return step, numbers, last, evaluate_now
-
-    def _log_record(self, step: StepResult, numbers: dict[str, float], last: bool, evaluate_now: bool) -> dict:
-        """The train log's line of a logging step; with ``evaluate_now``, the test views are fitted and
-        evaluated first (with the final fit's steps on the ``last`` step)."""
-        cfg = self.cfg
-        record = {"iteration": step.iteration, "seconds": round(self.elapsed, 4),
-                  "cpu_seconds": _rounded(self.cpu_elapsed, 4), **numbers,
-                  "surfels": len(self.model.surfels), "stage": step.stage}
-        if cfg.schedule.seconds is not None:  # the plan's iteration this step stood at
-            record["position"] = step.positions[1]
-        if cfg.schedule.coarse_downsample > 1:  # the progressive resolution's factor of this step
-            record["downsample"] = cfg.schedule.downsample_at(step.positions[1])
-        if step.density:
-            record["density"] = step.density
-        if evaluate_now:
-            self.fit_test_cameras(cfg.cameras.final_fit_steps if last else cfg.cameras.test_fit_steps)
-            record.update(self.evaluate())
-        return record
-
-    def _write_checkpoint_and_log(self, log_path: Path) -> None:
-        """The checkpoint, after the kept copy of the train log (:attr:`kept_log_path`): never older than it."""
-        if self.kept_log_path is not None:
-            write_text_atomic(self.kept_log_path, log_path.read_text())
-        self.save_checkpoint()
+        """Train into the run folder (:class:`rtsplat.train.run.TrainingRun`) and return the summary."""
+        return TrainingRun(self).train(resume, new_config)
 
     def run_usage(self) -> Usage | None:
         """Wall and CPU seconds, threads and the other processes' CPU time of the whole run so far (this
         part since :meth:`train` started, plus the parts it resumed from); None when a resumed part
         did not record it."""
         return None if self.usage_before is None else self.usage_before + self.run_clock.read()
-
-    def _write_effects(self) -> None:
-        _write_json(self.out / "effects.json", {**self.effects.to_dict(), "reasons": self.effect_reasons,
-                                                "perceptual": self.perceptual_note, "near_fit": self.near_fit,
-                                                "appearance": self.appearance is not None,
-                                                "appearance_spread": self.exposure.spread,
-                                                "mirror_planes": self.model.mirror_planes.tolist()})
-
-    def finish(self) -> dict:
-        if not self.cfg.schedule.eval_every:  # otherwise the last step's evaluation fitted them
-            self.fit_test_cameras(self.cfg.cameras.final_fit_steps)
-        metrics = self.evaluate()
-        self.save_checkpoint(self.out / "model.pt")
-        write_surfel_ply(self.out / "point_cloud.ply", self.model.surfels, self.model.uses_opacity)
-        threads = compute_threads()
-        share = (self.cpu_elapsed / (self.elapsed * threads)
-                 if self.cpu_elapsed is not None and self.elapsed > 0 else None)
-        usage = self.run_usage()
-        summary = {"iterations": self.iteration, "time_budget_seconds": self.cfg.schedule.seconds,
-                   "train_seconds": round(self.elapsed, 3),
-                   "train_cpu_seconds": _rounded(self.cpu_elapsed, 3), "threads": threads,
-                   "cpu_share": _rounded(share, 3), "device": str(self.device),
-                   "run_usage": None if usage is None else usage.to_dict(),
-                   "seconds_per_iteration": round(self.elapsed / max(self.iteration, 1), 5),
-                   "surfels": len(self.model.surfels), "starting_surfels": self.starting.to_dict(),
-                   "effects": self.effects.to_dict(),
-                   "near_reflection": self.near_fit, "appearance": self.appearance_summary(),
-                   "mirror_planes_moved": None if self.plane_refinement is None else self.plane_refinement.moved(),
-                   "provenance": run_record(self.provenance),
-                   **metrics,
-                   **self._correction_sizes(),
-                   **best_test_psnr(self.out / LOG_NAME, self.iteration, metrics)}
-        _write_json(self.out / "summary.json", summary)
-        self.log(f"done: {json.dumps(summary)}")
-        return summary
-
-
-def _rounded(value: float | None, digits: int) -> float | None:
-    return None if value is None else round(value, digits)
 
 
 def _scene_points(scene: PreparedScene) -> tuple[Tensor, Tensor]:
@@ -841,10 +641,3 @@ def _scene_points(scene: PreparedScene) -> tuple[Tensor, Tensor]:
         raise PipelineError("the point cloud is empty; cannot initialise surfels", path=scene.points_path,
                             fix="rerun `rtsplat prepare` on a scene whose SfM produced points")
     return points
-
-
-def _progress(total: int, initial: int, enabled: bool):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, initial=initial, disable=not enabled, desc="train", unit="it", dynamic_ncols=True)
-
