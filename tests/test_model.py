@@ -18,7 +18,7 @@ from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
 from rtsplat.model.rtmodel import ActiveEffects, RTModel
 from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh, rgb_to_sh_dc
-from rtsplat.model.specular import SpecularNetwork
+from rtsplat.model.specular import SpecularNetwork, bucketed_rows
 from rtsplat.model.surfels import init_from_points
 from rtsplat.raster import RasterSettings
 from rtsplat.train.effects import decide_effects
@@ -308,6 +308,53 @@ def test_specular_network_in_bfloat16_follows_float32_and_keeps_float32_outputs_
     assert SpecularNetwork(20, 4, 8, "auto").uses_bfloat16(torch.device("cuda")) is False
     with pytest.raises(ValueError, match="precision"):
         SpecularNetwork(20, 4, 8, "float16")
+
+
+def test_bucketed_rows_cover_the_rows_with_few_shapes_and_little_padding():
+    sizes = range(1, 600_001, 7)
+    padded = [bucketed_rows(n) for n in sizes]
+    assert all(p >= n for n, p in zip(sizes, padded, strict=True))
+    assert all(p - n < 1024 or p <= n * 1.0625 for n, p in zip(sizes, padded, strict=True))
+    assert len({bucketed_rows(n) for n in range(1, 7501)}) == 8  # a 100x75 image: eight shapes
+    assert len({bucketed_rows(n) for n in range(300_000, 600_001)}) <= 17  # one octave: at most 17
+    assert bucketed_rows(0) == 0
+
+
+def test_specular_network_in_bfloat16_on_the_cpu_runs_on_bucketed_rows_and_drops_the_padding():
+    torch.manual_seed(1)
+    net = SpecularNetwork(20, 4, 64, "bfloat16")
+    shapes = []
+    net.mlp[0].register_forward_hook(lambda module, inputs, output: shapes.append(inputs[0].shape[0]))
+    env = torch.randn(1500, 20, requires_grad=True)
+    material = torch.nn.functional.normalize(torch.randn(1500, 4), dim=-1)
+    reflectance = torch.rand(1500, 1)
+    spec, beta = net(env, material, reflectance)
+    assert shapes == [bucketed_rows(1500)] == [2048]
+    assert spec.shape == (1500, 3) and beta.shape == (1500, 1)
+    (spec.square().sum() + beta.sum()).backward()
+    grad_padded = net.mlp[2].weight.grad.clone()
+    # the same rows without padding: the padded rows add nothing to the outputs or the weights' gradients
+    net.zero_grad()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        outer = (env[:, :, None] * material[:, None, :]).flatten(1)
+        out = net.mlp(torch.cat([outer, env], -1)).float()
+    torch.testing.assert_close(torch.sigmoid(out[:, 3:4]), beta, rtol=1e-5, atol=1e-6)
+    spec_plain = torch.exp((out[:, :3] + math.log(0.5)).clamp_max(8.0)) * reflectance
+    torch.testing.assert_close(spec_plain, spec, rtol=1e-5, atol=1e-6)
+    (spec_plain.square().sum() + torch.sigmoid(out[:, 3:4]).sum()).backward()
+    torch.testing.assert_close(net.mlp[2].weight.grad, grad_padded, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16", "auto"])
+def test_a_model_names_the_dtype_its_specular_network_multiplies_in(precision):
+    surfels = init_from_points(torch.rand(20, 3), torch.rand(20, 3), occupancy=0.6)
+    settings = dataclasses.replace(SMALL, specular_precision=precision)
+    model = RTModel(surfels, effects=ActiveEffects(), settings=settings)
+    native = specular.cpu_has_bfloat16_matmul()
+    expected = {"float32": "float32", "bfloat16": "bfloat16", "auto": "bfloat16" if native else "float32"}
+    assert model.specular_products() == expected[precision]
+    plain = RTModel(surfels, effects=ActiveEffects(transmission=False, specular=False), settings=settings)
+    assert plain.specular_products() is None
 
 
 def test_gate_gradient_keeps_the_value_and_scales_the_gradient_exactly():

@@ -122,6 +122,13 @@ class RTModel(nn.Module):
         """Whether C_spec blends in the learned background at the reflected direction (``specular_mirror``)."""
         return self.settings.specular_mirror and self.background_map is not None
 
+    def specular_products(self) -> str | None:
+        """The dtype the specular network's matrix products run in on the model's device (``float32`` or
+        ``bfloat16``: ``specular_precision`` resolved), or None without the network."""
+        if self.specular_net is None:
+            return None
+        return "bfloat16" if self.specular_net.uses_bfloat16(self.roi_center.device) else "float32"
+
     def set_mirror_planes(self, planes: Tensor) -> None:
         """The planes of the glass (:func:`rtsplat.model.mirror.fit_planes` rows) that near reflections use."""
         planes = planes.detach().to(device=self.roi_center.device, dtype=torch.float32)

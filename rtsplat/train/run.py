@@ -140,7 +140,8 @@ class TrainingRun:
         t.log(f"perceptual loss: {t.perceptual_note}")
         t.log(f"starting surfels: {t.starting.surfels} ({t.starting.reason})")
         backend = default_backend(t.device) if cfg.backend == "auto" else cfg.backend
-        t.log(f"device: {t.device} (train.device: {cfg.device}), rasterizer backend: {backend}")
+        t.log(f"device: {t.device} (train.device: {cfg.device}), rasterizer backend: {backend}, specular "
+              f"network's products: {t.model.specular_products() or 'no network'}")
         if cfg.schedule.seconds is not None:
             t.log(f"time budget: {cfg.schedule.seconds:g} s of training steps, the plan of "
                   f"{cfg.schedule.iterations} iterations placed by the share spent")
@@ -215,7 +216,7 @@ class TrainingRun:
                    "run_usage": None if usage is None else usage.to_dict(),
                    "seconds_per_iteration": round(t.elapsed / max(t.iteration, 1), 5),
                    "surfels": len(t.model.surfels), "starting_surfels": t.starting.to_dict(),
-                   "effects": t.effects.to_dict(),
+                   "effects": t.effects.to_dict(), "specular_products": t.model.specular_products(),
                    "near_reflection": t.near_fit, "appearance": t.appearance_summary(),
                    "mirror_planes_moved": None if t.plane_refinement is None else t.plane_refinement.moved(),
                    "provenance": run_record(t.provenance),
