@@ -731,6 +731,12 @@ def test_mirror_planes_learnt_from_the_images_move_stay_planes_and_resume(glass_
 SPIN = "while True: pass\n"
 
 
+def _steal_seconds() -> float:
+    """The CPU time the hypervisor gave to other virtual machines (/proc/stat's steal, summed over the cores)."""
+    fields = Path("/proc/stat").read_text().splitlines()[0].split()
+    return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+
+
 def _cpu_seconds_of(pid: int) -> float:
     """utime + stime of a process from /proc/<pid>/stat (after the command name, fields 14 and 15)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -747,21 +753,29 @@ def test_a_run_with_a_busy_neighbour_records_the_cpu_time_the_neighbour_used(gla
     class Watched(Trainer):
         def run_usage(self):  # the run's clock is read here; the summary's reading is the last one
             window["end"] = _cpu_seconds_of(spinner.pid)
+            window["steal_end"] = _steal_seconds()
             return super().run_usage()
 
     def log(message: str) -> None:
         if message.startswith("effects:") and "start" not in window:  # logged after train() started its clock
             window["start"] = _cpu_seconds_of(spinner.pid)
+            window["steal_start"] = _steal_seconds()
 
     try:
-        summary = Watched(glass_scene, config(12), tmp_path / "run", progress=False, log=log).train()
+        # float32 products: with bfloat16 ones (AMX) this machine's /proc/stat showed 3-5% less busy time than
+        # the two processes' own clocks add up to, so the neighbour's reading fell short by about 0.2 s of 5
+        cfg = config(12, model={"specular_precision": "float32"})
+        summary = Watched(glass_scene, cfg, tmp_path / "run", progress=False, log=log).train()
     finally:
         spinner.kill()
         spinner.wait()
     neighbour = window["end"] - window["start"]
     assert neighbour > 0.1  # the neighbour did run beside the training
     run = summary["run_usage"]
-    assert run["other_busy_core_seconds"] >= neighbour - 0.1  # clock ticks: a few hundredths of a second
+    # clock ticks: a few hundredths of a second; on a virtual machine the neighbour's own CPU time can include
+    # time the hypervisor stole, which /proc/stat counts as steal, not as busy (rtsplat/usage.py)
+    steal = window["steal_end"] - window["steal_start"]
+    assert run["other_busy_core_seconds"] >= neighbour - 0.1 - steal
     assert run["other_busy_cores"] == pytest.approx(run["other_busy_core_seconds"] / run["wall_seconds"], rel=0.02,
                                                     abs=0.01)
 
