@@ -18,7 +18,7 @@ import time
 import torch
 from torch import nn
 
-from rtsplat.model.specular import bucketed_rows, cpu_has_bfloat16_matmul
+from rtsplat.model.specular import SpecularNetwork, bucketed_rows, cpu_has_bfloat16_matmul
 
 KINDS = ("fixed", "changing", "bucketed")
 
@@ -36,7 +36,7 @@ def step_ms(mlp: nn.Module, rows: int, padded: int, bfloat16: bool) -> float:
 def measure(rows: int, spread: int, steps: int, rounds: int, width: int, seed: int = 0) -> dict[tuple[str, str], float]:
     """Median ms per step of every (precision, kind), the kinds interleaved round by round."""
     torch.manual_seed(seed)
-    mlp = nn.Sequential(nn.Linear(80, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, 4))
+    mlp = SpecularNetwork(env_channels=16, material_channels=4, width=width, attenuation="network").mlp  # 80 in, 4 out
     draws = torch.Generator().manual_seed(seed)
     times: dict[tuple[str, str], list[float]] = {}
     for _ in range(rounds):
