@@ -41,18 +41,30 @@ PROC_STAT = "/proc/stat"
 # the /proc/stat "cpu" line: user nice system idle iowait irq softirq steal guest guest_nice; guest time
 # is already inside user and nice, idle and iowait are not work, steal is other virtual machines' time
 BUSY_FIELDS = (0, 1, 2, 5, 6)
+STEAL_FIELD = 7
+
+
+def _cpu_line_seconds(fields: tuple[int, ...], path: str) -> float | None:
+    """The sum of ``fields`` of ``path``'s "cpu" line, in seconds (summed over cores); None without it."""
+    try:
+        with open(path) as f:
+            line = f.readline().split()
+        ticks = sum(int(line[1 + i]) for i in fields)
+    except (OSError, ValueError, IndexError):
+        return None
+    return ticks / os.sysconf("SC_CLK_TCK")
 
 
 def machine_busy_seconds(path: str = PROC_STAT) -> float | None:
     """CPU seconds all processes of the machine used since boot (summed over cores), None without
     ``/proc/stat``."""
-    try:
-        with open(path) as f:
-            line = f.readline().split()
-        ticks = sum(int(line[1 + i]) for i in BUSY_FIELDS)
-    except (OSError, ValueError, IndexError):
-        return None
-    return ticks / os.sysconf("SC_CLK_TCK")
+    return _cpu_line_seconds(BUSY_FIELDS, path)
+
+
+def machine_steal_seconds(path: str = PROC_STAT) -> float | None:
+    """CPU seconds the hypervisor gave to other virtual machines since boot (summed over cores), None
+    without ``/proc/stat``."""
+    return _cpu_line_seconds((STEAL_FIELD,), path)
 
 
 def machine_cpus() -> int:

@@ -23,6 +23,7 @@ from rtsplat.model.checkpoint import CheckpointError, read_checkpoint
 from rtsplat.model.export import read_surfel_ply
 from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
+from rtsplat.usage import machine_steal_seconds
 
 SMALL_MODEL = {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32}
 
@@ -731,12 +732,6 @@ def test_mirror_planes_learnt_from_the_images_move_stay_planes_and_resume(glass_
 SPIN = "while True: pass\n"
 
 
-def _steal_seconds() -> float:
-    """The CPU time the hypervisor gave to other virtual machines (/proc/stat's steal, summed over the cores)."""
-    fields = Path("/proc/stat").read_text().splitlines()[0].split()
-    return int(fields[8]) / os.sysconf("SC_CLK_TCK")
-
-
 def _cpu_seconds_of(pid: int) -> float:
     """utime + stime of a process from /proc/<pid>/stat (after the command name, fields 14 and 15)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -753,13 +748,13 @@ def test_a_run_with_a_busy_neighbour_records_the_cpu_time_the_neighbour_used(gla
     class Watched(Trainer):
         def run_usage(self):  # the run's clock is read here; the summary's reading is the last one
             window["end"] = _cpu_seconds_of(spinner.pid)
-            window["steal_end"] = _steal_seconds()
+            window["steal_end"] = machine_steal_seconds()
             return super().run_usage()
 
     def log(message: str) -> None:
         if message.startswith("effects:") and "start" not in window:  # logged after train() started its clock
             window["start"] = _cpu_seconds_of(spinner.pid)
-            window["steal_start"] = _steal_seconds()
+            window["steal_start"] = machine_steal_seconds()
 
     try:
         summary = Watched(glass_scene, config(12), tmp_path / "run", progress=False, log=log).train()

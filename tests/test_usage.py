@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import resource
 import subprocess
 import sys
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rtsplat.usage import PROC_STAT, Usage, UsageClock, machine_busy_seconds
+from rtsplat.usage import PROC_STAT, Usage, UsageClock, machine_busy_seconds, machine_steal_seconds
 
 needs_proc_stat = pytest.mark.skipif(not Path(PROC_STAT).is_file(), reason="no /proc/stat (not Linux)")
 
@@ -61,6 +62,16 @@ def test_machine_busy_time_grows_and_is_none_without_proc_stat(tmp_path):
         while time.perf_counter() < end:
             pass
         assert machine_busy_seconds() >= first + 0.2 - TICK_TOLERANCE
+
+
+def test_busy_and_steal_time_are_read_from_their_fields_of_the_cpu_line(tmp_path):
+    """/proc/stat's "cpu" line: user nice system idle iowait irq softirq steal guest guest_nice (ticks)."""
+    stat = tmp_path / "stat"
+    stat.write_text("cpu  100 20 30 4000 50 6 7 80 9 10\ncpu0 1 2 3 4 5 6 7 8 9 10\n")
+    tick = os.sysconf("SC_CLK_TCK")
+    assert machine_busy_seconds(str(stat)) == pytest.approx((100 + 20 + 30 + 6 + 7) / tick)
+    assert machine_steal_seconds(str(stat)) == pytest.approx(80 / tick)
+    assert machine_steal_seconds(str(tmp_path / "missing")) is None
 
 
 def test_spans_add_up_and_an_unknown_part_makes_the_sum_unknown():

@@ -3,12 +3,12 @@
 Trains rtsplat and 2dgs (transmission and specular off) on a prepared scene at the demo's
 settings (demo/config.yaml: 750 iterations, 128x256 environment map with 7 levels, volume until
 125, specular from 250, densification every 62 from 188 pruning below occupancy 0.2, SH degree up by
-one every 125; evaluations, checkpoints and logging off). Each (checkout, method) pair runs in its own
-worker process: it first trains ``--warmup`` iterations (default 300: past ``specular_from``, so the
-full model runs, at SH degree 2, after two densifications, so the surfel count is a trained one), then
-times ``--iterations`` iterations per round. Rounds are interleaved over the workers (the order
-alternates), so every worker sees the same load; the median over the rounds is reported, and with
-two checkouts the median of the per-round ratios first / last.
+one every 125, the colours' rate 0.004; evaluations, checkpoints and logging off). Each (checkout,
+method) pair runs in its own worker process: it first trains ``--warmup`` iterations (default 300:
+past ``specular_from``, so the full model runs, at SH degree 2, after two densifications, so the
+surfel count is a trained one), then times ``--iterations`` iterations per round. Rounds are
+interleaved over the workers (the order alternates), so every worker sees the same load; the median
+over the rounds is reported, and with two checkouts the median of the per-round ratios first / last.
 
 ``--checkout DIR`` (repeatable; default: the checkout this script belongs to) names source trees
 whose ``rtsplat`` package is timed: the worker runs this file with ``PYTHONPATH=DIR``, so a second
@@ -50,6 +50,7 @@ DEMO_OPTIONS = {
                  "sh_degree_every": 125, "log_every": 10**9},
     "cameras": {"refine_from": 125},
     "densify": {"prune_occupancy": 0.2},
+    "lr": {"sh_dc": 0.004},
 }
 METHODS = {
     "rtsplat": {},

@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rtsplat.io.atomic import write_errors, write_text_atomic
+from rtsplat.io.atomic import write_errors, write_json_atomic, write_text_atomic
 from rtsplat.io.train_log import LOG_NAME
 from rtsplat.model.export import write_surfel_ply
 from rtsplat.provenance import collect as collect_provenance
@@ -79,7 +79,7 @@ class TrainingRun:
         t.out.mkdir(parents=True, exist_ok=True)
         self._resume_or_start(resume, new_config)
         self._record_provenance()
-        _write_json(t.out / "config.json", cfg.to_dict())
+        write_json_atomic(t.out / "config.json", cfg.to_dict())
         write_effects(t)
         self._log_settings()
         # reading the divergence record waits for the device: on a CPU that costs nothing, elsewhere it
@@ -223,7 +223,7 @@ class TrainingRun:
                    **metrics,
                    **t.correction_sizes(),
                    **best_test_psnr(self.log_path, t.iteration, metrics)}
-        _write_json(t.out / "summary.json", summary)
+        write_json_atomic(t.out / "summary.json", summary)
         t.log(f"done: {json.dumps(summary)}")
         return summary
 
@@ -232,15 +232,11 @@ def write_effects(trainer: Trainer) -> None:
     """``effects.json``: which branches run and why, the perceptual loss, the mirror-plane fit and the planes,
     the per-view appearance; written as the run starts and again when the trainer fits the mirror planes."""
     t = trainer
-    _write_json(t.out / "effects.json", {**t.effects.to_dict(), "reasons": t.effect_reasons,
+    write_json_atomic(t.out / "effects.json", {**t.effects.to_dict(), "reasons": t.effect_reasons,
                                          "perceptual": t.perceptual_note, "near_fit": t.near_fit,
                                          "appearance": t.appearance is not None,
                                          "appearance_spread": t.exposure.spread,
                                          "mirror_planes": t.model.mirror_planes.tolist()})
-
-
-def _write_json(path: Path, data) -> None:
-    write_text_atomic(path, json.dumps(data, indent=1, default=str) + "\n")
 
 
 def _rounded(value: float | None, digits: int) -> float | None:
