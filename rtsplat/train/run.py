@@ -233,10 +233,10 @@ def write_effects(trainer: Trainer) -> None:
     the per-view appearance; written as the run starts and again when the trainer fits the mirror planes."""
     t = trainer
     write_json_atomic(t.out / "effects.json", {**t.effects.to_dict(), "reasons": t.effect_reasons,
-                                         "perceptual": t.perceptual_note, "near_fit": t.near_fit,
-                                         "appearance": t.appearance is not None,
-                                         "appearance_spread": t.exposure.spread,
-                                         "mirror_planes": t.model.mirror_planes.tolist()})
+                                               "perceptual": t.perceptual_note, "near_fit": t.near_fit,
+                                               "appearance": t.appearance is not None,
+                                               "appearance_spread": t.exposure.spread,
+                                               "mirror_planes": t.model.mirror_planes.tolist()})
 
 
 def _rounded(value: float | None, digits: int) -> float | None:
