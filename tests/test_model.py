@@ -15,7 +15,7 @@ from rtsplat.model.background import BackgroundMap
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
-from rtsplat.model.rtmodel import ActiveEffects, RTModel
+from rtsplat.model.rtmodel import GBUFFER_WIDTHS, STAGES, ActiveEffects, RTModel
 from rtsplat.model.settings import Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh, rgb_to_sh_dc
 from rtsplat.model.specular import SpecularNetwork, bucketed_rows
@@ -592,6 +592,55 @@ def test_gating_scales_the_transmission_gradient_by_g():
     torch.testing.assert_close(grad_on, grad_off, rtol=1e-4, atol=1e-7)
     # and the forward value does not depend on gating
     torch.testing.assert_close(_render(on, gating=Gating()).color, _render(on, gating=None).color)
+
+
+class _EveryGBufferChannel(RTModel):
+    """Rasterizes every G-buffer channel whatever the stage reads."""
+
+    def gbuffer_channels(self, stage):
+        return tuple(GBUFFER_WIDTHS)
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
+@pytest.mark.parametrize("stage", STAGES)
+@pytest.mark.parametrize("effects, ablations", [
+    (ActiveEffects(), Ablations()),
+    (ActiveEffects(transmission=False, specular=False), Ablations()),
+    (ActiveEffects(specular=False), Ablations()),
+    (ActiveEffects(transmission=False), Ablations()),
+    (ActiveEffects(), Ablations(occupancy=False, scattering=False)),
+])
+def test_a_render_rasterizes_only_the_gbuffer_channels_it_reads_and_gets_the_same_image_and_gradients(
+        stage, effects, ablations, backend):
+    results = []
+    for cls in (RTModel, _EveryGBufferChannel):
+        model = _model(effects, ablations)
+        model.__class__ = cls
+        result = model.render(small_camera(24, 18, torch.float32), stage=stage, backend=backend)
+        weights = torch.linspace(0.5, 1.5, result.color.numel()).reshape(result.color.shape)
+        loss = (result.color * weights).sum() + result.layers["blended_opacity"].sum()
+        loss.backward()
+        grads = {name: p.grad for name, p in model.named_parameters()}
+        results.append((result, grads))
+    (subset, g_subset), (every, g_every) = results
+    assert subset.raster.features.shape[-1] == sum(GBUFFER_WIDTHS[n] for n in subset.gbuffer)
+    assert every.raster.features.shape[-1] == sum(GBUFFER_WIDTHS.values())
+    if not (effects.transmission or effects.specular):
+        assert subset.gbuffer == {}  # plain 2DGS rasterizes no G-buffer channel
+    if stage == "full" and effects.specular:
+        assert {"roughness", "material", "reflectance", "roi"} <= set(subset.gbuffer)
+    if stage == "volume":
+        assert set(subset.gbuffer) <= {"opacity"}
+    torch.testing.assert_close(subset.color, every.color, rtol=0, atol=0)
+    assert set(subset.layers) == set(every.layers)
+    for key in subset.layers:  # with opacity 1 the blended opacity is the alpha, summed in another order
+        tolerance = 1e-6 if key == "blended_opacity" and "opacity" not in subset.gbuffer else 0
+        torch.testing.assert_close(subset.layers[key], every.layers[key], rtol=tolerance, atol=tolerance)
+    for name, g in g_every.items():  # a parameter the render does not read gets no gradient, not a zero one
+        if g_subset[name] is None:
+            assert g is None or g.abs().max() == 0, name
+        else:
+            torch.testing.assert_close(g_subset[name], g, rtol=1e-5, atol=1e-6 * float(g.abs().max()), msg=name)
 
 
 def test_no_transmission_no_specular_is_plain_2dgs_radiance():

@@ -275,7 +275,6 @@ def test_shading_smoothness_sees_only_pairs_inside_the_mask_and_stays_finite():
 
 def test_the_shading_prior_evens_the_panes_reflectance(glass_scene, tmp_path):
     """The toy pane is one material: with the prior its reflectance varies less across the pane's pixels."""
-    from rtsplat.model.rtmodel import GBUFFER
 
     def spread(weight: float) -> float:
         cfg = config(24, losses={"shading_smoothness_weight": weight},
@@ -285,7 +284,7 @@ def test_the_shading_prior_evens_the_panes_reflectance(glass_scene, tmp_path):
                                                          tmp_path / f"w{weight}"):
             raster = result.raster
             inside = (mask[..., 0] > 0.5) & (raster.alpha[..., 0] > 0.5)
-            values.append((raster.features[..., GBUFFER["reflectance"]] / raster.alpha)[inside])
+            values.append((result.gbuffer["reflectance"] / raster.alpha)[inside])
         return float(torch.cat(values).std())
 
     free, held = spread(0.0), spread(5.0)

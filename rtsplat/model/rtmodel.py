@@ -63,10 +63,18 @@ from rtsplat.raster import RasterOutput, RasterSettings, Surfels, rasterize
 
 STAGES = ("volume", "subsurface", "full")
 
-# surface G-buffer channels blended with the occupancy weights
-GBUFFER = {"scatter": slice(0, 3), "tau": slice(3, 4), "roughness": slice(4, 5), "material": slice(5, 9),
-           "reflectance": slice(9, 10), "roi": slice(10, 11), "opacity": slice(11, 12)}
-GBUFFER_CHANNELS = 12
+# surface G-buffer channels blended with the occupancy weights: name -> width, in the order of the rasterizer's
+# feature rows. A render rasterizes only the channels its stage and effects read (RTModel.gbuffer_channels).
+GBUFFER_WIDTHS = {"scatter": 3, "tau": 1, "roughness": 1, "material": 4, "reflectance": 1, "roi": 1, "opacity": 1}
+
+
+def gbuffer_layout(channels: tuple[str, ...]) -> dict[str, slice]:
+    """Where each of ``channels`` (names of :data:`GBUFFER_WIDTHS`, in its order) lies in the feature rows."""
+    layout, start = {}, 0
+    for name in channels:
+        layout[name] = slice(start, start + GBUFFER_WIDTHS[name])
+        start += GBUFFER_WIDTHS[name]
+    return layout
 
 
 @dataclass(frozen=True)
@@ -85,6 +93,7 @@ class RenderResult:
     raster: RasterOutput  # its per-surfel tensors are over the surfels of ``surfel_index`` when culled
     layers: dict[str, Tensor] = field(default_factory=dict)  # [H,W,C] decomposition and G-buffers
     surfel_index: Tensor | None = None  # [n] the surfels rasterized (render with frustum_cull); None: all
+    gbuffer: dict[str, Tensor] = field(default_factory=dict)  # [H,W,C] blended channels rasterized (not normalised)
 
 
 class RTModel(nn.Module):
@@ -149,8 +158,25 @@ class RTModel(nn.Module):
         return self.effects.transmission and self.ablations.scattering
 
     # -- rasterizer inputs -------------------------------------------------------------------
-    def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None, index: Tensor | None = None) -> Surfels:
-        """The rasterizer's inputs for ``camera``: every surfel, or those of ``index`` [n] (in its order)."""
+    def gbuffer_channels(self, stage: str) -> tuple[str, ...]:
+        """The G-buffer channels a render of ``stage`` reads, in :data:`GBUFFER_WIDTHS`' order: the blended
+        opacity where opacity is a parameter of its own (the mask loss; how see-through a surface is); from the
+        subsurface stage on, the region of interest (with transmission or specular) and the subsurface terms
+        (with scattering); in the full stage, the specular network's inputs (with specular). A model without
+        transmission and specular (2DGS) rasterizes none."""
+        wanted = {"opacity"} if self.uses_opacity else set()
+        if stage != "volume" and (self.effects.transmission or self.effects.specular):
+            wanted.add("roi")
+            if self.uses_scatter:
+                wanted |= {"scatter", "tau"}
+            if stage == "full" and self.effects.specular:
+                wanted |= {"roughness", "material", "reflectance"}
+        return tuple(name for name in GBUFFER_WIDTHS if name in wanted)
+
+    def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None, index: Tensor | None = None,
+                           channels: tuple[str, ...] = tuple(GBUFFER_WIDTHS)) -> Surfels:
+        """The rasterizer's inputs for ``camera``: every surfel, or those of ``index`` [n] (in its order), with
+        the G-buffer ``channels`` (names of :data:`GBUFFER_WIDTHS` in its order; default all) as features."""
         p = self.surfels
         take = (lambda t: t) if index is None else (lambda t: t.index_select(0, index))  # noqa: E731
         means, sh = take(p.means), take(p.sh)
@@ -158,13 +184,19 @@ class RTModel(nn.Module):
         colors = eval_sh(sh, directions, p.sh_degree if sh_degree is None else sh_degree)
         occupancy = take(p.occupancy)
         opacity = take(p.opacity) if self.uses_opacity else torch.ones_like(occupancy)
-        inside = ((means - self.roi_center).norm(dim=-1) <= self.roi_radius).to(means.dtype)
-        if self.effects.specular and self.settings.view_independent_roi:
+        view_independent = self.effects.specular and self.settings.view_independent_roi
+        inside = (((means - self.roi_center).norm(dim=-1) <= self.roi_radius).to(means.dtype)
+                  if view_independent or "roi" in channels else None)
+        if view_independent:
             colors = torch.where(inside[:, None] > 0, eval_sh(sh, directions, 0), colors)
-        features = torch.cat(
-            [take(p.scatter), take(p.transmissivity)[:, None], take(p.roughness)[:, None], take(p.material),
-             take(p.reflectance)[:, None], inside[:, None], opacity[:, None]], 1,
-        )
+        columns = {
+            "scatter": lambda: take(p.scatter), "tau": lambda: take(p.transmissivity)[:, None],
+            "roughness": lambda: take(p.roughness)[:, None], "material": lambda: take(p.material),
+            "reflectance": lambda: take(p.reflectance)[:, None], "roi": lambda: inside[:, None],
+            "opacity": lambda: opacity[:, None],
+        }
+        features = (torch.cat([columns[name]() for name in channels], 1) if channels
+                    else means.new_zeros(means.shape[0], 0))
         return Surfels(means, take(p.quats), take(p.scales), occupancy, opacity, features, colors)
 
     def in_view(self, camera: Camera, settings: RasterSettings | None = None) -> Tensor:
@@ -209,26 +241,29 @@ class RTModel(nn.Module):
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
-        out = rasterize(self.rasterizer_surfels(camera, sh_degree, index), camera, raster_settings, backend=backend)
+        channels = self.gbuffer_channels(stage)
+        out = rasterize(self.rasterizer_surfels(camera, sh_degree, index, channels), camera, raster_settings,
+                        backend=backend)
         rays = image_ray_directions(camera)  # [H,W,3], shared by the background and the specular pass
         far = self.background_radiance(camera, rays) if background is None else background.to(out.color)
         c_trans = out.color + (1.0 - out.volume_alpha) * far
         alpha = out.alpha
         alpha_safe = alpha.clamp_min(1e-6)
-        g = {name: out.features[..., sl] for name, sl in GBUFFER.items()}
+        g = {name: out.features[..., sl] for name, sl in gbuffer_layout(channels).items()}
         normal = F.normalize(out.normal, dim=-1)
         layers = {
             "trans": c_trans, "normal": normal, "depth": out.depth, "alpha": alpha,
-            "volume_alpha": out.volume_alpha, "blended_opacity": g["opacity"],
+            "volume_alpha": out.volume_alpha, "blended_opacity": g.get("opacity", alpha),  # opacity 1: the alpha
         }
         if stage == "volume" or not (self.effects.transmission or self.effects.specular):
-            return RenderResult(c_trans, out, layers, index)
+            return RenderResult(c_trans, out, layers, index, g)
 
         shade = alpha > self.settings.shade_alpha_threshold  # [H,W,1]
         roi = (g["roi"] / alpha_safe).clamp(0, 1)
         if self.settings.shade_coverage:  # the part of the pixel the surface does not cover shows C_trans
             roi = roi * alpha.clamp(0, 1)
-        surface_opacity = g["opacity"] / alpha_safe  # the optical opacity of the surface a pixel shows
+        # the optical opacity of the surface a pixel shows
+        surface_opacity = g["opacity"] / alpha_safe if self.uses_opacity else torch.ones_like(alpha)
         if self.settings.specular_surfaces == "see_through" and self.uses_opacity:
             roi = roi * see_through_weight(surface_opacity)
         specular_on = stage == "full" and self.effects.specular
@@ -271,7 +306,7 @@ class RTModel(nn.Module):
         layers.update(roi=roi, sub=sub, shade=shade.to(color.dtype))
         layers["transmission"] = transmission_layer(beta, direct, c_trans, roi, shade)
         layers["reflection"] = reflection_layer(spec, roi, shade)
-        return RenderResult(color, out, layers, index)
+        return RenderResult(color, out, layers, index, g)
 
     def background_radiance(self, camera: Camera, rays: Tensor | None = None) -> Tensor:
         """``B(d)`` for every pixel ray [H,W,3] (learned), or a constant colour [3] (black, white, random).

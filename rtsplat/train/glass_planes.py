@@ -39,7 +39,7 @@ def glass_samples(model: RTModel, views: ViewSet, raster: RasterSettings, backen
     coverage_views = []
     for index in masked:
         camera, mask = views.cameras[index], views.masks[index]
-        out = rasterize(model.rasterizer_surfels(camera), camera, raster, backend=backend)
+        out = rasterize(model.rasterizer_surfels(camera, channels=()), camera, raster, backend=backend)
         chosen = ((mask > 0.5) & (out.alpha > 0.5))[..., 0]
         if index in sampled:
             coverage_views.append((camera, chosen, out.depth[..., 0]))

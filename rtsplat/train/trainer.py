@@ -23,7 +23,7 @@ from rtsplat.io.train_log import LOG_NAME
 from rtsplat.model.appearance import apply_appearance
 from rtsplat.model.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
 from rtsplat.model.mirror import empty_planes, is_bent
-from rtsplat.model.rtmodel import GBUFFER, RenderResult, RTModel
+from rtsplat.model.rtmodel import RenderResult, RTModel
 from rtsplat.model.surfels import (
     PARAMETERS,
     SurfelParameters,
@@ -356,9 +356,8 @@ class Trainer:
                 terms["mask_coverage"] = L.mask_coverage_weight * losses.mask_coverage_loss(
                     result.layers["alpha"], mask)
         if L.shading_smoothness_weight > 0 and mask is not None and "spec" in result.layers:
-            g = result.raster.features
-            shading = torch.cat([g[..., GBUFFER["reflectance"]], g[..., GBUFFER["roughness"]],
-                                 g[..., GBUFFER["material"]]], -1)
+            g = result.gbuffer
+            shading = torch.cat([g["reflectance"], g["roughness"], g["material"]], -1)
             terms["shading_smoothness"] = L.shading_smoothness_weight * losses.shading_smoothness(
                 shading, result.raster.alpha, mask)
         if L.distortion_weight > 0:
