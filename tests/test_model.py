@@ -597,7 +597,7 @@ def test_gating_scales_the_transmission_gradient_by_g():
 class _EveryGBufferChannel(RTModel):
     """Rasterizes every G-buffer channel whatever the stage reads."""
 
-    def gbuffer_channels(self, stage):
+    def gbuffer_channels(self):
         return tuple(GBUFFER_WIDTHS)
 
 
@@ -610,7 +610,7 @@ class _EveryGBufferChannel(RTModel):
     (ActiveEffects(transmission=False), Ablations()),
     (ActiveEffects(), Ablations(occupancy=False, scattering=False)),
 ])
-def test_a_render_rasterizes_only_the_gbuffer_channels_it_reads_and_gets_the_same_image_and_gradients(
+def test_a_model_rasterizes_only_the_gbuffer_channels_its_effects_read_and_gets_the_same_image_and_gradients(
         stage, effects, ablations, backend):
     results = []
     for cls in (RTModel, _EveryGBufferChannel):
@@ -625,12 +625,14 @@ def test_a_render_rasterizes_only_the_gbuffer_channels_it_reads_and_gets_the_sam
     (subset, g_subset), (every, g_every) = results
     assert subset.raster.features.shape[-1] == sum(GBUFFER_WIDTHS[n] for n in subset.gbuffer)
     assert every.raster.features.shape[-1] == sum(GBUFFER_WIDTHS.values())
-    if not (effects.transmission or effects.specular):
-        assert subset.gbuffer == {}  # plain 2DGS rasterizes no G-buffer channel
-    if stage == "full" and effects.specular:
-        assert {"roughness", "material", "reflectance", "roi"} <= set(subset.gbuffer)
-    if stage == "volume":
-        assert set(subset.gbuffer) <= {"opacity"}
+    expected = {  # what each model reads, in every stage
+        (True, True, True): set(GBUFFER_WIDTHS),
+        (False, False, True): set(),  # plain 2DGS
+        (True, False, True): {"opacity", "roi", "scatter", "tau"},
+        (False, True, True): {"roi", "roughness", "material", "reflectance"},
+        (True, True, False): {"roi", "roughness", "material", "reflectance"},  # no occupancy, no scattering
+    }[(effects.transmission, effects.specular, ablations.occupancy)]
+    assert set(subset.gbuffer) == expected
     torch.testing.assert_close(subset.color, every.color, rtol=0, atol=0)
     assert set(subset.layers) == set(every.layers)
     for key in subset.layers:  # with opacity 1 the blended opacity is the alpha, summed in another order

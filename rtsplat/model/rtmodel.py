@@ -64,7 +64,7 @@ from rtsplat.raster import RasterOutput, RasterSettings, Surfels, rasterize
 STAGES = ("volume", "subsurface", "full")
 
 # surface G-buffer channels blended with the occupancy weights: name -> width, in the order of the rasterizer's
-# feature rows. A render rasterizes only the channels its stage and effects read (RTModel.gbuffer_channels).
+# feature rows. A model rasterizes only the channels its effects read (RTModel.gbuffer_channels).
 GBUFFER_WIDTHS = {"scatter": 3, "tau": 1, "roughness": 1, "material": 4, "reflectance": 1, "roi": 1, "opacity": 1}
 
 
@@ -158,18 +158,21 @@ class RTModel(nn.Module):
         return self.effects.transmission and self.ablations.scattering
 
     # -- rasterizer inputs -------------------------------------------------------------------
-    def gbuffer_channels(self, stage: str) -> tuple[str, ...]:
-        """The G-buffer channels a render of ``stage`` reads, in :data:`GBUFFER_WIDTHS`' order: the blended
-        opacity where opacity is a parameter of its own (the mask loss; how see-through a surface is); from the
-        subsurface stage on, the region of interest (with transmission or specular) and the subsurface terms
-        (with scattering); in the full stage, the specular network's inputs (with specular). A model without
-        transmission and specular (2DGS) rasterizes none."""
+    def gbuffer_channels(self) -> tuple[str, ...]:
+        """The G-buffer channels this model's renders read, in :data:`GBUFFER_WIDTHS`' order: the blended opacity
+        where opacity is a parameter of its own (the mask loss; how see-through a surface is), the region of
+        interest with transmission or specular, the subsurface terms with scattering, the specular network's
+        inputs with specular. A model without transmission and specular (2DGS) rasterizes none. The set follows
+        the effects, not the stage: a channel that the volume stage does not read is rasterized from the first
+        iteration on, so that its parameters take Adam steps (of zero gradient) from there, as the learning
+        rates were measured with; starting their moments at the stage that reads them lost 0.04-0.16 dB on
+        tuning scenes for 2-4% of the time (docs/performance.md)."""
         wanted = {"opacity"} if self.uses_opacity else set()
-        if stage != "volume" and (self.effects.transmission or self.effects.specular):
+        if self.effects.transmission or self.effects.specular:
             wanted.add("roi")
             if self.uses_scatter:
                 wanted |= {"scatter", "tau"}
-            if stage == "full" and self.effects.specular:
+            if self.effects.specular:
                 wanted |= {"roughness", "material", "reflectance"}
         return tuple(name for name in GBUFFER_WIDTHS if name in wanted)
 
@@ -241,7 +244,7 @@ class RTModel(nn.Module):
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
-        channels = self.gbuffer_channels(stage)
+        channels = self.gbuffer_channels()
         out = rasterize(self.rasterizer_surfels(camera, sh_degree, index, channels), camera, raster_settings,
                         backend=backend)
         rays = image_ray_directions(camera)  # [H,W,3], shared by the background and the specular pass
