@@ -595,7 +595,7 @@ def test_gating_scales_the_transmission_gradient_by_g():
 
 
 class _EveryGBufferChannel(RTModel):
-    """Rasterizes every G-buffer channel whatever the stage reads."""
+    """Rasterizes every G-buffer channel, whatever its effects read."""
 
     def gbuffer_channels(self):
         return tuple(GBUFFER_WIDTHS)
