@@ -177,9 +177,11 @@ class RTModel(nn.Module):
         return tuple(name for name in GBUFFER_WIDTHS if name in wanted)
 
     def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None, index: Tensor | None = None,
-                           channels: tuple[str, ...] = tuple(GBUFFER_WIDTHS)) -> Surfels:
+                           channels: tuple[str, ...] | None = None) -> Surfels:
         """The rasterizer's inputs for ``camera``: every surfel, or those of ``index`` [n] (in its order), with
-        the G-buffer ``channels`` (names of :data:`GBUFFER_WIDTHS` in its order; default all) as features."""
+        the G-buffer ``channels`` (names of :data:`GBUFFER_WIDTHS` in its order; default: the model's own,
+        :meth:`gbuffer_channels`) as features."""
+        channels = self.gbuffer_channels() if channels is None else channels
         p = self.surfels
         take = (lambda t: t) if index is None else (lambda t: t.index_select(0, index))  # noqa: E731
         means, sh = take(p.means), take(p.sh)
