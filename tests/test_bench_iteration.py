@@ -23,6 +23,13 @@ def test_the_width_method_halves_the_network_and_2dgs_turns_both_effects_off():
     assert (effects.transmission, effects.specular) == ("off", "off")
 
 
+@pytest.mark.parametrize(("method", "expected"), [("rtsplat_no_specular", ("on", "off")),
+                                                  ("rtsplat_no_transmission", ("off", "on"))])
+def test_the_one_effect_methods_keep_exactly_one_effect_whatever_the_scene(method, expected):
+    effects = TrainConfig.from_dict(method_options(method)).effects
+    assert (effects.transmission, effects.specular) == expected
+
+
 def test_the_demo_options_are_demo_config_yaml_s_training_settings():
     """The benchmark times the demo's training: its options build demo/config.yaml's trainer config, less the
     evaluations, checkpoints and logging it switches off."""

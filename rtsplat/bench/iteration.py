@@ -72,6 +72,10 @@ METHODS = {
     "rtsplat_bfloat16": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "bfloat16"}},
     # the specular network's hidden width halved (model.mlp_width)
     "rtsplat_mlp128": {"model": {**DEMO_OPTIONS["model"], "mlp_width": 128}},
+    # one effect alone: transmission without the specular branch (no environment map, no network), and the
+    # specular branch without transmission (Ref-GS-like); with 2dgs they split rtsplat's extra cost by effect
+    "rtsplat_no_specular": {"effects": {"transmission": "on", "specular": "off"}},
+    "rtsplat_no_transmission": {"effects": {"transmission": "off", "specular": "on"}},
     "2dgs": {"effects": {"transmission": "off", "specular": "off"}},
 }
 PHASES = ("projection", "binning", "raster fwd", "raster bwd", "env lookup fwd", "specular net fwd",
