@@ -8,6 +8,7 @@
     methods:                   # name -> trainer config overrides; trained / rendered / evaluated per scene
       rtsplat: {role: main}    # role (main | baseline | ablation | repeat, see method_roles) is not a
       rtsplat_seed1: {role: repeat, of: rtsplat, seed: 1}   # trainer key; a repeat names what it reruns
+      rtsplat_at_2dgs_time: {time_of: 2dgs}   # trains for as long as the 2dgs run on the scene took
     defaults:                  # a SceneConfig: sfm, masks, prepare, train, render, video, metrics
       prepare: {downsample: 4}
     overrides:                 # per-scene SceneConfig fragments merged over the defaults
@@ -475,7 +476,7 @@ class SlurmConfig:
 
 
 MethodRoleName = Literal["main", "baseline", "ablation", "repeat"]
-ROLE_KEYS = ("role", "of")  # keys of a method that describe its role, not the trainer
+ROLE_KEYS = ("role", "of", "time_of")  # keys of a method that describe its role, not the trainer
 
 
 @dataclass(frozen=True)
@@ -484,6 +485,7 @@ class MethodRole:
 
     role: MethodRoleName
     of: str | None = None  # role repeat: the method it reruns
+    time_of: str | None = None  # trains for as long as this method's run on the same scene took
 
 
 @dataclass
@@ -508,6 +510,10 @@ class PipelineConfig:
                          "description": "the method's role in the report and the workflow"},
                 "of": {"type": "string", "description": "role repeat: the method this one reruns; the repeat "
                        "trains that method's options with its own keys (a seed) merged over them"},
+                "time_of": {"type": "string", "description": "train for as long as this other method's run on "
+                            "the same scene took (its training steps' wall seconds, the time budget "
+                            "schedule.seconds): the run to compare with it at equal time. The workflow trains "
+                            "that method first; no budget beside it"},
             },
             "additionalProperties": True,
         },
@@ -642,7 +648,9 @@ def trainer_options(cfg: PipelineConfig, scene: str, method: str) -> dict[str, A
     ``iterations``, the method's overrides (:func:`method_overrides`) merged over them (a method's own
     ``schedule.iterations`` wins), ``backend`` and ``device``; then a method's ``budget: F`` scales every
     iteration count by F (:func:`rtsplat.train_config.scale_budget`), and ``budget: 300s`` sets the time budget
-    ``schedule.seconds`` (:func:`budget_seconds`). Validated: an unknown or bad key is a ConfigError."""
+    ``schedule.seconds`` (:func:`budget_seconds`). A method's ``time_of`` is not in the tree: its seconds are
+    known once the other run has finished (``rtsplat train --seconds-of``). Validated: an unknown or bad key is
+    a ConfigError."""
     from rtsplat.train_config import TrainConfig as TrainerConfig
     from rtsplat.train_config import scale_budget
 
@@ -706,6 +714,8 @@ def slurm_resources(cfg: PipelineConfig, rule: str, scene: str | None = None, me
     if own.minutes is not None:
         minutes = own.minutes
     elif rule == "train":
+        # a run with the time of another method's: that method's length
+        method = method_roles(cfg)[method].time_of or method
         schedule = TrainerConfig.from_dict(trainer_options(cfg, scene, method)).schedule
         if schedule.seconds is not None:  # a time budget: twice it (evaluations and checkpoints are not in it)
             minutes = slurm.train_minutes + math.ceil(2 * schedule.seconds / 60)
@@ -761,8 +771,25 @@ def method_roles(cfg: PipelineConfig) -> dict[str, MethodRole]:
         elif of is not None:
             raise ConfigError(f"methods.{name}.of is set but its role is {role}",
                               fix="remove 'of', or set 'role: repeat' when the method reruns another one")
-        roles[name] = MethodRole(role, of)
+        roles[name] = MethodRole(role, of, _time_of(cfg, name, of))
     return roles
+
+
+def _time_of(cfg: PipelineConfig, name: str, of: str | None) -> str | None:
+    """The method whose run's training time ``name`` trains for (its ``time_of``; a repeat without one: that of
+    the method it reruns), checked: another method that has no ``time_of`` itself, and no ``budget`` beside it."""
+    opts = cfg.methods[name] or {}
+    time_of = opts.get("time_of", (cfg.methods[of] or {}).get("time_of") if of else None)
+    if time_of is None:
+        return None
+    if time_of not in cfg.methods or time_of == name or (cfg.methods[time_of] or {}).get("time_of") is not None:
+        others = sorted(m for m in cfg.methods if m != name)
+        raise ConfigError(f"methods.{name}.time_of is {time_of!r}; it must name another method, one that does not "
+                          "take its time from a third", fix=f"set it to one of {others}")
+    if "budget" in opts or (of and "budget" in (cfg.methods[of] or {})):
+        raise ConfigError(f"methods.{name} has both time_of and budget; time_of sets the time budget",
+                          fix="drop one of them")
+    return time_of
 
 
 def main_method(cfg: PipelineConfig) -> str:

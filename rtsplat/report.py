@@ -83,17 +83,19 @@ PLAIN_2DGS = "2dgs"  # the plain-2DGS baseline the summary compares the main met
 
 @dataclass(frozen=True)
 class Roles:
-    """Each method's role (``main``, ``baseline``, ``ablation``, ``repeat``) and what a repeat reruns."""
+    """Each method's role (``main``, ``baseline``, ``ablation``, ``repeat``), what a repeat reruns and whose
+    run's training time a method trained for (``time_of``)."""
 
     role: dict[str, str] = field(default_factory=dict)
     of: dict[str, str] = field(default_factory=dict)
+    time_of: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "--roles-json") -> Roles:
         """``{method: {"role": ..., "of": ...}}`` as :func:`rtsplat.config.roles_json` writes it."""
         if not isinstance(data, dict):
             raise PipelineError(f"{source} must be a JSON object {{method: {{role, of}}}}")
-        role, of = {}, {}
+        role, of, time_of = {}, {}, {}
         for method, entry in data.items():
             entry = entry if isinstance(entry, dict) else {}
             if entry.get("role") not in ROLES:
@@ -105,9 +107,11 @@ class Roles:
                     raise PipelineError(f"{source}: repeat {method!r} does not say which method it reruns",
                                         fix="give it 'of': <method>")
                 of[method] = entry["of"]
+            if entry.get("time_of"):
+                time_of[method] = entry["time_of"]
         if list(role.values()).count("main") > 1:
             raise PipelineError(f"{source}: more than one method has role main", fix="keep one")
-        return cls(role, of)
+        return cls(role, of, time_of)
 
     @property
     def main(self) -> str | None:
@@ -448,8 +452,10 @@ def _error_image(render_path: Path, target: np.ndarray, out: Path, name: str) ->
 
 def comparison_pairs(methods, roles: Roles) -> list[tuple[str, str]]:
     """(RT-Splatting run, plain 2DGS run) pairs with the same budget among ``methods``: the main method
-    against the baseline ``2dgs``, and for every baseline ``2dgs_<suffix>`` the method ``<main>_<suffix>``
-    against it (e.g. ``rtsplat_x4`` against ``2dgs_x4``), where both exist."""
+    against the baseline ``2dgs``, for every baseline ``2dgs_<suffix>`` the method ``<main>_<suffix>``
+    against it (e.g. ``rtsplat_x4`` against ``2dgs_x4``), where both exist, and every baseline ``<main>_...``
+    that trained for the time of one of those 2DGS runs (``time_of``) against that run: the comparison at
+    equal time between finished runs."""
     main, methods = roles.main, set(methods)
     if main is None:
         return []
@@ -462,6 +468,10 @@ def comparison_pairs(methods, roles: Roles) -> list[tuple[str, str]]:
         suffix = other[len(PLAIN_2DGS) + 1:]
         if other.startswith(PLAIN_2DGS + "_") and suffix and baseline(other) and baseline(f"{main}_{suffix}"):
             pairs.append((f"{main}_{suffix}", other))
+    paired, twodgs = {ours for ours, _ in pairs}, {theirs for _, theirs in pairs}
+    for ours in sorted(methods - paired):
+        if ours.startswith(main + "_") and baseline(ours) and roles.time_of.get(ours) in twodgs:
+            pairs.append((ours, roles.time_of[ours]))
     return pairs
 
 
@@ -569,8 +579,10 @@ def summary_rows(scene: str, runs: dict[str, Run], roles: Roles, results: Path) 
     return rows
 
 
+EQUAL_TIME_KEY = "psnr_transparent_equal_time"  # the transparent gap of the run at 2DGS's time (equal_time_run)
 FAMILY_KEYS = (("psnr_transparent", "transparent"), ("psnr", "entire"),
-               ("psnr_reflection_layer", "reflection layer"), ("psnr_transmission_layer", "transmission layer"))
+               ("psnr_reflection_layer", "reflection layer"), ("psnr_transmission_layer", "transmission layer"),
+               (EQUAL_TIME_KEY, "transparent, finished run at 2DGS's time"))
 FAMILY_SIGNIFICANCE = 2.0  # a gap is significant beyond this many times its seed noise
 def _family_splits() -> tuple[tuple[str, str], ...]:
     """Each split of the family (:attr:`rtsplat.synth.family.Member.split`) with its label."""
@@ -627,14 +639,23 @@ def family_scenes(scenes: dict[str, dict[str, Run]], roles: Roles, results: Path
         repeats = [d for d in _repeat_differences(scene, runs, roles, results)
                    if not d["same_seed"] and d["of"] in (main, PLAIN_2DGS)]
         gap, noise = {}, {}
+        equal_time = equal_time_run(runs, roles)
         for key, _ in FAMILY_KEYS:
-            gap[key] = _difference(runs[main].mean.get(key), runs[PLAIN_2DGS].mean.get(key))
-            measured = [d[key] for d in repeats if d.get(key) is not None]
+            ours, metric = (equal_time, "psnr_transparent") if key == EQUAL_TIME_KEY else (main, key)
+            gap[key] = _difference(runs[ours].mean.get(metric), runs[PLAIN_2DGS].mean.get(metric)) if ours else None
+            measured = [d[metric] for d in repeats if d.get(metric) is not None]
             noise[key] = max(measured) if measured else None
         reference = references.get(scene)
         found.append(FamilyScene(scene, member.kind, member.seed, member.split, gap, noise,
                                  reference["zero"] if reference else None))
     return found
+
+
+def equal_time_run(runs: dict[str, Run], roles: Roles) -> str | None:
+    """The main method's run that trained for the time of the plain 2DGS run (``time_of``; the first by name),
+    or None: the comparison of finished runs at equal time."""
+    return next((ours for ours, theirs in comparison_pairs(runs, roles)
+                 if theirs == PLAIN_2DGS and roles.time_of.get(ours) == PLAIN_2DGS), None)
 
 
 def family_reflection_correlation(family: list[FamilyScene]) -> tuple[int, float, float] | None:
@@ -738,8 +759,11 @@ def _family_section(doc: Document, family: list[FamilyScene], out: Path) -> None
         "no unbiased estimate. 'tuning' are the other seeds, on which defaults and rules are chosen. The splits "
         "are summarised apart. Per scene, PSNR of the main "
         f"method minus PSNR of `{PLAIN_2DGS}` on the test views: the transparent region, the entire image, and "
-        "each layer against the ground-truth layers (transparent region). Beside each gap its seed noise: the "
-        "largest |dPSNR| between either run and its repeat with another seed. A gap is significant when it is "
+        "each layer against the ground-truth layers (transparent region), and, where it ran, the transparent "
+        "region's gap of the main method's finished run that trained for as long as the 2DGS run took (a method "
+        f"with `time_of: {PLAIN_2DGS}`): the comparison at equal time. Beside each gap its seed noise: the "
+        "largest |dPSNR| between either run and its repeat with another seed (for the run at 2DGS's time: the "
+        "main method's and 2DGS's repeats). A gap is significant when it is "
         f"larger than {FAMILY_SIGNIFICANCE:g} x that noise: 'better' or 'worse'; otherwise 'within noise'.")
     doc.table(["split", "metric", "scenes", "median gap", "worst gap (scene)", "better", "worse", "within noise",
                "noise not measured"], family_split_rows(family))
@@ -1258,7 +1282,9 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
                       "test evaluations during training (train_log.jsonl, linearly between evaluations) at the "
                       "training time of the shorter run, what a user with that much time gets; time ratio: the "
                       "first run's training time over the second's (both by the measure of the scene's speed "
-                      "table).")
+                      "table). A pair whose first run trained for the time of the second (a method with "
+                      "`time_of`) compares finished runs at equal time: each run completed its own schedule, where "
+                      "the equal-time columns read the longer run mid-schedule.")
         doc.table(["scene", "pair", "dPSNR transp.", "dPSNR", "seed noise transp.", "seed noise",
                    "noise from", "dPSNR transp. at equal time", "dPSNR at equal time", "time ratio"], summary)
     else:

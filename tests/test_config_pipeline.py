@@ -405,6 +405,44 @@ def test_a_time_budget_sets_the_seconds_and_keeps_the_plan():
     assert slurm_resources(cfg, "train", "s", "long")["runtime"] == fixed + 240
 
 
+def test_a_method_with_time_of_trains_the_other_runs_time_and_is_validated():
+    from rtsplat.config import MethodRole, method_roles, roles_json, slurm_resources
+
+    methods = {"rtsplat": {"role": "main"}, "2dgs": {"effects": {"specular": "off"}, "budget": 2},
+               "rtsplat_eq": {"time_of": "2dgs", "seed": 3},
+               "rtsplat_eq_seed1": {"role": "repeat", "of": "rtsplat_eq", "seed": 4}}
+    cfg = load_config_dict({"methods": methods, "defaults": {"train": {"iterations": 600}}})
+    roles = method_roles(cfg)
+    assert roles["rtsplat_eq"] == MethodRole("baseline", None, "2dgs")
+    assert roles["rtsplat_eq_seed1"] == MethodRole("repeat", "rtsplat_eq", "2dgs")  # a repeat keeps the time
+    assert roles["2dgs"] == MethodRole("baseline") and roles["rtsplat"] == MethodRole("main")
+    assert json.loads(roles_json(cfg, quote=False))["rtsplat_eq"]["time_of"] == "2dgs"
+    # no trainer key, no time budget yet (the other run's seconds come with rtsplat train --seconds-of)
+    eq = json.loads(train_json(cfg, "s", "rtsplat_eq", quote=False))
+    assert "time_of" not in eq and eq["schedule"].get("seconds") is None and eq["seed"] == 3
+    # a SLURM job of it asks for the other method's time (2dgs at budget 2: twice the iterations)
+    assert slurm_resources(cfg, "train", "s", "rtsplat_eq") == slurm_resources(cfg, "train", "s", "2dgs")
+    assert slurm_resources(cfg, "train", "s", "2dgs") != slurm_resources(cfg, "train", "s", "rtsplat")
+    for bad, match in (({"a": {}, "b": {"time_of": "c"}}, "methods.b.time_of is 'c'"),
+                       ({"a": {}, "b": {"time_of": "b"}}, "methods.b.time_of is 'b'"),
+                       ({"a": {"time_of": "b"}, "b": {}, "c": {"time_of": "a"}}, "methods.c.time_of is 'a'"),
+                       ({"a": {}, "b": {"time_of": "a", "budget": 2}}, "both time_of and budget")):
+        with pytest.raises(ConfigError, match=match):
+            load_config_dict({"methods": bad})
+
+
+@pytest.mark.parametrize("name", ["family", "heldout"])
+def test_the_family_benchmarks_train_rtsplat_for_2dgs_time_too(name):
+    """The family's benchmarks have RT-Splatting's options trained for the time the 2dgs run took: the
+    report's comparison of finished runs at equal time."""
+    from rtsplat.config import method_roles, trainer_options
+
+    cfg = load_config(ROOT / "benchmarks" / f"{name}.yaml")
+    scene = cfg.scenes[0]
+    assert method_roles(cfg)["rtsplat_at_2dgs_time"].time_of == "2dgs"
+    assert trainer_options(cfg, scene, "rtsplat_at_2dgs_time") == trainer_options(cfg, scene, "rtsplat")
+
+
 def test_method_roles_are_explicit_validated_and_not_trainer_keys():
     from rtsplat.config import MethodRole, main_method, method_roles, roles_json
 
@@ -416,7 +454,7 @@ def test_method_roles_are_explicit_validated_and_not_trainer_keys():
                                  "no_gating": MethodRole("ablation"), "again": MethodRole("repeat", "full"),
                                  "other": MethodRole("baseline")}
     assert main_method(cfg) == "full"
-    assert json.loads(roles_json(cfg, quote=False))["again"] == {"role": "repeat", "of": "full"}
+    assert json.loads(roles_json(cfg, quote=False))["again"] == {"role": "repeat", "of": "full", "time_of": None}
     # role keys never reach the trainer; the method's own keys do
     again = json.loads(train_json(cfg, "s", "again", quote=False))
     assert "role" not in again and "of" not in again and again["seed"] == 5

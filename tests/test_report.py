@@ -62,6 +62,21 @@ def test_comparison_pairs_by_hand():
     assert comparison_pairs(["rt", "2dgs", "rt_x4", "2dgs_x4"], unlisted) == [("rt", "2dgs"), ("rt_x4", "2dgs_x4")]
 
 
+def test_a_run_at_the_time_of_a_2dgs_run_is_compared_with_that_run():
+    roles = Roles.from_dict({"rt": {"role": "main"}, "2dgs": {"role": "baseline"}, "2dgs_x4": {"role": "baseline"},
+                             "rt_x4": {"role": "baseline"}, "rt_eq": {"role": "baseline", "time_of": "2dgs"},
+                             "rt_eq4": {"role": "baseline", "time_of": "2dgs_x4"},
+                             "rt_eqx": {"role": "baseline", "time_of": "refgs"},
+                             "rt_abl": {"role": "ablation", "time_of": "2dgs"},
+                             "other": {"role": "baseline", "time_of": "2dgs"}})
+    assert roles.time_of["rt_eq"] == "2dgs" and "rt" not in roles.time_of
+    methods = ["rt", "2dgs", "rt_x4", "2dgs_x4", "rt_eq", "rt_eq4", "rt_eqx", "rt_abl", "other", "refgs"]
+    # only the main method's variants, against a 2DGS run of a pair; not ablations, not other methods
+    assert comparison_pairs(methods, roles) == [("rt", "2dgs"), ("rt_x4", "2dgs_x4"), ("rt_eq", "2dgs"),
+                                                ("rt_eq4", "2dgs_x4")]
+    assert comparison_pairs(["rt", "rt_eq"], roles) == []  # the 2DGS run it matched did not run
+
+
 def test_ablations_are_compared_with_the_full_model_of_their_budget():
     roles = Roles.from_dict({"rt": {"role": "main"}, "rt_x4": {"role": "baseline"}, "rt_x16": {"role": "baseline"},
                              "rt_seed1": {"role": "repeat", "of": "rt"}, "abl_gating": {"role": "ablation"},
@@ -614,10 +629,18 @@ def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_spli
                 layers = copy / scene / "prepared" / "gt_layers"
                 write_png(layers / "reflection" / f"{view}.png", np.full_like(image, reflected[scene] / 255))
                 write_png(layers / "transmission" / f"{view}.png", np.zeros_like(image))
-    roles = Roles.from_dict({**ROLES, "rtsplat_seed1": {"role": "repeat", "of": "rtsplat"}})
+    # on one scene a run of the main method at the 2DGS run's time (time_of), 0.7 dB ahead of 2DGS there
+    equal_time = copy / "shop_window-0"
+    shutil.copytree(equal_time / "runs" / "rtsplat", equal_time / "runs" / "rtsplat_eq")
+    eq = json.loads((equal_time / "metrics" / "2dgs.json").read_text())
+    eq["mean"]["psnr_transparent"] += 0.7
+    (equal_time / "metrics" / "rtsplat_eq.json").write_text(json.dumps(eq))
+    roles = Roles.from_dict({**ROLES, "rtsplat_seed1": {"role": "repeat", "of": "rtsplat"},
+                             "rtsplat_eq": {"role": "baseline", "time_of": "2dgs"}})
     report = build_report(copy, tmp_path / "report", roles=roles)
     md = report.with_suffix(".md").read_text()
     assert "Scene family: RT-Splatting minus plain 2DGS per scene" in md and "larger than 2 x that noise" in md
+    assert _md_row(md, "| shop_window-0 | rtsplat_eq - 2dgs |")[2] == "+0.70"  # a summary pair of its own
     section = md.split("Scene family")[1].split("## Provenance")[0]
     assert "| toy |" not in section
     verdicts = {"shop_window-0": "better", "curved-2": "worse", "shop_window-1": "within noise",
@@ -631,6 +654,10 @@ def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_spli
         assert float(row[4]) == pytest.approx(gap, abs=0.005)
         assert row[5] == ("-" if noise is None else f"{noise:.3f}") and row[6] == verdicts[scene]
         assert float(row[10]) == pytest.approx(gap, abs=0.005)  # the reflection layer's gap
+        if scene == "shop_window-0":  # the finished run at 2DGS's time, with the main method's seed noise
+            assert float(row[-4]) == pytest.approx(0.7, abs=0.005) and row[-3:-1] == [f"{noise:.3f}", "better"]
+        else:
+            assert row[-4:-1] == ["-", "-" if noise is None else f"{noise:.3f}", "-"]
         strength = row[-1]  # PSNR of no reflection against the true (flat) one: -20 log10(value)
         if scene in reflected:
             assert float(strength) == pytest.approx(-20 * np.log10(reflected[scene] / 255), abs=0.01)
@@ -641,6 +668,8 @@ def test_family_section_gives_each_scene_its_gap_noise_and_verdict_and_each_spli
     assert tuning[2:] == ["2", "+0.50", "-1.00 (curved-2)", "1", "1", "0", "0"]
     seen = _md_row(section, "| seen (former held-out seeds 1, 3) | transparent |")
     assert seen[2:] == ["2", "+0.30", "+0.10 (shop_window-1)", "0", "0", "1", "1"]
+    at_equal_time = _md_row(section, "| tuning | transparent, finished run at 2DGS's time |")
+    assert at_equal_time[2:] == ["1", "+0.70", "+0.70 (shop_window-0)", "1", "0", "0", "0"]
     held = _md_row(section, "| held out (seeds 100-103) | transparent |")
     assert held[2:] == ["1", "+0.30", "+0.30 (grazing-101)", "0", "0", "1", "0"]
     # the section says which decisions used the seen scenes, and that no decision uses the held-out ones

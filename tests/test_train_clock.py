@@ -71,3 +71,31 @@ def test_training_with_a_time_budget_stops_at_it_and_keeps_the_plans_order(tmp_p
     passing = [p for q, p in zip([0, *positions], positions, strict=False) if q < 100 <= p]
     assert len(passing) == 1 and [r["position"] for r in steps if r.get("density")] == passing
     assert "test_psnr" in steps[-1]  # the last step was evaluated
+
+
+def test_seconds_of_trains_for_the_training_time_of_another_run(tmp_path, capsys):
+    # rtsplat train --seconds-of RUN: the time budget is RUN's train_seconds (the comparison at equal time)
+    from rtsplat.bench.toy_scene import write_scene
+    from rtsplat.cli import main
+
+    scene = write_scene(tmp_path / "scene", views=6, width=32, height=24)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "summary.json").write_text(json.dumps({"train_seconds": 1.5, "iterations": 40}))
+    options = json.dumps({"schedule": {"iterations": 400, "seconds": 60.0, "log_every": 1, "eval_every": 0,
+                                       "checkpoint_every": 0},
+                          "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32}})
+    args = ["train", "--data", str(scene.root), "--config-json", options, "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "run"), "--seconds-of", str(other)]) == 0
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["time_budget_seconds"] == 1.5  # replaces the config's 60 s
+    assert 1.5 <= summary["train_seconds"] < 1.5 + 1.0 and summary["iterations"] < 400
+    # a run that has not finished (no summary) or a summary without a positive time: an error naming the file,
+    # and no run folder left behind
+    (other / "summary.json").write_text(json.dumps({"train_seconds": 0}))
+    for run_dir, seconds_of in ((tmp_path / "bad1", tmp_path / "missing"), (tmp_path / "bad2", other)):
+        capsys.readouterr()
+        assert main([*args, "--out", str(run_dir), "--seconds-of", str(seconds_of)]) != 0
+        error = capsys.readouterr().err
+        assert f"{seconds_of / 'summary.json'}: --seconds-of" in error and "Fix:" in error
+        assert not run_dir.exists()

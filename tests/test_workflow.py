@@ -122,6 +122,23 @@ def test_dry_run_builds_the_whole_dag(dataset):
     assert re.search(r"--cores \d+'", report), report  # a number, not "all"
 
 
+def test_a_method_with_time_of_trains_after_the_other_run_for_its_time(dataset):
+    methods = {"rtsplat": {"role": "main"}, "2dgs": {"effects": {"specular": "off", "transmission": "off"}},
+               "rtsplat_eq": {"time_of": "2dgs"}}
+    cfg = _config(dataset, scenes=["glass"], methods=methods)
+    r = snakemake(dataset, "-n", "-p", str(dataset / "results" / "glass" / "runs" / "rtsplat_eq"),
+                  str(dataset / "results" / "glass" / "runs" / "rtsplat"), config=cfg)
+    assert r.returncode == 0, r.stderr + r.stdout
+    trains = {re.search(r"method=(\w+)", b).group(1): b for b in _jobs(r.stdout + r.stderr)
+              if b.startswith("rule train")}
+    assert sorted(trains) == ["2dgs", "rtsplat", "rtsplat_eq"]  # the 2dgs run is trained first, as an input
+    other = dataset / "results" / "glass" / "runs" / "2dgs"
+    command = shlex.split(next(line for line in trains["rtsplat_eq"].splitlines() if " train --data" in line))
+    assert command[command.index("--seconds-of") + 1] == str(other)
+    assert str(other) in trains["rtsplat_eq"].split("output:")[0]  # among the job's inputs
+    assert "--seconds-of" not in trains["rtsplat"] and "--seconds-of" not in trains["2dgs"]
+
+
 def test_videos_are_rendered_for_the_main_method_and_the_listed_baselines_on_the_same_path(dataset):
     methods = {"rtsplat": {"role": "main"}, "2dgs": {"role": "baseline", "effects": {"specular": "off"}},
                "refgs": {"role": "baseline"}}

@@ -6,6 +6,10 @@ what the workflow passes, built by :func:`rtsplat.config.train_json`) or ``--con
 workflow builds it) or a YAML file with a ``train:`` tree (or the trainer keys at top level).
 Bad input raises :class:`rtsplat.errors.PipelineError`.
 
+``--seconds-of RUN`` sets the time budget (``schedule.seconds``) to the training seconds of another finished
+run (its ``summary.json``'s ``train_seconds``: the wall seconds of its training steps, what the budget counts):
+the run to compare with that one at equal time (a method's ``time_of`` in the pipeline config).
+
 ``--checkpoint-dir`` keeps the resumable checkpoint outside ``--out``: a workflow manager that deletes
 the output folder of a failed or killed job (Snakemake does) leaves it in place, and the next run
 resumes from it. The folder records what it was written for (the ``--data`` files' sizes and
@@ -30,7 +34,7 @@ import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from rtsplat.config import PipelineConfig, add_config_arguments, load_config, trainer_options
+from rtsplat.config import PipelineConfig, add_config_arguments, load_config, method_roles, trainer_options
 from rtsplat.devices import resolve_device
 from rtsplat.errors import ConfigError, PipelineError
 from rtsplat.io.atomic import write_errors, write_json_atomic
@@ -71,6 +75,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", help="rasterizer backend (auto, reference, ...)")
     parser.add_argument("--device", help="override device: auto (the GPU when torch sees one), cpu, cuda, cuda:N")
     parser.add_argument("--seed", type=int, help="random seed")
+    parser.add_argument("--seconds-of", type=Path, metavar="RUN",
+                        help="a time budget: train for as many seconds of training steps as the finished run RUN "
+                        "(a run directory with summary.json) took, e.g. the baseline's run on the same scene, for a "
+                        "comparison at equal time; replaces schedule.seconds")
     parser.add_argument("--checkpoint-dir", type=Path,
                         help="folder for the resumable checkpoint instead of <out>/checkpoints, e.g. one a workflow "
                         "manager does not delete when the job fails; resumed from when it was written for the "
@@ -109,6 +117,10 @@ def trainer_config_from_args(args: argparse.Namespace) -> TrainConfig:
     if isinstance(data, dict) and PIPELINE_KEYS & set(data):
         cfg = load_config(path)
         method = args.method or ("rtsplat" if "rtsplat" in cfg.methods else next(iter(cfg.methods)))
+        time_of = method_roles(cfg)[method].time_of
+        if time_of is not None and getattr(args, "seconds_of", None) is None:
+            raise ConfigError(f"method {method} trains for as long as the run of {time_of} took", path=path,
+                              fix=f"pass --seconds-of <the run directory of {time_of} on this scene>")
         return TrainConfig.from_dict(trainer_options(cfg, args.scene or "__defaults__", method), source=str(path))
     if pipeline_only:
         raise ConfigError(f"{', '.join(pipeline_only)} apply to a pipeline config.yaml, not to a train: tree",
@@ -132,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
         cfg.device = args.device
     if args.seed is not None:
         cfg.seed = args.seed
+    if args.seconds_of is not None:
+        cfg.schedule.seconds = run_training_seconds(args.seconds_of)
     cfg.validate(source="rtsplat train")
     resolve_device(cfg.device, key="--device" if args.device is not None else "train.device")
     check_output_dir(args.out, "train", inputs=[args.data])
@@ -158,6 +172,22 @@ def run(args: argparse.Namespace) -> int:
         if args.checkpoint_dir is not None:
             shutil.rmtree(args.checkpoint_dir)
     return 0
+
+
+def run_training_seconds(run_dir: Path) -> float:
+    """The wall seconds of the training steps of the finished run in ``run_dir`` (its summary's
+    ``train_seconds``)."""
+    path = run_dir / "summary.json"
+    try:
+        seconds = json.loads(path.read_text()).get("train_seconds")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise PipelineError(f"--seconds-of: cannot read the run's summary ({exc})", path=path,
+                            fix="pass the directory of a finished run (rtsplat train writes summary.json when it "
+                            "finishes)") from exc
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not seconds > 0:
+        raise PipelineError(f"--seconds-of: the summary's train_seconds is {seconds!r}, not a positive number",
+                            path=path, fix="pass the directory of a finished run of rtsplat train")
+    return float(seconds)
 
 
 CHECKPOINT_RECORD = "written_for.json"

@@ -4,7 +4,15 @@
 import shlex
 from pathlib import Path
 
-from rtsplat.config import main_method, render_edit_args, roles_json, scene_config, train_json, video_methods
+from rtsplat.config import (
+    main_method,
+    method_roles,
+    render_edit_args,
+    roles_json,
+    scene_config,
+    train_json,
+    video_methods,
+)
 
 MAIN_METHOD = main_method(CFG)  # the method with role main: the scene edits are rendered for it
 
@@ -13,9 +21,24 @@ def edit_names(scene):
     return sorted(scene_config(CFG, scene).render.edits)
 
 
+def time_of_run(wildcards):
+    """The run whose training time a method with `time_of` trains for (none for the others)."""
+    other = method_roles(CFG)[wildcards.method].time_of
+    return [f"{RESULTS}/{wildcards.scene}/runs/{other}"] if other else []
+
+
+def train_arguments(wildcards):
+    """The trainer config for --config-json, then, for a method with `time_of`, `--seconds-of <the other run>`
+    (in this one parameter, so the rule's command reads the same for every other method)."""
+    text = train_json(CFG, wildcards.scene, wildcards.method)
+    other = time_of_run(wildcards)
+    return f"{text} --seconds-of {shlex.quote(other[0])}" if other else text
+
+
 rule train:
     input:
         prepared=f"{RESULTS}/{{scene}}/prepared",
+        time_of=time_of_run,
     output:
         directory(f"{RESULTS}/{{scene}}/runs/{{method}}"),
     log:
@@ -23,7 +46,7 @@ rule train:
     benchmark:
         f"{RESULTS}/{{scene}}/benchmarks/train_{{method}}.tsv"
     params:
-        cfg=lambda wildcards: train_json(CFG, wildcards.scene, wildcards.method),
+        cfg=train_arguments,
         # outside the run folder, which Snakemake deletes when the job fails or is killed: the next
         # run resumes from the checkpoint there (rtsplat train --checkpoint-dir)
         checkpoints=f"{RESULTS}/{{scene}}/checkpoints/{{method}}",
