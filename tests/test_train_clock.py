@@ -99,3 +99,25 @@ def test_seconds_of_trains_for_the_training_time_of_another_run(tmp_path, capsys
         error = capsys.readouterr().err
         assert f"{seconds_of / 'summary.json'}: --seconds-of" in error and "Fix:" in error
         assert not run_dir.exists()
+
+
+def test_a_method_with_time_of_needs_the_other_run_on_the_command_line(tmp_path):
+    import argparse
+
+    import yaml
+
+    from rtsplat.errors import ConfigError
+    from rtsplat.train.cli import trainer_config_from_args
+
+    config = tmp_path / "config.yaml"
+    config.write_text(yaml.safe_dump({"methods": {"rtsplat": {"role": "main"}, "2dgs": {"seed": 2},
+                                                  "rtsplat_eq": {"time_of": "2dgs", "seed": 3}}}))
+
+    def args(**given):
+        return argparse.Namespace(**{"config": str(config), "config_json": None, "scene": None, "method": "rtsplat_eq",
+                                     "seconds_of": None, **given})
+
+    with pytest.raises(ConfigError, match=r"(?s)rtsplat_eq trains for as long as the run of 2dgs took.*--seconds-of"):
+        trainer_config_from_args(args())
+    assert trainer_config_from_args(args(seconds_of=tmp_path)).seed == 3  # with it: the method's own options
+    assert trainer_config_from_args(args(method="2dgs")).seed == 2
