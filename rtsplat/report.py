@@ -92,7 +92,7 @@ class Roles:
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "--roles-json") -> Roles:
-        """``{method: {"role": ..., "of": ...}}`` as :func:`rtsplat.config.roles_json` writes it."""
+        """``{method: {"role": ..., "of": ..., "time_of": ...}}`` as :func:`rtsplat.config.roles_json` writes it."""
         if not isinstance(data, dict):
             raise PipelineError(f"{source} must be a JSON object {{method: {{role, of}}}}")
         role, of, time_of = {}, {}, {}
@@ -1461,7 +1461,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, action="append", default=[],
                         help="a config file to print in the Reproduce section (repeat for layered configs)")
     parser.add_argument("--command", action="append", default=[], help="a command to print in Reproduce")
-    parser.add_argument("--roles-json", help="the methods' roles as JSON {method: {role, of}} "
+    parser.add_argument("--roles-json", help="the methods' roles as JSON {method: {role, of, time_of}} "
                         "(rtsplat.config.roles_json; the workflow passes them); none: every method is a baseline")
 
 
