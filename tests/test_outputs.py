@@ -54,7 +54,7 @@ OUTPUTS = {
 INPUTS = {
     "--scene-dir", "--masks", "--sfm", "--data", "--run", "--renders", "--gt-layers", "--results", "--config",
     "--report", "--check", "--dataset", "--prepared", "--scene", "--checkout", "--model", "scene_dir", "scenes",
-    "dataset",
+    "dataset", "--seconds-of",
 }
 
 
