@@ -118,7 +118,7 @@ def trainer_config_from_args(args: argparse.Namespace) -> TrainConfig:
         cfg = load_config(path)
         method = args.method or ("rtsplat" if "rtsplat" in cfg.methods else next(iter(cfg.methods)))
         time_of = method_roles(cfg)[method].time_of
-        if time_of is not None and getattr(args, "seconds_of", None) is None:
+        if time_of is not None and args.seconds_of is None:
             raise ConfigError(f"method {method} trains for as long as the run of {time_of} took", path=path,
                               fix=f"pass --seconds-of <the run directory of {time_of} on this scene>")
         return TrainConfig.from_dict(trainer_options(cfg, args.scene or "__defaults__", method), source=str(path))

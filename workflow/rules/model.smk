@@ -15,6 +15,7 @@ from rtsplat.config import (
 )
 
 MAIN_METHOD = main_method(CFG)  # the method with role main: the scene edits are rendered for it
+METHOD_ROLES = method_roles(CFG)
 
 
 def edit_names(scene):
@@ -23,7 +24,7 @@ def edit_names(scene):
 
 def time_of_run(wildcards):
     """The run whose training time a method with `time_of` trains for (none for the others)."""
-    other = method_roles(CFG)[wildcards.method].time_of
+    other = METHOD_ROLES[wildcards.method].time_of
     return [f"{RESULTS}/{wildcards.scene}/runs/{other}"] if other else []
 
 
