@@ -481,9 +481,9 @@ def test_shade_coverage_gives_the_uncovered_part_of_a_pixel_the_volume_colour():
 class _EveryShadedPixel(RTModel):
     """Runs the specular network on every shaded pixel, region of interest or not."""
 
-    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None, near=None, rays=None):
+    def _specular(self, camera, normal, g, alpha_safe, shade, every_pixel=None, near=None, rays=None, **kwargs):
         return super()._specular(camera, normal, g, alpha_safe, alpha_safe > self.settings.shade_alpha_threshold,
-                                 every_pixel, near, rays)
+                                 every_pixel, near, rays, **kwargs)
 
 
 def test_specular_runs_only_where_the_roi_weighs_and_the_image_and_gradients_do_not_change():

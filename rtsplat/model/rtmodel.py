@@ -236,13 +236,15 @@ class RTModel(nn.Module):
         self, camera: Camera, *, stage: str = "full", gating: Gating | None = None,
         raster_settings: RasterSettings | None = None, backend: str = "auto", sh_degree: int | None = None,
         background: Tensor | None = None, frustum_cull: bool = False, mirror_planes: Tensor | None = None,
+        specular_gradient_share: float = 1.0, generator: torch.Generator | None = None,
     ) -> RenderResult:
         """``background``: an RGB colour [3] that replaces the model's background for this render (the
         trainer's random background). ``frustum_cull``: rasterize only the surfels of :meth:`in_view`
         (the same image, less per-surfel work; ``result.surfel_index`` says which surfels the per-surfel
         outputs of ``result.raster`` are). ``mirror_planes``: plane rows [K,12] that replace the model's
         mirror planes in this render (as many as it has), through which gradients reach them (the trainer's
-        plane refinement)."""
+        plane refinement). ``specular_gradient_share`` < 1 (with autograd on): the specular network's gradient
+        is sampled, see :meth:`_specular`; ``generator`` draws the sample."""
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
@@ -286,7 +288,8 @@ class RTModel(nn.Module):
                     near_color, near_alpha = clear * near_color, clear * near_alpha
                 near = (near_color, near_alpha)
                 layers.update(near=near_color, near_alpha=near_alpha)
-            spec, beta = self._specular(camera, normal, g, alpha_safe, wanted, near=near, rays=rays)
+            spec, beta = self._specular(camera, normal, g, alpha_safe, wanted, near=near, rays=rays,
+                                         gradient_share=specular_gradient_share, generator=generator)
             if not self.ablations.attenuation:
                 beta = torch.ones_like(beta)
             layers.update(spec=spec, beta=beta)
@@ -393,12 +396,19 @@ class RTModel(nn.Module):
 
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
                   every_pixel: bool | None = None, near: tuple[Tensor, Tensor] | None = None,
-                  rays: Tensor | None = None):
+                  rays: Tensor | None = None, gradient_share: float = 1.0,
+                  generator: torch.Generator | None = None):
         """C_spec and beta where ``shade`` (the render passes the shaded pixels with region-of-interest
         weight); 0 and 1 elsewhere (``rays``: the camera's :func:`image_ray_directions`, when known). On the
         CPU only those pixels are evaluated; on other devices (``every_pixel``, default: not on the CPU) every
         pixel is and the others are masked out, because gathering them would wait for the device to count
-        them. Both give the same values and gradients."""
+        them. Both give the same values and gradients.
+
+        ``gradient_share`` < 1 with autograd on samples the gradient: each shaded pixel is tracked with that
+        probability (drawn from ``generator``), and only the tracked ones pass a gradient, scaled by
+        ``1 / gradient_share`` so that its expected value is the full gradient. Every pixel gets the same
+        value either way. On the CPU the untracked pixels are evaluated without autograd, which saves the
+        backward of the network, the environment lookup and the G-buffer reads for them."""
         H, W = normal.shape[:2]
         flat = shade.reshape(-1)
         every_pixel = normal.device.type != "cpu" if every_pixel is None else every_pixel
@@ -407,6 +417,40 @@ class RTModel(nn.Module):
         beta = torch.ones(H * W, 1, dtype=normal.dtype, device=normal.device)
         if idx is not None and idx.numel() == 0:
             return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
+        if not 0.0 < gradient_share <= 1.0:
+            raise ValueError(f"gradient_share must be in (0, 1], got {gradient_share}")
+        sampled = gradient_share < 1.0 and torch.is_grad_enabled()
+
+        def evaluate(rows: Tensor | None) -> tuple[Tensor, Tensor]:
+            return self._specular_rows(camera, normal, g, alpha_safe, rows, near, rays)
+
+        if idx is None:
+            s, b = evaluate(None)
+            if sampled:
+                tracked = torch.rand(H * W, 1, generator=generator).to(normal.device) < gradient_share
+                weight = tracked.to(normal.dtype) / gradient_share
+                s, b = gradient_scaled(s, weight), gradient_scaled(b, weight)
+            spec = torch.where(flat[:, None], s, spec)
+            beta = torch.where(flat[:, None], b, beta)
+        elif sampled:
+            tracked = torch.rand(idx.numel(), generator=generator) < gradient_share
+            for rows, differentiated in ((idx[tracked], True), (idx[~tracked], False)):
+                if rows.numel() == 0:
+                    continue
+                with torch.set_grad_enabled(differentiated):
+                    s, b = evaluate(rows)
+                if differentiated:
+                    s, b = gradient_scaled(s, 1.0 / gradient_share), gradient_scaled(b, 1.0 / gradient_share)
+                spec, beta = spec.index_copy(0, rows, s), beta.index_copy(0, rows, b)
+        else:
+            s, b = evaluate(idx)
+            spec, beta = spec.index_copy(0, idx, s), beta.index_copy(0, idx, b)
+        return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
+
+    def _specular_rows(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, idx: Tensor | None,
+                       near: tuple[Tensor, Tensor] | None, rays: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The specular network's C_spec [N,3] and beta [N,1] at the pixels ``idx`` of the flattened image
+        (None: every pixel), from the G-buffer ``g`` and the blended ``normal``."""
         rows = (lambda t: t) if idx is None else (lambda t: t[idx])  # noqa: E731
         incident = rows((image_ray_directions(camera) if rays is None else rays).reshape(-1, 3))
         n = rows(normal.reshape(-1, 3))
@@ -433,13 +477,12 @@ class RTModel(nn.Module):
         near_rows = None if near is None else (rows(near[0].reshape(-1, 3)), rows(near[1].reshape(-1, 1)))
         s, b = self.specular_net(env, material, reflectance, reflected_background if self.uses_mirror else None,
                                  near=near_rows, cos_incidence=cos_incidence)
-        if idx is None:
-            spec = torch.where(flat[:, None], s, spec)
-            beta = torch.where(flat[:, None], b, beta)
-        else:
-            spec = spec.index_copy(0, idx, s)
-            beta = beta.index_copy(0, idx, b)
-        return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
+        return s, b
+
+
+def gradient_scaled(t: Tensor, weight: Tensor | float) -> Tensor:
+    """``t`` unchanged in value, its gradient multiplied by ``weight`` (a number or a tensor that broadcasts)."""
+    return t.detach() + (t - t.detach()) * weight
 
 
 MIRRORED_MIN_ALPHA = 0.05  # a mirrored render thinner than this shows nothing at a pixel (no distance)

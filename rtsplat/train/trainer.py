@@ -325,14 +325,17 @@ class Trainer:
 
     def _render_training_view(self, camera: Camera, stage: str, it: int) -> RenderResult:
         """The model's render of a training view at the plan's iteration ``it``: its spherical harmonics
-        degree, a random background (``model.background: random``) and the mirror planes being learnt."""
+        degree, a random background (``model.background: random``), the mirror planes being learnt and the
+        specular gradient's share (``schedule.specular_gradient_share``)."""
         cfg = self.cfg
         sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
         background = torch.rand(3, generator=self.rng) if cfg.model.background == "random" else None
         planes = self.plane_refinement.planes() if self.plane_refinement is not None else None
         return self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
                                  backend=cfg.backend, sh_degree=sh_degree, background=background,
-                                 mirror_planes=planes)
+                                 mirror_planes=planes,
+                                 specular_gradient_share=cfg.schedule.specular_gradient_share_at(it),
+                                 generator=self.rng)
 
     def _loss_terms(self, it: int, result: RenderResult, color: Tensor, target: Tensor, mask: Tensor | None,
                     weight: Tensor | None, camera: Camera, appearance_view: int | None) -> dict[str, Tensor]:

@@ -1,0 +1,148 @@
+"""The sampled specular gradient (``schedule.specular_gradient_share``): a training render differentiates the
+specular network at a random share of the shaded pixels only. The image is the same; the gradient is the full
+gradient of the sampled pixels scaled by 1/share (so its expected value is the full gradient); share 1 is the
+exact gradient and draws nothing; the trainer passes the share of each iteration and its own generator."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rtsplat.bench.toy_scene import write_scene
+from rtsplat.camera import Camera
+from rtsplat.model.rtmodel import ActiveEffects, RTModel
+from rtsplat.model.settings import ModelSettings
+from rtsplat.model.surfels import init_from_points
+from rtsplat.train.trainer import Trainer
+from rtsplat.train_config import TrainConfig, scale_budget
+
+H, W = 24, 30
+
+
+def _model() -> RTModel:
+    g = torch.Generator().manual_seed(3)
+    surfels = init_from_points(torch.randn(20, 3, generator=g), torch.rand(20, 3, generator=g), generator=g)
+    model = RTModel(surfels, effects=ActiveEffects(), settings=ModelSettings(env_height=8, env_width=16,
+                                                                            env_levels=3, mlp_width=16))
+    with torch.no_grad():
+        model.env.features.normal_(generator=g)
+    return model
+
+
+def _inputs():
+    """A camera and a G-buffer (normal, roughness, material, reflectance, alpha) that require gradients, and the
+    shaded pixels (about 60%)."""
+    g = torch.Generator().manual_seed(5)
+    K = torch.tensor([[30.0, 0, W / 2], [0, 30.0, H / 2], [0, 0, 1]])
+    camera = Camera(K, torch.eye(4), W, H)
+    normal = torch.nn.functional.normalize(torch.randn(H, W, 3, generator=g), dim=-1).requires_grad_()
+    alpha = torch.rand(H, W, 1, generator=g) + 0.1
+    gbuf = {"roughness": (torch.rand(H, W, 1, generator=g) * alpha).requires_grad_(),
+            "material": torch.randn(H, W, 4, generator=g).requires_grad_(),
+            "reflectance": (torch.rand(H, W, 1, generator=g) * alpha).requires_grad_()}
+    shade = torch.rand(H, W, 1, generator=g) > 0.4
+    return camera, normal, alpha, gbuf, shade
+
+
+def _specular_and_gradients(model, share, every_pixel, *, seed=0, pixel_weights=None):
+    """C_spec, beta and the gradients of a weighted sum of both into the inputs and the network's parameters,
+    with the sample drawn from a generator seeded with ``seed``."""
+    camera, normal, alpha, gbuf, shade = _inputs()
+    generator = torch.Generator().manual_seed(seed)
+    spec, beta = model._specular(camera, normal, gbuf, alpha, shade, every_pixel=every_pixel,
+                                 gradient_share=share, generator=generator)
+    weights = torch.linspace(0.5, 1.5, H * W * 4).reshape(H, W, 4)
+    if pixel_weights is not None:
+        weights = weights * pixel_weights
+    loss = (torch.cat([spec, beta], -1) * weights).sum()
+    leaves = [normal, *gbuf.values(), model.env.features, *model.specular_net.parameters()]
+    grads = torch.autograd.grad(loss, leaves, allow_unused=True)
+    grads = [torch.zeros_like(leaf) if grad is None else grad for leaf, grad in zip(leaves, grads, strict=True)]
+    return spec.detach(), beta.detach(), grads, shade
+
+
+@pytest.mark.parametrize("every_pixel", [False, True])
+def test_a_sampled_gradient_leaves_the_image_unchanged_and_is_the_sampled_pixels_full_gradient_over_the_share(
+        every_pixel):
+    model = _model()
+    share = 0.25
+    spec1, beta1, full, shade = _specular_and_gradients(model, 1.0, every_pixel)
+    spec, beta, sampled, _ = _specular_and_gradients(model, share, every_pixel)
+    torch.testing.assert_close(spec, spec1, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(beta, beta1, rtol=1e-5, atol=1e-6)
+    # the pixels that passed a gradient: those whose normal got one
+    tracked = sampled[0].abs().sum(-1, keepdim=True) > 0
+    assert not (tracked & ~shade).any()
+    n_shaded, n_tracked = int(shade.sum()), int(tracked.sum())
+    assert 0.15 * n_shaded < n_tracked < 0.35 * n_shaded  # about a quarter of 430 shaded pixels
+    # the full gradient of a loss that weighs only the tracked pixels, times 1/share: the same gradient
+    _, _, restricted, _ = _specular_and_gradients(model, 1.0, every_pixel, pixel_weights=tracked.float())
+    for got, expected in zip(sampled, restricted, strict=True):
+        assert torch.isfinite(got).all()
+        torch.testing.assert_close(got, expected / share, rtol=1e-4, atol=1e-6)
+
+
+def test_the_sample_follows_the_generator_and_its_mean_approaches_the_full_gradient():
+    model = _model()
+    _, _, full, _ = _specular_and_gradients(model, 1.0, False)
+    draws = [_specular_and_gradients(model, 0.5, False, seed=seed)[2] for seed in range(40)]
+    again = _specular_and_gradients(model, 0.5, False, seed=0)[2]
+    for a, b in zip(draws[0], again, strict=True):
+        assert torch.equal(a, b)
+    assert not torch.equal(draws[0][0], draws[1][0])
+    normal_full = full[0]
+    one = (draws[0][0] - normal_full).norm() / normal_full.norm()
+    mean = (torch.stack([d[0] for d in draws]).mean(0) - normal_full).norm() / normal_full.norm()
+    # a single draw of half the pixels is off by about 1 (relative); the mean of 40 by about 1/sqrt(40)
+    assert one > 0.5 and mean < 0.3 and mean < one / 3
+
+
+def test_share_one_and_no_autograd_draw_nothing_and_give_the_exact_gradient():
+    model = _model()
+    camera, normal, alpha, gbuf, shade = _inputs()
+    generator = torch.Generator().manual_seed(0)
+    state = generator.get_state()
+    exact = model._specular(camera, normal, gbuf, alpha, shade)
+    same = model._specular(camera, normal, gbuf, alpha, shade, gradient_share=1.0, generator=generator)
+    with torch.no_grad():
+        model._specular(camera, normal, gbuf, alpha, shade, gradient_share=0.3, generator=generator)
+    assert torch.equal(generator.get_state(), state)
+    for a, b in zip(exact, same, strict=True):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="gradient_share"):
+        model._specular(camera, normal, gbuf, alpha, shade, gradient_share=0.0)
+
+
+def test_the_schedule_gives_each_iteration_its_share_and_scales_with_the_budget():
+    cfg = TrainConfig.from_dict({"schedule": {"iterations": 100, "specular_gradient_share": 0.25,
+                                              "exact_specular_gradient_from": 60}})
+    shares = [cfg.schedule.specular_gradient_share_at(it) for it in (1, 59, 60, 100)]
+    assert shares == [0.25, 0.25, 1.0, 1.0]
+    assert scale_budget(cfg, 2.0).schedule.exact_specular_gradient_from == 120
+    throughout = TrainConfig.from_dict({"schedule": {"specular_gradient_share": 0.5}}).schedule
+    assert throughout.specular_gradient_share_at(10**6) == 0.5
+    for bad in (0.0, 1.5):
+        with pytest.raises(Exception, match="specular_gradient_share"):
+            TrainConfig.from_dict({"schedule": {"specular_gradient_share": bad}}).validate()
+
+
+def test_the_trainer_renders_each_iteration_with_its_share_and_its_own_generator(tmp_path):
+    scene = write_scene(tmp_path / "scene", views=6, width=32, height=24)
+    cfg = TrainConfig.from_dict({
+        "schedule": {"iterations": 9, "volume_until": 1, "specular_from": 2, "densify_from": 100, "reset_every": 0,
+                     "log_every": 5, "checkpoint_every": 0, "specular_gradient_share": 0.25,
+                     "exact_specular_gradient_from": 6},
+        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
+    })
+    trainer = Trainer(scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
+    calls, render = [], trainer.model.render
+    def recording(camera, **kwargs):
+        if torch.is_grad_enabled():
+            calls.append((kwargs.get("specular_gradient_share"), kwargs.get("generator")))
+        return render(camera, **kwargs)
+    trainer.model.render = recording
+    summary = trainer.train()
+    assert [share for share, _ in calls[:9]] == [0.25] * 5 + [1.0] * 4
+    assert all(generator is trainer.rng for _, generator in calls[:9])
+    assert torch.isfinite(torch.tensor(summary["test_psnr"]))
+    assert all(torch.isfinite(p).all() for p in trainer.model.parameters())
