@@ -1,7 +1,8 @@
 """The sampled specular gradient (``schedule.specular_gradient_share``): a training render differentiates the
 specular network at a random share of the shaded pixels only. The image is the same; the gradient is the full
 gradient of the sampled pixels scaled by 1/share (so its expected value is the full gradient); share 1 is the
-exact gradient and draws nothing; the trainer passes the share of each iteration and its own generator."""
+exact gradient and draws nothing; the default is a quarter under a time budget; the trainer passes the share
+and its own generator."""
 
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ import torch
 
 from rtsplat.bench.toy_scene import write_scene
 from rtsplat.camera import Camera
+from rtsplat.errors import ConfigError
 from rtsplat.model.rtmodel import ActiveEffects, RTModel
 from rtsplat.model.settings import ModelSettings
 from rtsplat.model.surfels import init_from_points
 from rtsplat.train.trainer import Trainer
-from rtsplat.train_config import TrainConfig, scale_budget
+from rtsplat.train_config import TrainConfig
 
 H, W = 24, 30
 
@@ -113,25 +115,24 @@ def test_share_one_and_no_autograd_draw_nothing_and_give_the_exact_gradient():
         model._specular(camera, normal, gbuf, alpha, shade, gradient_share=0.0)
 
 
-def test_the_schedule_gives_each_iteration_its_share_and_scales_with_the_budget():
-    cfg = TrainConfig.from_dict({"schedule": {"iterations": 100, "specular_gradient_share": 0.25,
-                                              "exact_specular_gradient_from": 60}})
-    shares = [cfg.schedule.specular_gradient_share_at(it) for it in (1, 59, 60, 100)]
-    assert shares == [0.25, 0.25, 1.0, 1.0]
-    assert scale_budget(cfg, 2.0).schedule.exact_specular_gradient_from == 120
-    throughout = TrainConfig.from_dict({"schedule": {"specular_gradient_share": 0.5}}).schedule
-    assert throughout.specular_gradient_share_at(10**6) == 0.5
+def test_the_default_share_is_a_quarter_under_a_time_budget_and_every_pixel_without():
+    def share(**schedule):
+        return TrainConfig.from_dict({"schedule": schedule}).validate().schedule.resolved_specular_gradient_share()
+
+    assert share() == 1.0
+    assert share(seconds=60) == 0.25
+    assert share(specular_gradient_share=0.5) == 0.5
+    assert share(seconds=60, specular_gradient_share=1.0) == 1.0
     for bad in (0.0, 1.5):
-        with pytest.raises(Exception, match="specular_gradient_share"):
-            TrainConfig.from_dict({"schedule": {"specular_gradient_share": bad}}).validate()
+        with pytest.raises(ConfigError, match="specular_gradient_share"):
+            share(specular_gradient_share=bad)
 
 
-def test_the_trainer_renders_each_iteration_with_its_share_and_its_own_generator(tmp_path):
+def test_the_trainer_renders_with_the_share_and_its_own_generator_and_reports_it(tmp_path):
     scene = write_scene(tmp_path / "scene", views=6, width=32, height=24)
     cfg = TrainConfig.from_dict({
         "schedule": {"iterations": 9, "volume_until": 1, "specular_from": 2, "densify_from": 100, "reset_every": 0,
-                     "log_every": 5, "checkpoint_every": 0, "specular_gradient_share": 0.25,
-                     "exact_specular_gradient_from": 6},
+                     "log_every": 5, "checkpoint_every": 0, "specular_gradient_share": 0.25},
         "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
     })
     trainer = Trainer(scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
@@ -142,7 +143,8 @@ def test_the_trainer_renders_each_iteration_with_its_share_and_its_own_generator
         return render(camera, **kwargs)
     trainer.model.render = recording
     summary = trainer.train()
-    assert [share for share, _ in calls[:9]] == [0.25] * 5 + [1.0] * 4
+    assert [share for share, _ in calls[:9]] == [0.25] * 9
     assert all(generator is trainer.rng for _, generator in calls[:9])
     assert torch.isfinite(torch.tensor(summary["test_psnr"]))
     assert all(torch.isfinite(p).all() for p in trainer.model.parameters())
+    assert summary["specular_gradient_share"] == 0.25

@@ -72,6 +72,8 @@ METHODS = {
     "rtsplat_bfloat16": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "bfloat16"}},
     # the specular network's hidden width halved (model.mlp_width)
     "rtsplat_mlp128": {"model": {**DEMO_OPTIONS["model"], "mlp_width": 128}},
+    # the specular network's gradient through a quarter of the shaded pixels (schedule.specular_gradient_share)
+    "rtsplat_gradient_share": {"schedule": {**DEMO_OPTIONS["schedule"], "specular_gradient_share": 0.25}},
     # one effect alone: transmission without the specular branch (no environment map, no network), and the
     # specular branch without transmission (Ref-GS-like); with 2dgs they split rtsplat's extra cost by effect
     "rtsplat_no_specular": {"effects": {"transmission": "on", "specular": "off"}},

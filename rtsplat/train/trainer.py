@@ -334,7 +334,7 @@ class Trainer:
         return self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
                                  backend=cfg.backend, sh_degree=sh_degree, background=background,
                                  mirror_planes=planes,
-                                 specular_gradient_share=cfg.schedule.specular_gradient_share_at(it),
+                                 specular_gradient_share=cfg.schedule.resolved_specular_gradient_share(),
                                  generator=self.rng)
 
     def _loss_terms(self, it: int, result: RenderResult, color: Tensor, target: Tensor, mask: Tensor | None,
