@@ -8,42 +8,22 @@ from __future__ import annotations
 
 import pytest
 import torch
+from specular_inputs import small_specular_model, specular_inputs
 
 from rtsplat.bench.toy_scene import write_scene
-from rtsplat.camera import Camera
 from rtsplat.errors import ConfigError
-from rtsplat.model.rtmodel import ActiveEffects, RTModel
-from rtsplat.model.settings import ModelSettings
-from rtsplat.model.surfels import init_from_points
 from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
 
 H, W = 24, 30
 
 
-def _model() -> RTModel:
-    g = torch.Generator().manual_seed(3)
-    surfels = init_from_points(torch.randn(20, 3, generator=g), torch.rand(20, 3, generator=g), generator=g)
-    model = RTModel(surfels, effects=ActiveEffects(), settings=ModelSettings(env_height=8, env_width=16,
-                                                                            env_levels=3, mlp_width=16))
-    with torch.no_grad():
-        model.env.features.normal_(generator=g)
-    return model
+def _model():
+    return small_specular_model()
 
 
 def _inputs():
-    """A camera and a G-buffer (normal, roughness, material, reflectance, alpha) that require gradients, and the
-    shaded pixels (about 60%)."""
-    g = torch.Generator().manual_seed(5)
-    K = torch.tensor([[30.0, 0, W / 2], [0, 30.0, H / 2], [0, 0, 1]])
-    camera = Camera(K, torch.eye(4), W, H)
-    normal = torch.nn.functional.normalize(torch.randn(H, W, 3, generator=g), dim=-1).requires_grad_()
-    alpha = torch.rand(H, W, 1, generator=g) + 0.1
-    gbuf = {"roughness": (torch.rand(H, W, 1, generator=g) * alpha).requires_grad_(),
-            "material": torch.randn(H, W, 4, generator=g).requires_grad_(),
-            "reflectance": (torch.rand(H, W, 1, generator=g) * alpha).requires_grad_()}
-    shade = torch.rand(H, W, 1, generator=g) > 0.4
-    return camera, normal, alpha, gbuf, shade
+    return specular_inputs(H, W)
 
 
 def _specular_and_gradients(model, share, every_pixel, *, seed=0, pixel_weights=None):

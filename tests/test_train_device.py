@@ -108,26 +108,11 @@ def test_device_flag_asking_for_missing_cuda_fails_before_any_work(monkeypatch, 
 
 def test_specular_of_every_pixel_equals_the_gathered_one():
     """Off the CPU the specular branch shades every pixel and masks the result; same values and gradients."""
-    from rtsplat.camera import Camera
-    from rtsplat.model.rtmodel import ActiveEffects, RTModel
-    from rtsplat.model.settings import ModelSettings
-    from rtsplat.model.surfels import init_from_points
+    from specular_inputs import small_specular_model, specular_inputs
 
-    g = torch.Generator().manual_seed(3)
-    surfels = init_from_points(torch.randn(20, 3, generator=g), torch.rand(20, 3, generator=g), generator=g)
-    model = RTModel(surfels, effects=ActiveEffects(), settings=ModelSettings(env_height=8, env_width=16,
-                                                                            env_levels=3, mlp_width=16))
-    with torch.no_grad():
-        model.env.features.normal_(generator=g)
     H, W = 6, 7
-    K = torch.tensor([[8.0, 0, 3.5], [0, 8.0, 3.0], [0, 0, 1]])
-    camera = Camera(K, torch.eye(4), W, H)
-    normal = torch.nn.functional.normalize(torch.randn(H, W, 3, generator=g), dim=-1).requires_grad_()
-    alpha = torch.rand(H, W, 1, generator=g) + 0.1
-    gbuf = {"roughness": (torch.rand(H, W, 1, generator=g) * alpha).requires_grad_(),
-            "material": torch.randn(H, W, 4, generator=g).requires_grad_(),
-            "reflectance": (torch.rand(H, W, 1, generator=g) * alpha).requires_grad_()}
-    shade = torch.rand(H, W, 1, generator=g) > 0.4
+    model = small_specular_model()
+    camera, normal, alpha, gbuf, shade = specular_inputs(H, W)
     results = []
     for every_pixel in (False, True):
         spec, beta = model._specular(camera, normal, gbuf, alpha, shade, every_pixel=every_pixel)
