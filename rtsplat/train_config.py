@@ -58,7 +58,8 @@ class Effects:
         "spread by exposure (rtsplat.train.appearance)"
     )
 
-# the specular gradient's share under a time budget when schedule.specular_gradient_share is null
+
+# the specular gradient's share of a time-budgeted training on the CPU when schedule.specular_gradient_share is null
 BUDGETED_SPECULAR_GRADIENT_SHARE = 0.25
 
 
@@ -112,8 +113,9 @@ class Schedule:
         "environment lookup for the others: an iteration of the family's car-0 took 0.85x the time at 0.25, "
         "which a time budget turns into more iterations (ahead by 0.21 dB median in the transparent region on "
         "the tuning scenes, two seeds), while at a fixed iteration count the noisier gradient lost about 0.2 dB "
-        "(docs/benchmarks.md). null: 0.25 with a time budget (seconds), 1 (every pixel, the exact gradient) "
-        "without", exclusiveMinimum=0.0, maximum=1.0
+        "(docs/benchmarks.md). On a GPU every pixel is evaluated with autograd and the others' gradient is masked, "
+        "which saves nothing. null: 0.25 for a training on the CPU with a time budget (seconds), else 1 (every "
+        "pixel, the exact gradient)", exclusiveMinimum=0.0, maximum=1.0
     )
     log_every: int = setting(10, help="a train_log.jsonl line every N iterations (a logging rate, not scaled by "
                              "budget)", minimum=1)
@@ -135,12 +137,12 @@ class Schedule:
         """The last iteration of the background-only phase (joint optimization off)."""
         return self._or_half_run(self.separate_background_until)
 
-    def resolved_specular_gradient_share(self) -> float:
+    def resolved_specular_gradient_share(self, on_cpu: bool) -> float:
         """The specular gradient's share of every training render (:attr:`specular_gradient_share`, or
-        its default: 0.25 with a time budget, 1 without)."""
+        its default: 0.25 for a training on the CPU (``on_cpu``) with a time budget, else 1)."""
         if self.specular_gradient_share is not None:
             return self.specular_gradient_share
-        return 1.0 if self.seconds is None else BUDGETED_SPECULAR_GRADIENT_SHARE
+        return BUDGETED_SPECULAR_GRADIENT_SHARE if on_cpu and self.seconds is not None else 1.0
 
     def downsample_at(self, iteration: int) -> int:
         """The progressive-resolution factor of ``iteration`` (1: the training resolution): the coarse

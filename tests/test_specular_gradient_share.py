@@ -1,8 +1,8 @@
 """The sampled specular gradient (``schedule.specular_gradient_share``): a training render differentiates the
 specular network at a random share of the shaded pixels only. The image is the same; the gradient is the full
 gradient of the sampled pixels scaled by 1/share (so its expected value is the full gradient); share 1 is the
-exact gradient and draws nothing; the default is a quarter under a time budget; the trainer passes the share
-and its own generator."""
+exact gradient and draws nothing; the default is a quarter under a time budget on the CPU; the trainer passes
+the share and its own generator."""
 
 from __future__ import annotations
 
@@ -95,13 +95,16 @@ def test_share_one_and_no_autograd_draw_nothing_and_give_the_exact_gradient():
         model._specular(camera, normal, gbuf, alpha, shade, gradient_share=0.0)
 
 
-def test_the_default_share_is_a_quarter_under_a_time_budget_and_every_pixel_without():
-    def share(**schedule):
-        return TrainConfig.from_dict({"schedule": schedule}).validate().schedule.resolved_specular_gradient_share()
+def test_the_default_share_is_a_quarter_under_a_time_budget_on_the_cpu_and_every_pixel_else():
+    def share(on_cpu=True, **schedule):
+        schedule = TrainConfig.from_dict({"schedule": schedule}).validate().schedule
+        return schedule.resolved_specular_gradient_share(on_cpu)
 
     assert share() == 1.0
     assert share(seconds=60) == 0.25
+    assert share(on_cpu=False, seconds=60) == 1.0  # a GPU evaluates every pixel anyway: no saving
     assert share(specular_gradient_share=0.5) == 0.5
+    assert share(on_cpu=False, specular_gradient_share=0.5) == 0.5
     assert share(seconds=60, specular_gradient_share=1.0) == 1.0
     for bad in (0.0, 1.5):
         with pytest.raises(ConfigError, match="specular_gradient_share"):

@@ -145,9 +145,9 @@ class TrainingRun:
         if cfg.schedule.seconds is not None:
             t.log(f"time budget: {cfg.schedule.seconds:g} s of training steps, the plan of "
                   f"{cfg.schedule.iterations} iterations placed by the share spent")
-        if t.effects.specular and cfg.schedule.resolved_specular_gradient_share() < 1:
-            t.log(f"specular network's gradient: through a random {cfg.schedule.resolved_specular_gradient_share():g} "
-                  "of the shaded pixels per training render (schedule.specular_gradient_share)")
+        if t.effects.specular and t.specular_gradient_share < 1:
+            t.log(f"specular network's gradient: through a random {t.specular_gradient_share:g} of the shaded pixels "
+                  "per training render (schedule.specular_gradient_share)")
 
     def _timed_step(self, watch_every_step: bool) -> tuple[StepResult, dict[str, float] | None, bool, bool]:
         """One training step, its wall and CPU seconds added to the run's: the step, its numbers (read from the
@@ -220,8 +220,7 @@ class TrainingRun:
                    "seconds_per_iteration": round(t.elapsed / max(t.iteration, 1), 5),
                    "surfels": len(t.model.surfels), "starting_surfels": t.starting.to_dict(),
                    "effects": t.effects.to_dict(), "specular_products": t.model.specular_products(),
-                   "specular_gradient_share": (t.cfg.schedule.resolved_specular_gradient_share()
-                                               if t.effects.specular else None),
+                   "specular_gradient_share": t.specular_gradient_share if t.effects.specular else None,
                    "near_reflection": t.near_fit, "appearance": t.appearance_summary(),
                    "mirror_planes_moved": None if t.plane_refinement is None else t.plane_refinement.moved(),
                    "provenance": run_record(t.provenance),

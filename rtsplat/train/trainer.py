@@ -115,6 +115,8 @@ class Trainer:
         self.device = resolve_device(cfg.device, key="train.device")
         torch.manual_seed(cfg.seed)
         self.rng = torch.Generator().manual_seed(cfg.seed)
+        # the share of the shaded pixels through which the specular network's gradient flows in training renders
+        self.specular_gradient_share = cfg.schedule.resolved_specular_gradient_share(self.device.type == "cpu")
         self.train_views = load_views(scene, "train", self.device, cfg.train_downsample)
         # the progressive resolution's coarser copies of the training views, by factor (1: train_views)
         self.train_levels = {factor: self._coarse_views(factor) for factor in cfg.schedule.downsample_levels()}
@@ -334,7 +336,7 @@ class Trainer:
         return self.model.render(camera, stage=stage, gating=cfg.gating, raster_settings=cfg.raster,
                                  backend=cfg.backend, sh_degree=sh_degree, background=background,
                                  mirror_planes=planes,
-                                 specular_gradient_share=cfg.schedule.resolved_specular_gradient_share(),
+                                 specular_gradient_share=self.specular_gradient_share,
                                  generator=self.rng)
 
     def _loss_terms(self, it: int, result: RenderResult, color: Tensor, target: Tensor, mask: Tensor | None,
