@@ -17,7 +17,7 @@ def small_specular_model(seed: int = 3) -> RTModel:
     model = RTModel(surfels, effects=ActiveEffects(), settings=ModelSettings(env_height=8, env_width=16,
                                                                             env_levels=3, mlp_width=16))
     with torch.no_grad():
-        model.env.features.normal_(generator=g)
+        model.env.features.copy_(torch.randn(model.env.features.shape, generator=g))  # in logical order
     return model
 
 

@@ -13,7 +13,7 @@ from rtsplat.camera import camera_from_fov
 from rtsplat.model import rtmodel, specular
 from rtsplat.model.background import BackgroundMap
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
-from rtsplat.model.envmap import EnvironmentMap
+from rtsplat.model.envmap import EnvironmentMap, mip_levels
 from rtsplat.model.gating import gate_factor, gate_gradient, specular_complexity
 from rtsplat.model.rtmodel import GBUFFER_WIDTHS, STAGES, ActiveEffects, RTModel
 from rtsplat.model.settings import Ablations, Gating, ModelSettings
@@ -254,6 +254,32 @@ def test_environment_map_gradients_match_finite_differences():
         assert float(features.grad[idx]) == pytest.approx(float(numeric), abs=1e-7)
 
 
+@pytest.mark.parametrize("height,width,levels", [(16, 32, 5), (9, 22, 4), (4, 8, 5)])
+@pytest.mark.parametrize("channels_last", [True, False])
+def test_texel_table_and_its_gradient_are_autograds_through_the_mip_levels(height, width, levels, channels_last):
+    """The texel table's own backward (a quarter of each texel's gradient added to the four it averages,
+    level by level; a level of odd size through avg_pool2d's backward; the levels repeated below 2x4)
+    gives the table and the map's gradient of autograd through the 2x2 averages, for the channels-last
+    map the model keeps and for a plain one."""
+    env = EnvironmentMap(channels=5, height=height, width=width, levels=levels).double()
+    assert env.features.is_contiguous(memory_format=torch.channels_last)
+    g = torch.Generator().manual_seed(height + levels)
+    with torch.no_grad():
+        env.features.copy_(torch.randn(env.features.shape, generator=g, dtype=torch.float64))
+    if not channels_last:
+        env.features.data = env.features.data.contiguous()
+    features = env.features
+    expected = torch.cat([level[0].permute(1, 2, 0).reshape(-1, 5) for level in mip_levels(features, levels)])
+    table, layout = env.texel_table()
+    assert torch.equal(table, expected)
+    assert [(h, w) for _, h, w in layout] == [tuple(level.shape[-2:]) for level in mip_levels(features, levels)]
+    upstream = torch.randn(table.shape, generator=g, dtype=torch.float64)
+    (want,) = torch.autograd.grad(expected, features, upstream)
+    (got,) = torch.autograd.grad(table, features, upstream)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    assert want.abs().min() > 0 or height < 8  # every texel of a large level passed some gradient
+
+
 def test_specular_network_shapes_and_ranges():
     net = SpecularNetwork(16, 4, 32)
     spec, beta = net(torch.randn(7, 16), torch.nn.functional.normalize(torch.randn(7, 4), dim=-1), torch.rand(7, 1))
@@ -387,8 +413,9 @@ def _model(effects=None, ablations=None, seed=0):
     surfels = init_from_points(xyz, rgb, occupancy=0.6, opacity=0.5, generator=g)
     model = RTModel(surfels, effects=effects or ActiveEffects(), ablations=ablations or Ablations(), settings=SMALL,
                     roi_center=(0.0, 0.0, 0.0), roi_radius=5.0)
-    with torch.no_grad():
-        model.env.features.normal_(generator=g) if model.env is not None else None
+    if model.env is not None:  # drawn in the map's logical order, whatever its memory layout
+        with torch.no_grad():
+            model.env.features.copy_(torch.randn(model.env.features.shape, generator=g))
     return model
 
 

@@ -131,3 +131,26 @@ def test_the_trainer_renders_with_the_share_and_its_own_generator_and_reports_it
     assert torch.isfinite(torch.tensor(summary["test_psnr"]))
     assert all(torch.isfinite(p).all() for p in trainer.model.parameters())
     assert summary["specular_gradient_share"] == 0.25
+
+
+def test_a_sampled_render_reads_one_texel_table_and_leaves_none_that_goes_stale(monkeypatch):
+    """Both sets of pixels read one mip pyramid of the environment map; and none is kept: after the
+    optimizer's fused step (which changes the map without moving its version counter) a lookup without
+    autograd, as an evaluation makes, reads the new map."""
+    model = _model()
+    built = []
+    texel_table = type(model.env).texel_table
+    monkeypatch.setattr(type(model.env), "texel_table",
+                        lambda self, levels=None: built.append(levels) or texel_table(self, levels))
+    _, _, grads, _ = _specular_and_gradients(model, 0.25, False)
+    env_gradient = grads[4]  # the leaves: the normal, three G-buffer channels, the map, the network's
+    assert len(built) == 1 and env_gradient.abs().sum() > 0
+    optimizer = torch.optim.Adam([model.env.features], lr=0.5, fused=True)
+    model.env.features.grad = env_gradient
+    optimizer.step()
+    g = torch.Generator().manual_seed(1)
+    directions = torch.nn.functional.normalize(torch.randn(200, 3, generator=g), dim=-1)
+    roughness = torch.rand(200, generator=g)
+    with torch.no_grad():
+        evaluated = model.env(directions, roughness)
+    assert torch.equal(evaluated, model.env(directions, roughness).detach())  # with autograd: a table built anew

@@ -22,7 +22,9 @@ class EnvironmentMap(nn.Module):
     def __init__(self, channels: int = 16, height: int = 512, width: int = 1024, levels: int = 9):
         super().__init__()
         self.levels = int(levels)
-        self.features = nn.Parameter(torch.zeros(1, channels, height, width))
+        # channels last (texel after texel, each texel's channels together): the texel table's first level
+        # is then a view of the map, and the pyramid's 2x2 averages and their gradients run on contiguous texels
+        self.features = nn.Parameter(torch.zeros(1, channels, height, width).to(memory_format=torch.channels_last))
         # (first row, height, width) of every level in the texel table; a buffer, so it lives on the
         # map's device and a lookup needs no copy from the host
         self.register_buffer("level_layout", torch.tensor(level_layout(height, width, self.levels)),
@@ -34,16 +36,8 @@ class EnvironmentMap(nn.Module):
         return self.features.shape[1]
 
     def pyramid(self, count: int | None = None) -> list[Tensor]:
-        """The first ``count`` (default: all) mip levels, each half the previous size (2x2 average),
-        at least 1x2."""
-        levels = [self.features]
-        for _ in range(min(count or self.levels, self.levels) - 1):
-            top = levels[-1]
-            if top.shape[-2] < 2 or top.shape[-1] < 4:
-                levels.append(top)
-                continue
-            levels.append(F.avg_pool2d(top, 2, ceil_mode=True))
-        return levels
+        """The first ``count`` (default: all) mip levels (:func:`mip_levels`)."""
+        return mip_levels(self.features, min(count or self.levels, self.levels))
 
     @staticmethod
     def direction_to_uv(directions: Tensor) -> tuple[Tensor, Tensor]:
@@ -57,14 +51,10 @@ class EnvironmentMap(nn.Module):
     def texel_table(self, levels: int | None = None) -> tuple[Tensor, list[tuple[int, int, int]]]:
         """The first ``levels`` (default: all) mip levels' texels as rows of one table
         [sum H_l W_l, C] (channels contiguous, level after level, row major) and per level
-        (first row, height, width)."""
-        rows, layout, offset = [], [], 0
-        for tex in self.pyramid(levels):
-            _, C, H, W = tex.shape
-            rows.append(tex[0].permute(1, 2, 0).reshape(H * W, C))
-            layout.append((offset, H, W))
-            offset += H * W
-        return torch.cat(rows), layout
+        (first row, height, width): :meth:`pyramid`'s levels, built by :class:`MipTable`."""
+        count = min(levels or self.levels, self.levels)
+        table = MipTable.apply(self.features, count)
+        return table, level_layout(self.features.shape[-2], self.features.shape[-1], count)
 
     @staticmethod
     def sample_level(level: Tensor, u: Tensor, v: Tensor) -> Tensor:
@@ -121,13 +111,15 @@ class EnvironmentMap(nn.Module):
             return rows, weights
         return torch.stack(rows, 1), torch.stack(weights, 1)
 
-    def forward(self, directions: Tensor, roughness: Tensor) -> Tensor:
+    def forward(self, directions: Tensor, roughness: Tensor, table: Tensor | None = None) -> Tensor:
         """Features [M,C] at unit ``directions`` [M,3]; ``roughness`` [M] in [0,1] picks the level.
 
         Trilinear: the bilinear samples of levels ``floor(l)`` and ``floor(l) + 1`` (l = roughness x
         (levels - 1)) blended by the fraction of l. All eight taps of a sample are rows of one texel
         table, so the forward is one gather and the backward one scatter into the table, whatever the
-        number of levels; levels above the largest one sampled are not built."""
+        number of levels; levels above the largest one sampled are not built. ``table``: the texel
+        table of every level (:meth:`texel_table`) when the caller shares one between lookups of the
+        same map (a render's tracked and untracked pixels); its gradient, if any, is the caller's."""
         u, v = self.direction_to_uv(directions)
         level = (roughness.clamp(0, 1) * (self.levels - 1)).reshape(-1)
         lo = level.floor().clamp(0, self.levels - 1)
@@ -137,11 +129,12 @@ class EnvironmentMap(nn.Module):
         hi_i = torch.where(has_hi, lo_i + 1, lo_i)
         # on the CPU only the levels some sample reads are built (the pyramid is rebuilt every call);
         # elsewhere finding the highest one would wait for the device, so all are built
-        if u.device.type == "cpu":
-            count = int(hi_i.max()) + 1 if hi_i.numel() else 1
-        else:
-            count = self.levels
-        table = self._lookup_table(count)
+        if table is None:
+            if u.device.type == "cpu":
+                count = int(hi_i.max()) + 1 if hi_i.numel() else 1
+            else:
+                count = self.levels
+            table = self._lookup_table(count)
         info = self.level_layout.to(u.device)  # [levels, 3]: first row, H, W
         stacked = torch.is_grad_enabled()
         rows, weights = [], []
@@ -170,7 +163,10 @@ class EnvironmentMap(nn.Module):
     def _lookup_table(self, count: int) -> Tensor:
         """:meth:`texel_table` of ``count`` levels; without autograd it is kept and reused until the map
         changes (its version counter moves) or its device or dtype do, so frames rendered one after
-        the other build the mip pyramid once."""
+        the other build the mip pyramid once. A lookup with autograd drops the kept table: the trainer's
+        fused Adam step changes the map without moving its version counter, and it changes it only after
+        a step whose lookups passed a gradient. So no lookup without autograd may run between such a
+        lookup and the optimizer step: a training render shares its table instead (``table``)."""
         if torch.is_grad_enabled():
             self._table_cache = None
             return self.texel_table(count)[0]
@@ -181,9 +177,63 @@ class EnvironmentMap(nn.Module):
         return self._table_cache[1]
 
 
+def mip_levels(features: Tensor, count: int) -> list[Tensor]:
+    """``features`` [1,C,H,W] and its next ``count - 1`` mip levels: each the previous one's 2x2 average
+    (``avg_pool2d`` with ``ceil_mode``: a partial window at an odd edge averages the texels it holds),
+    or the previous one itself (the same tensor) once that is smaller than 2x4."""
+    levels = [features]
+    for _ in range(count - 1):
+        top = levels[-1]
+        levels.append(top if top.shape[-2] < 2 or top.shape[-1] < 4 else F.avg_pool2d(top, 2, ceil_mode=True))
+    return levels
+
+
+class MipTable(torch.autograd.Function):
+    """``features`` [1,C,H,W] -> the texel table of its first ``count`` mip levels [sum H_l W_l, C]
+    (:meth:`EnvironmentMap.texel_table`), with a backward of its own.
+
+    The levels are :func:`mip_levels`'. For a channels-last map every
+    level's rows are a view and the only copy is the table itself. The backward walks the levels from
+    the coarsest down, adding a quarter of each texel's gradient to the four texels it averages (in
+    place, on contiguous rows: no [1,C,H,W] gradient per level, no transposes), the same sums as
+    autograd's through ``avg_pool2d``; a level of odd size goes through ``avg_pool2d``'s own backward,
+    whose partial windows average fewer texels."""
+
+    @staticmethod
+    def forward(ctx, features: Tensor, count: int) -> Tensor:
+        levels = mip_levels(features, count)
+        channels = features.shape[1]
+        ctx.sizes = [tuple(level.shape[-2:]) for level in levels]
+        ctx.pooled = [finer is not coarser for finer, coarser in zip(levels[:-1], levels[1:], strict=True)]
+        ctx.map_format = (channels, features.dtype, features.device)
+        return torch.cat([level[0].permute(1, 2, 0).reshape(-1, channels) for level in levels])
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        channels, dtype, device = ctx.map_format
+        grad = grad.contiguous().clone()  # the levels' gradients accumulate in place, coarsest first
+        starts = [0]
+        for h, w in ctx.sizes:
+            starts.append(starts[-1] + h * w)
+        level_grads = [grad[starts[i]:starts[i + 1]].view(h, w, channels) for i, (h, w) in enumerate(ctx.sizes)]
+        for i in range(len(ctx.sizes) - 1, 0, -1):
+            coarse, fine = level_grads[i], level_grads[i - 1]
+            (h, w), (fh, fw) = ctx.sizes[i], ctx.sizes[i - 1]
+            if not ctx.pooled[i - 1]:
+                fine.add_(coarse)
+            elif fh == 2 * h and fw == 2 * w:
+                fine.view(h, 2, w, 2, channels).add_(coarse.view(h, 1, w, 1, channels), alpha=0.25)
+            else:
+                spread = torch.ops.aten.avg_pool2d_backward(
+                    coarse.permute(2, 0, 1)[None], torch.empty(1, channels, fh, fw, dtype=dtype, device=device),
+                    [2, 2], [2, 2], [0, 0], True, True, None)
+                fine.add_(spread[0].permute(1, 2, 0))
+        return level_grads[0].permute(2, 0, 1)[None], None
+
+
 def level_layout(height: int, width: int, levels: int) -> list[tuple[int, int, int]]:
     """(first row, height, width) of each mip level in :meth:`EnvironmentMap.texel_table`, from the
-    sizes alone (the same halving rule as :meth:`EnvironmentMap.pyramid`)."""
+    sizes alone (the same halving rule as :func:`mip_levels`)."""
     layout, offset = [], 0
     for _ in range(levels):
         layout.append((offset, height, width))

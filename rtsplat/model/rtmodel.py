@@ -408,7 +408,8 @@ class RTModel(nn.Module):
         probability (drawn from ``generator``), and only the tracked ones pass a gradient, scaled by
         ``1 / gradient_share`` so that its expected value is the full gradient. Every pixel gets the same
         value either way. On the CPU the untracked pixels are evaluated without autograd, which saves the
-        backward of the network, the environment lookup and the G-buffer reads for them."""
+        backward of the network, the environment lookup and the G-buffer reads for them, and both sets of
+        pixels read one texel table of the environment map (one mip pyramid per render)."""
         H, W = normal.shape[:2]
         flat = shade.reshape(-1)
         every_pixel = normal.device.type != "cpu" if every_pixel is None else every_pixel
@@ -421,8 +422,8 @@ class RTModel(nn.Module):
             raise ValueError(f"gradient_share must be in (0, 1], got {gradient_share}")
         sampled = gradient_share < 1.0 and torch.is_grad_enabled()
 
-        def evaluate(rows: Tensor | None) -> tuple[Tensor, Tensor]:
-            return self._specular_rows(camera, normal, g, alpha_safe, rows, near, rays)
+        def evaluate(rows: Tensor | None, env_table: Tensor | None = None) -> tuple[Tensor, Tensor]:
+            return self._specular_rows(camera, normal, g, alpha_safe, rows, near, rays, env_table)
 
         if idx is None:
             s, b = evaluate(None)
@@ -434,11 +435,12 @@ class RTModel(nn.Module):
             beta = torch.where(flat[:, None], b, beta)
         elif sampled:
             tracked = torch.rand(idx.numel(), generator=generator) < gradient_share
+            table = self.env.texel_table()[0]
             for rows, differentiated in ((idx[tracked], True), (idx[~tracked], False)):
                 if rows.numel() == 0:
                     continue
                 with torch.set_grad_enabled(differentiated):
-                    s, b = evaluate(rows)
+                    s, b = evaluate(rows, table if differentiated else table.detach())
                 if differentiated:
                     s, b = gradient_scaled(s, 1.0 / gradient_share), gradient_scaled(b, 1.0 / gradient_share)
                 spec, beta = spec.index_copy(0, rows, s), beta.index_copy(0, rows, b)
@@ -448,9 +450,11 @@ class RTModel(nn.Module):
         return spec.reshape(H, W, 3), beta.reshape(H, W, 1)
 
     def _specular_rows(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, idx: Tensor | None,
-                       near: tuple[Tensor, Tensor] | None, rays: Tensor | None) -> tuple[Tensor, Tensor]:
+                       near: tuple[Tensor, Tensor] | None, rays: Tensor | None,
+                       env_table: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """The specular network's C_spec [N,3] and beta [N,1] at the pixels ``idx`` of the flattened image
-        (None: every pixel), from the G-buffer ``g`` and the blended ``normal``."""
+        (None: every pixel), from the G-buffer ``g`` and the blended ``normal``; ``env_table``: the
+        environment map's texel table, when the caller shares one (:meth:`EnvironmentMap.forward`)."""
         rows = (lambda t: t) if idx is None else (lambda t: t[idx])  # noqa: E731
         incident = rows((image_ray_directions(camera) if rays is None else rays).reshape(-1, 3))
         n = rows(normal.reshape(-1, 3))
@@ -462,7 +466,7 @@ class RTModel(nn.Module):
         reflectance = rows((g["reflectance"] / alpha_safe).reshape(-1, 1)).clamp(0, 1)
         if self.settings.specular_fresnel:
             reflectance = schlick_fresnel(reflectance, cos_incidence)
-        env = self.env(reflected, rough)
+        env = self.env(reflected, rough, env_table)
         reflected_background = None
         if self.background_map is not None and (self.settings.specular_background or self.uses_mirror):
             with torch.no_grad():  # B learns only from the pixels that see it
