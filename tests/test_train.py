@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -21,6 +22,7 @@ from rtsplat.bench.toy_scene import write_scene
 from rtsplat.errors import ConfigError
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint
 from rtsplat.model.export import read_surfel_ply
+from rtsplat.train.optim import load_optimizer_state
 from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
 from rtsplat.usage import machine_steal_seconds
@@ -901,3 +903,23 @@ def test_a_run_resumed_by_other_code_records_each_part_that_trained_it(glass_sce
     resumed = train_to(15)
     assert resumed["earlier_parts"] == [other] and {k: v for k, v in resumed.items() if k != "earlier_parts"} == first
     assert train_to(20)["earlier_parts"] == [other]
+
+
+def test_restored_adam_moments_take_their_parameters_memory_layout():
+    """The environment map is kept channels last, and the fused Adam step pairs values in memory order: moments
+    restored in another layout (a checkpoint's contiguous ones) are laid out as their parameter is, so the step
+    after a resume is the step of a contiguous twin."""
+    base = torch.randn(1, 4, 8, 16, generator=torch.Generator().manual_seed(0))
+    grad = torch.randn(1, 4, 8, 16, generator=torch.Generator().manual_seed(1))
+    twin = torch.nn.Parameter(base.clone())
+    twin_optimizer = torch.optim.Adam([twin], lr=0.1, fused=True)
+    twin.grad = grad.clone()
+    twin_optimizer.step()
+    kept = torch.nn.Parameter(twin.detach().clone().to(memory_format=torch.channels_last))
+    kept_optimizer = torch.optim.Adam([kept], lr=0.1, fused=True)
+    load_optimizer_state(kept_optimizer, copy.deepcopy(twin_optimizer.state_dict()))  # as read from a file
+    twin.grad = grad.clone()
+    kept.grad = grad.clone().to(memory_format=torch.channels_last)  # as autograd lays out a parameter's gradient
+    twin_optimizer.step()
+    kept_optimizer.step()
+    assert torch.equal(kept.detach(), twin.detach())

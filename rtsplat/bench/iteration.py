@@ -271,6 +271,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--scene is required")
     if args.worker:
         return _worker(args)
+    # the workers run in their checkouts: paths given relative to this folder are passed on absolute
+    args.scene = args.scene.resolve()
+    if args.state_dir is not None:
+        args.state_dir = args.state_dir.resolve()
     from rtsplat.bench.workers import CheckoutWorker  # the parent only: a worker's checkout may lack it
     from rtsplat.errors import run_command
     from rtsplat.io.outputs import check_output_dir, mark_output

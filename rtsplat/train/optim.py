@@ -62,6 +62,20 @@ def build_optimizer(model: nn.Module, surfels: SurfelParameters, lr: LearningRat
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
 
 
+def load_optimizer_state(optimizer: torch.optim.Optimizer, state: dict) -> None:
+    """``optimizer.load_state_dict(state)``, then every moment laid out in memory as its parameter is. torch's
+    fused Adam pairs a parameter's values with its gradient's and its moments' in memory order, not by index,
+    so a moment saved in another layout would update the wrong values: the environment map is kept channels
+    last (:class:`rtsplat.model.envmap.EnvironmentMap`), and a checkpoint may hold its moments contiguous."""
+    optimizer.load_state_dict(state)
+    for group in optimizer.param_groups:
+        for param in group["params"]:
+            moments = optimizer.state.get(param, {})
+            for key, value in moments.items():
+                if torch.is_tensor(value) and value.shape == param.shape and value.stride() != param.stride():
+                    moments[key] = torch.empty_like(param).copy_(value)
+
+
 def _group(optimizer: torch.optim.Optimizer, name: str) -> dict:
     return next(g for g in optimizer.param_groups if g.get("name") == name)
 

@@ -57,7 +57,7 @@ from rtsplat.train.effects import (
 from rtsplat.train.evaluation import fit_test_appearance, fit_test_poses, views_psnr
 from rtsplat.train.glass_planes import glass_planes, glass_samples, marked_centres, near_coverage
 from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
-from rtsplat.train.optim import append_rows, build_optimizer, position_lr
+from rtsplat.train.optim import append_rows, build_optimizer, load_optimizer_state, position_lr
 from rtsplat.train.planes import PlaneRefinement
 from rtsplat.train.resume import check_resumable
 from rtsplat.train.run import TrainingRun, write_effects
@@ -594,7 +594,7 @@ class Trainer:
         state = checkpoint.training
         self.model = checkpoint.build_model(self.device, ablations=self.cfg.ablations, settings=self.cfg.model)
         self.optimizer = build_optimizer(self.model, self.model.surfels, self.cfg.lr, self.extent)
-        self.optimizer.load_state_dict(state["optimizer"])
+        load_optimizer_state(self.optimizer, state["optimizer"])
         self.density.load_state_dict(state["density"])
         self.frozen = state["frozen"].to(self.device)
         if self.poses is not None and state.get("poses") is not None:
