@@ -192,41 +192,35 @@ class MipTable(torch.autograd.Function):
     """``features`` [1,C,H,W] -> the texel table of its first ``count`` mip levels [sum H_l W_l, C]
     (:meth:`EnvironmentMap.texel_table`), with a backward of its own.
 
-    The levels are :func:`mip_levels`'. For a channels-last map every
-    level's rows are a view and the only copy is the table itself. The backward walks the levels from
-    the coarsest down, adding a quarter of each texel's gradient to the four texels it averages (in
-    place, on contiguous rows: no [1,C,H,W] gradient per level, no transposes), the same sums as
-    autograd's through ``avg_pool2d``; a level of odd size goes through ``avg_pool2d``'s own backward,
-    whose partial windows average fewer texels."""
+    The levels are :func:`mip_levels`'; for a channels-last map every level's rows are a view and the only
+    copy is the table itself. The backward walks the levels of :func:`level_layout` from the coarsest
+    down, adding a quarter of each texel's gradient to the four texels it averages (in place, on
+    contiguous rows: no [1,C,H,W] gradient per level, no transposes), the same sums as autograd's through
+    ``avg_pool2d``; a level of odd size goes through ``avg_pool2d``'s own backward, whose partial windows
+    average fewer texels, and a level that repeats the one before (below 2x4) passes its gradient on whole."""
 
     @staticmethod
     def forward(ctx, features: Tensor, count: int) -> Tensor:
-        levels = mip_levels(features, count)
+        ctx.layout = level_layout(features.shape[-2], features.shape[-1], count)
         channels = features.shape[1]
-        ctx.sizes = [tuple(level.shape[-2:]) for level in levels]
-        ctx.pooled = [finer is not coarser for finer, coarser in zip(levels[:-1], levels[1:], strict=True)]
-        ctx.map_format = (channels, features.dtype, features.device)
-        return torch.cat([level[0].permute(1, 2, 0).reshape(-1, channels) for level in levels])
+        return torch.cat([level[0].permute(1, 2, 0).reshape(-1, channels) for level in mip_levels(features, count)])
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        channels, dtype, device = ctx.map_format
+        channels = grad.shape[1]
         grad = grad.contiguous().clone()  # the levels' gradients accumulate in place, coarsest first
-        starts = [0]
-        for h, w in ctx.sizes:
-            starts.append(starts[-1] + h * w)
-        level_grads = [grad[starts[i]:starts[i + 1]].view(h, w, channels) for i, (h, w) in enumerate(ctx.sizes)]
-        for i in range(len(ctx.sizes) - 1, 0, -1):
+        level_grads = [grad[first:first + h * w].view(h, w, channels) for first, h, w in ctx.layout]
+        for i in range(len(ctx.layout) - 1, 0, -1):
             coarse, fine = level_grads[i], level_grads[i - 1]
-            (h, w), (fh, fw) = ctx.sizes[i], ctx.sizes[i - 1]
-            if not ctx.pooled[i - 1]:
+            (_, h, w), (_, fh, fw) = ctx.layout[i], ctx.layout[i - 1]
+            if (fh, fw) == (h, w):  # the same level again
                 fine.add_(coarse)
-            elif fh == 2 * h and fw == 2 * w:
+            elif (fh, fw) == (2 * h, 2 * w):
                 fine.view(h, 2, w, 2, channels).add_(coarse.view(h, 1, w, 1, channels), alpha=0.25)
             else:
-                spread = torch.ops.aten.avg_pool2d_backward(
-                    coarse.permute(2, 0, 1)[None], torch.empty(1, channels, fh, fw, dtype=dtype, device=device),
-                    [2, 2], [2, 2], [0, 0], True, True, None)
+                shape = torch.empty(1, channels, fh, fw, dtype=grad.dtype, device=grad.device)
+                spread = torch.ops.aten.avg_pool2d_backward(coarse.permute(2, 0, 1)[None], shape, [2, 2], [2, 2],
+                                                            [0, 0], True, True, None)
                 fine.add_(spread[0].permute(1, 2, 0))
         return level_grads[0].permute(2, 0, 1)[None], None
 
