@@ -61,6 +61,8 @@ class Effects:
 
 # the specular gradient's share of a time-budgeted training on the CPU when schedule.specular_gradient_share is null
 BUDGETED_SPECULAR_GRADIENT_SHARE = 0.25
+# the share of the plan over which the full model's specular branch fades in (Schedule.specular_fade)
+SPECULAR_FADE = 0.0667
 
 
 @dataclass
@@ -105,6 +107,14 @@ class Schedule:
         0, help="progressive resolution: the training views are at the training resolution from this iteration on",
         minimum=0
     )
+    specular_fade: float = setting(
+        SPECULAR_FADE, help="the full model's specular branch fades in over this share of the plan's iterations after "
+        "specular_from: C_spec is scaled by w and beta by 1 - w (1 - beta), w rising linearly from 0 to 1, so that the "
+        "first full-model renders are the stage before's image and the untrained network does not knock the image "
+        "off its fit (on the tuning scenes the training PSNR fell by 2-9 dB at an abrupt switch and took 20-50 "
+        "iterations to recover; docs/fidelity.md, finding 47); the network learns at its full rate all along (Adam's "
+        "steps do not shrink with w). 0: the branch switches on at once", minimum=0.0, maximum=1.0
+    )
     specular_gradient_share: float | None = setting(
         None, help="the share of the shaded pixels of a training render through which the specular network's "
         "gradient flows, drawn afresh each iteration; the others get the same colour without autograd, and the "
@@ -143,6 +153,15 @@ class Schedule:
         if self.specular_gradient_share is not None:
             return self.specular_gradient_share
         return BUDGETED_SPECULAR_GRADIENT_SHARE if on_cpu and self.seconds is not None else 1.0
+
+    def specular_weight_at(self, iteration: int) -> float:
+        """The specular branch's weight at the plan's ``iteration`` (:attr:`specular_fade`): 0 up to
+        ``specular_from``, rising linearly to 1 over ``specular_fade`` x ``iterations`` iterations after it."""
+        progress = iteration - self.specular_from
+        if progress <= 0:
+            return 0.0
+        fade = self.specular_fade * self.iterations
+        return 1.0 if progress >= fade else progress / fade
 
     def downsample_at(self, iteration: int) -> int:
         """The progressive-resolution factor of ``iteration`` (1: the training resolution): the coarse

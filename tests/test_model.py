@@ -423,6 +423,33 @@ def _render(model, **kw):
     return model.render(small_camera(24, 18, torch.float32), stage="full", backend="reference", **kw)
 
 
+def test_the_specular_weight_fades_the_full_model_in_from_the_subsurface_stage_image():
+    model = _model(seed=1)
+    camera = small_camera(24, 18, torch.float32)
+    with torch.no_grad():
+        before = model.render(camera, stage="subsurface", backend="reference").color
+        full = _render(model).color
+        assert (full - before).abs().max() > 1e-2  # the specular branch changes the image
+        assert torch.equal(_render(model, specular_weight=0.0).color, before)
+        assert torch.equal(_render(model, specular_weight=1.0).color, full)
+        # C_spec + beta C_sub is linear in the weight, and so is the region blend around it
+        assert torch.allclose(_render(model, specular_weight=0.25).color, 0.75 * before + 0.25 * full, atol=1e-6)
+    for weight in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="specular_weight"):
+            _render(model, specular_weight=weight)
+
+
+@pytest.mark.parametrize("weight", [0.0, 1e-3, 0.4])
+def test_a_faded_specular_branch_passes_finite_gradients_and_none_at_weight_zero(weight):
+    model = _model(seed=2)
+    _render(model, specular_weight=weight).color.square().sum().backward()
+    network = [p.grad for p in model.specular_net.parameters()]
+    assert all(g is None or torch.isfinite(g).all() for g in network)
+    assert all(torch.isfinite(p.grad).all() for p in model.surfels.parameters() if p.grad is not None)
+    reached = any(g is not None and g.abs().max() > 0 for g in network)
+    assert reached == (weight > 0)
+
+
 @pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_frustum_culling_leaves_out_only_surfels_the_rasterizer_skips_and_keeps_the_image(backend):
     from rtsplat.raster.projection import project_surfels

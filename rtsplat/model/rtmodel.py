@@ -237,6 +237,7 @@ class RTModel(nn.Module):
         raster_settings: RasterSettings | None = None, backend: str = "auto", sh_degree: int | None = None,
         background: Tensor | None = None, frustum_cull: bool = False, mirror_planes: Tensor | None = None,
         specular_gradient_share: float = 1.0, generator: torch.Generator | None = None,
+        specular_weight: float = 1.0,
     ) -> RenderResult:
         """``background``: an RGB colour [3] that replaces the model's background for this render (the
         trainer's random background). ``frustum_cull``: rasterize only the surfels of :meth:`in_view`
@@ -244,9 +245,13 @@ class RTModel(nn.Module):
         outputs of ``result.raster`` are). ``mirror_planes``: plane rows [K,12] that replace the model's
         mirror planes in this render (as many as it has), through which gradients reach them (the trainer's
         plane refinement). ``specular_gradient_share`` < 1 (with autograd on): the specular network's gradient
-        is sampled, see :meth:`_specular`; ``generator`` draws the sample."""
+        is sampled, see :meth:`_specular`; ``generator`` draws the sample. ``specular_weight`` w in [0, 1]: the
+        full stage's C_spec scaled by w and beta by ``1 - w (1 - beta)``, so that w = 0 renders the subsurface
+        stage's image and w = 1 the full model's (the trainer's fade-in, ``schedule.specular_fade``)."""
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+        if not 0.0 <= specular_weight <= 1.0:
+            raise ValueError(f"specular_weight must be in [0, 1], got {specular_weight}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
         channels = self.gbuffer_channels()
         out = rasterize(self.rasterizer_surfels(camera, sh_degree, index, channels), camera, raster_settings,
@@ -292,6 +297,8 @@ class RTModel(nn.Module):
                                          gradient_share=specular_gradient_share, generator=generator)
             if not self.ablations.attenuation:
                 beta = torch.ones_like(beta)
+            if specular_weight < 1.0:
+                spec, beta = spec * specular_weight, 1.0 - specular_weight * (1.0 - beta)
             layers.update(spec=spec, beta=beta)
             if self.ablations.gating and gating is not None and torch.is_grad_enabled():
                 gate = gate_factor(spec, alpha, gating.k, gating.mode)
