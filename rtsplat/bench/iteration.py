@@ -4,9 +4,11 @@ Trains rtsplat and 2dgs (transmission and specular off) on a prepared scene at t
 settings (demo/config.yaml: 750 iterations, 128x256 environment map with 7 levels, volume until
 125, specular from 250, densification every 62 from 188 pruning below occupancy 0.2, SH degree up by
 one every 125, the colours' rate 0.004; evaluations, checkpoints and logging off). Each (checkout,
-method) pair runs in its own worker process: it first trains ``--warmup`` iterations (default 300:
-past ``specular_from``, so the full model runs, at SH degree 2, after two densifications, so the
-surfel count is a trained one), then times ``--iterations`` iterations per round. Rounds are
+method) pair runs in its own worker process. A process of the first checkout first trains ``--warmup``
+iterations (default 300: past ``specular_from``, so the full model runs, at SH degree 2, after two
+densifications, so the surfel count is a trained one) and writes the training state; every worker loads
+it (so all start from the same model and the same C heap history) and times ``--iterations`` iterations
+per round. Rounds are
 interleaved over the workers (the order alternates), so every worker sees the same load; the median
 over the rounds is reported, and with two checkouts the median of the per-round ratios first / last.
 
@@ -261,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--finish", action="store_true", help="train to the end afterwards; print test PSNR")
     parser.add_argument("--state-dir", type=Path,
                         help="keep the warmed-up training states here (<method>.pt) and reuse them in later runs; "
-                        "default: a temporary folder. The first checkout warms up and writes them, the others load "
-                        "them, so every checkout times the same model")
+                        "default: a temporary folder. A process of the first checkout warms up and writes them, and "
+                        "every timed worker loads them, so every checkout times the same model from the same start")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--state", help=argparse.SUPPRESS)
     parser.add_argument("--method", help=argparse.SUPPRESS)
@@ -302,14 +304,26 @@ def main(argv: list[str] | None = None) -> int:
         args.state_dir = Path(tmp.name)
     args.state_dir.mkdir(parents=True, exist_ok=True)
     mark_output(args.state_dir, "bench.iteration")
+    def start(checkout: Path, method: str) -> tuple[CheckoutWorker, dict]:
+        w = CheckoutWorker(__file__, checkout, [
+            "--worker", "--method", method, "--scene", str(args.scene), "--warmup", str(args.warmup),
+            "--options", args.options, "--state", str(args.state_dir / f"{method}.pt"),
+            "--threads", str(args.threads)], f"{method} @ {checkout}")
+        return w, w.receive()
+
     try:
         for method in methods:
-            for ci, checkout in enumerate(checkouts):  # warm-ups one at a time: no competition
-                w = CheckoutWorker(__file__, checkout, [
-                    "--worker", "--method", method, "--scene", str(args.scene), "--warmup", str(args.warmup),
-                    "--options", args.options, "--state", str(args.state_dir / f"{method}.pt"),
-                    "--threads", str(args.threads)], f"{method} @ {checkout}")
-                info = w.receive()
+            if not (args.state_dir / f"{method}.pt").exists():
+                # the warm-up runs in a process of its own that writes the state and quits, so that every timed
+                # worker loads it: a worker that trained the warm-up itself has another C heap history than one
+                # that loaded its result, and faulted 0 against 80-130 pages per iteration, which biased the
+                # comparison by up to 25%
+                warm, info = start(checkouts[0], method)
+                warm.close()
+                print(f"[{method}] warmed up to iteration {info['iteration']} in {info['warmup_s']:.1f} s by "
+                      f"{checkouts[0]}", flush=True)
+            for ci, checkout in enumerate(checkouts):  # one at a time: no competition
+                w, info = start(checkout, method)
                 workers[ci, method] = w
                 print(f"[{method} @ {checkout}] package {info['package']}, at iteration {info['iteration']} "
                       f"after {info['warmup_s']:.1f} s (warm-up or state load), {info['surfels']} surfels, "
