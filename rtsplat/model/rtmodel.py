@@ -66,6 +66,9 @@ STAGES = ("volume", "subsurface", "full")
 # surface G-buffer channels blended with the occupancy weights: name -> width, in the order of the rasterizer's
 # feature rows. A model rasterizes only the channels its effects read (RTModel.gbuffer_channels).
 GBUFFER_WIDTHS = {"scatter": 3, "tau": 1, "roughness": 1, "material": 4, "reflectance": 1, "roi": 1, "opacity": 1}
+# the surfel parameter behind each G-buffer channel (roi is the surfel's place, which has no gradient through it)
+GBUFFER_PARAMETERS = {"scatter": "scatter_logit", "tau": "transmissivity_logit", "roughness": "roughness_logit",
+                      "material": "material_raw", "reflectance": "reflectance_logit", "opacity": "opacity_logit"}
 
 
 def gbuffer_layout(channels: tuple[str, ...]) -> dict[str, slice]:
@@ -158,23 +161,31 @@ class RTModel(nn.Module):
         return self.effects.transmission and self.ablations.scattering
 
     # -- rasterizer inputs -------------------------------------------------------------------
-    def gbuffer_channels(self) -> tuple[str, ...]:
-        """The G-buffer channels this model's renders read, in :data:`GBUFFER_WIDTHS`' order: the blended opacity
-        where opacity is a parameter of its own (the mask loss; how see-through a surface is), the region of
-        interest with transmission or specular, the subsurface terms with scattering, the specular network's
-        inputs with specular. A model without transmission and specular (2DGS) rasterizes none. The set follows
-        the effects, not the stage: a channel that the volume stage does not read is rasterized from the first
-        iteration on, so that its parameters take Adam steps (of zero gradient) from there, as the learning
-        rates were measured with; starting their moments at the stage that reads them lost 0.04-0.16 dB on
-        tuning scenes for 2-4% of the time (docs/performance.md)."""
+    def gbuffer_channels(self, stage: str = "full") -> tuple[str, ...]:
+        """The G-buffer channels a render of ``stage`` reads, in :data:`GBUFFER_WIDTHS`' order: the blended opacity
+        where opacity is a parameter of its own (the mask loss; how see-through a surface is), and from the
+        subsurface stage on the region of interest with transmission or specular and the subsurface terms with
+        scattering; in the full stage the specular network's inputs with specular. A model without transmission
+        and specular (2DGS) rasterizes none. The default, the full stage, is every channel the model has."""
         wanted = {"opacity"} if self.uses_opacity else set()
-        if self.effects.transmission or self.effects.specular:
+        if (self.effects.transmission or self.effects.specular) and stage != "volume":
             wanted.add("roi")
             if self.uses_scatter:
                 wanted |= {"scatter", "tau"}
-            if self.effects.specular:
+            if self.effects.specular and stage == "full":
                 wanted |= {"roughness", "material", "reflectance"}
         return tuple(name for name in GBUFFER_WIDTHS if name in wanted)
+
+    def unread_channel_parameters(self, stage: str) -> list[nn.Parameter]:
+        """The surfel parameters behind the channels the model has (:meth:`gbuffer_channels`) that a render of
+        ``stage`` does not rasterize. Their gradient in that stage is zero, and the trainer hands Adam zeros
+        for them, so that their optimizer state steps from the first iteration on as when every channel was
+        rasterized in every stage: Adam leaves a parameter whose gradient has always been zero where it is, but
+        its step count (the bias correction) shapes the first steps once the channel is read. Rasterizing the
+        channels themselves in the stages that do not read them cost 2-4% of the training time."""
+        unread = set(self.gbuffer_channels()) - set(self.gbuffer_channels(stage))
+        return [getattr(self.surfels, GBUFFER_PARAMETERS[name]) for name in GBUFFER_WIDTHS
+                if name in unread and name in GBUFFER_PARAMETERS]
 
     def rasterizer_surfels(self, camera: Camera, sh_degree: int | None = None, index: Tensor | None = None,
                            channels: tuple[str, ...] | None = None) -> Surfels:
@@ -253,7 +264,7 @@ class RTModel(nn.Module):
         if not 0.0 <= specular_weight <= 1.0:
             raise ValueError(f"specular_weight must be in [0, 1], got {specular_weight}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
-        channels = self.gbuffer_channels()
+        channels = self.gbuffer_channels(stage)
         out = rasterize(self.rasterizer_surfels(camera, sh_degree, index, channels), camera, raster_settings,
                         backend=backend)
         rays = image_ray_directions(camera)  # [H,W,3], shared by the background and the specular pass

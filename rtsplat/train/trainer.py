@@ -307,6 +307,9 @@ class Trainer:
                                  idx if learn_appearance else None)
         loss = sum(terms.values())
         loss.backward()
+        for parameter in self.model.unread_channel_parameters(stage):
+            if parameter.grad is None:
+                parameter.grad = torch.zeros_like(parameter)
         events = self._update(result, it, previous, refine_pose, learn_appearance, loss)
         with torch.no_grad():
             value = psnr(color.detach().clamp(0, 1), target)
