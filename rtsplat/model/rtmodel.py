@@ -64,7 +64,7 @@ from rtsplat.raster import RasterOutput, RasterSettings, Surfels, rasterize
 STAGES = ("volume", "subsurface", "full")
 
 # surface G-buffer channels blended with the occupancy weights: name -> width, in the order of the rasterizer's
-# feature rows. A model rasterizes only the channels its effects read (RTModel.gbuffer_channels).
+# feature rows. A render rasterizes only the channels its model's effects and its stage read (RTModel.gbuffer_channels).
 GBUFFER_WIDTHS = {"scatter": 3, "tau": 1, "roughness": 1, "material": 4, "reflectance": 1, "roi": 1, "opacity": 1}
 # the surfel parameter behind each G-buffer channel (roi is the surfel's place, which has no gradient through it)
 GBUFFER_PARAMETERS = {"scatter": "scatter_logit", "tau": "transmissivity_logit", "roughness": "roughness_logit",
@@ -182,7 +182,8 @@ class RTModel(nn.Module):
         for them, so that their optimizer state steps from the first iteration on as when every channel was
         rasterized in every stage: Adam leaves a parameter whose gradient has always been zero where it is, but
         its step count (the bias correction) shapes the first steps once the channel is read. Rasterizing the
-        channels themselves in the stages that do not read them cost 2-4% of the training time."""
+        channels themselves in the stages that do not read them cost rtsplat's volume stage about 10% of its
+        time (docs/performance.md, "The G-buffer channels by stage, with Adam's steps kept")."""
         unread = set(self.gbuffer_channels()) - set(self.gbuffer_channels(stage))
         return [getattr(self.surfels, GBUFFER_PARAMETERS[name]) for name in GBUFFER_WIDTHS
                 if name in unread and name in GBUFFER_PARAMETERS]
