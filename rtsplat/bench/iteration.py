@@ -315,9 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         for method in methods:
             if not (args.state_dir / f"{method}.pt").exists():
                 # the warm-up runs in a process of its own that writes the state and quits, so that every timed
-                # worker loads it: a worker that trained the warm-up itself has another C heap history than one
-                # that loaded its result, and faulted 0 against 80-130 pages per iteration, which biased the
-                # comparison by up to 25%
+                # worker loads it: a worker that trained the warm-up itself and one that loaded its result read up
+                # to 25% apart in the same code (docs/performance.md, "The G-buffer channels by stage")
                 warm, info = start(checkouts[0], method)
                 warm.close()
                 print(f"[{method}] warmed up to iteration {info['iteration']} in {info['warmup_s']:.1f} s by "
