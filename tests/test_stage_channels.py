@@ -6,6 +6,7 @@ composites each channel on its own, so leaving one out changes no other output o
 from __future__ import annotations
 
 import torch
+from specular_inputs import small_specular_model
 
 from rtsplat.bench.toy_scene import write_scene
 from rtsplat.model.rtmodel import GBUFFER_PARAMETERS, GBUFFER_WIDTHS
@@ -65,23 +66,11 @@ def test_stage_channels_train_the_model_of_every_channel_bit_for_bit(tmp_path):
 
 
 def test_the_parameters_of_the_channels_a_stage_leaves_out():
-    scene_model = _model_with_every_effect()
+    model = small_specular_model()  # transmission and specular on, every ablation off: every channel
     names = lambda stage: {  # noqa: E731
-        name for name, p in scene_model.surfels.named_parameters()
-        if any(p is q for q in scene_model.unread_channel_parameters(stage))}
+        name for name, p in model.surfels.named_parameters()
+        if any(p is q for q in model.unread_channel_parameters(stage))}
     assert names("full") == set()
     assert names("subsurface") == {GBUFFER_PARAMETERS[c] for c in ("roughness", "material", "reflectance")}
     assert names("volume") == {GBUFFER_PARAMETERS[c] for c in ("roughness", "material", "reflectance", "scatter",
                                                                 "tau")}
-
-
-def _model_with_every_effect():
-    from rtsplat.model.rtmodel import ActiveEffects, RTModel
-    from rtsplat.model.surfels import SurfelParameters
-    n = 5
-    tensors = {"means": torch.randn(n, 3), "quats": torch.randn(n, 4), "log_scales": torch.zeros(n, 2),
-               "occupancy_logit": torch.zeros(n), "opacity_logit": torch.zeros(n), "sh_dc": torch.zeros(n, 1, 3),
-               "sh_rest": torch.zeros(n, 0, 3), "scatter_logit": torch.zeros(n, 3),
-               "transmissivity_logit": torch.zeros(n), "roughness_logit": torch.zeros(n),
-               "material_raw": torch.zeros(n, 4), "reflectance_logit": torch.zeros(n)}
-    return RTModel(SurfelParameters(tensors), effects=ActiveEffects())
