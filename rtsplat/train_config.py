@@ -63,6 +63,10 @@ class Effects:
 BUDGETED_SPECULAR_GRADIENT_SHARE = 0.25
 # the share of the plan over which the full model's specular branch fades in (Schedule.specular_fade)
 SPECULAR_FADE = 0.0667
+# the share of the full stage whose training renders shade at half resolution (Schedule.specular_coarse_share)
+SPECULAR_COARSE_SHARE = 0.5
+# the factor of those renders' shading resolution (RTModel.render's specular_downsample)
+SPECULAR_COARSE_FACTOR = 2
 
 
 @dataclass
@@ -115,6 +119,18 @@ class Schedule:
         "iterations to recover; docs/fidelity.md, finding 47); the network learns at its full rate all along (Adam's "
         "steps do not shrink with w). 0: the branch switches on at once", minimum=0.0, maximum=1.0
     )
+    specular_coarse_share: float = setting(
+        SPECULAR_COARSE_SHARE, help="the first share of the full stage's iterations (from specular_from to the plan's "
+        f"end) in which a training render runs the specular network at 1/{SPECULAR_COARSE_FACTOR} of the resolution: "
+        f"on the G-buffer averaged over {SPECULAR_COARSE_FACTOR}x{SPECULAR_COARSE_FACTOR} blocks, C_spec and beta "
+        "upsampled bilinearly (rtsplat.model.rtmodel.RTModel.render, specular_downsample). The network, the "
+        "environment lookup and their backward then cost about a quarter: on five tuning scenes, two seeds, runs at "
+        "the demo's settings took 0.84-1.01x the training CPU seconds (median 0.94x) for the same test PSNR to "
+        "within the seed noise (docs/performance.md, \"The specular network at half resolution in the first half "
+        "of the full stage\"). The later training renders, the evaluations and rtsplat render shade every pixel. "
+        "0: every pixel throughout",
+        minimum=0.0, maximum=1.0
+    )
     specular_gradient_share: float | None = setting(
         None, help="the share of the shaded pixels of a training render through which the specular network's "
         "gradient flows, drawn afresh each iteration; the others get the same colour without autograd, and the "
@@ -162,6 +178,13 @@ class Schedule:
             return 0.0
         fade = self.specular_fade * self.iterations
         return 1.0 if progress >= fade else progress / fade
+
+    def specular_downsample_at(self, iteration: int) -> int:
+        """The specular shading's resolution factor of a training render at the plan's ``iteration``
+        (:attr:`specular_coarse_share`): :data:`SPECULAR_COARSE_FACTOR` in the first share of the full stage
+        (after ``specular_from``), 1 elsewhere."""
+        coarse_until = self.specular_from + self.specular_coarse_share * max(self.iterations - self.specular_from, 0)
+        return SPECULAR_COARSE_FACTOR if self.specular_from < iteration <= coarse_until else 1
 
     def downsample_at(self, iteration: int) -> int:
         """The progressive-resolution factor of ``iteration`` (1: the training resolution): the coarse

@@ -1,13 +1,19 @@
-"""A small RT-Splatting model and random G-buffer inputs for tests of the specular branch (``RTModel._specular``)."""
+"""A small RT-Splatting model and random G-buffer inputs for tests of the specular branch (``RTModel._specular``),
+and a toy trainer whose training renders are recorded."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 
+from rtsplat.bench.toy_scene import write_scene
 from rtsplat.camera import Camera
 from rtsplat.model.rtmodel import ActiveEffects, RTModel
 from rtsplat.model.settings import ModelSettings
 from rtsplat.model.surfels import init_from_points
+from rtsplat.train.trainer import Trainer
+from rtsplat.train_config import TrainConfig
 
 
 def small_specular_model(seed: int = 3) -> RTModel:
@@ -34,3 +40,25 @@ def specular_inputs(height: int, width: int, seed: int = 5):
             "reflectance": (torch.rand(height, width, 1, generator=g) * alpha).requires_grad_()}
     shade = torch.rand(height, width, 1, generator=g) > 0.4
     return camera, normal, alpha, gbuf, shade
+
+
+def recorded_toy_training(tmp_path: Path, iterations: int, schedule: dict) -> tuple[Trainer, list[dict], dict]:
+    """A toy glass scene trained ``iterations`` iterations (the full stage from iteration 3) with the extra
+    ``schedule`` settings; returns the trainer, the keyword arguments of every render made with autograd (the
+    training renders, in order) and the run's summary."""
+    scene = write_scene(tmp_path / "scene", views=6, width=32, height=24)
+    cfg = TrainConfig.from_dict({
+        "schedule": {"iterations": iterations, "volume_until": 1, "specular_from": 2, "densify_from": 100,
+                     "reset_every": 0, "log_every": 5, "checkpoint_every": 0, **schedule},
+        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
+    })
+    trainer = Trainer(scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
+    calls, render = [], trainer.model.render
+
+    def recording(camera, **kwargs):
+        if torch.is_grad_enabled():
+            calls.append(kwargs)
+        return render(camera, **kwargs)
+
+    trainer.model.render = recording
+    return trainer, calls, trainer.train()

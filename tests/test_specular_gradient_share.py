@@ -8,11 +8,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from specular_inputs import small_specular_model, specular_inputs
+from specular_inputs import recorded_toy_training, small_specular_model, specular_inputs
 
-from rtsplat.bench.toy_scene import write_scene
 from rtsplat.errors import ConfigError
-from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
 
 H, W = 24, 30
@@ -112,20 +110,8 @@ def test_the_default_share_is_a_quarter_under_a_time_budget_on_the_cpu_and_every
 
 
 def test_the_trainer_renders_with_the_share_and_its_own_generator_and_reports_it(tmp_path):
-    scene = write_scene(tmp_path / "scene", views=6, width=32, height=24)
-    cfg = TrainConfig.from_dict({
-        "schedule": {"iterations": 9, "volume_until": 1, "specular_from": 2, "densify_from": 100, "reset_every": 0,
-                     "log_every": 5, "checkpoint_every": 0, "specular_gradient_share": 0.25},
-        "model": {"env_height": 16, "env_width": 32, "env_levels": 3, "mlp_width": 32},
-    })
-    trainer = Trainer(scene, cfg, tmp_path / "run", progress=False, log=lambda m: None)
-    calls, render = [], trainer.model.render
-    def recording(camera, **kwargs):
-        if torch.is_grad_enabled():
-            calls.append((kwargs.get("specular_gradient_share"), kwargs.get("generator")))
-        return render(camera, **kwargs)
-    trainer.model.render = recording
-    summary = trainer.train()
+    trainer, renders, summary = recorded_toy_training(tmp_path, 9, {"specular_gradient_share": 0.25})
+    calls = [(kwargs.get("specular_gradient_share"), kwargs.get("generator")) for kwargs in renders]
     assert [share for share, _ in calls[:9]] == [0.25] * 9
     assert all(generator is trainer.rng for _, generator in calls[:9])
     assert torch.isfinite(torch.tensor(summary["test_psnr"]))

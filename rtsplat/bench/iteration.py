@@ -76,6 +76,9 @@ METHODS = {
     "rtsplat_mlp128": {"model": {**DEMO_OPTIONS["model"], "mlp_width": 128}},
     # the specular network's gradient through a quarter of the shaded pixels (schedule.specular_gradient_share)
     "rtsplat_gradient_share": {"schedule": {**DEMO_OPTIONS["schedule"], "specular_gradient_share": 0.25}},
+    # the specular network on every pixel through the whole full stage (schedule.specular_coarse_share 0); the
+    # default shades 2x2 blocks in the first half of the full stage, where the default warm-up (300) lands
+    "rtsplat_full_res_specular": {"schedule": {**DEMO_OPTIONS["schedule"], "specular_coarse_share": 0.0}},
     # one effect alone: transmission without the specular branch (no environment map, no network), and the
     # specular branch without transmission (Ref-GS-like); with 2dgs they split rtsplat's extra cost by effect
     "rtsplat_no_specular": {"effects": {"transmission": "on", "specular": "off"}},

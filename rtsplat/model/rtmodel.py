@@ -249,7 +249,7 @@ class RTModel(nn.Module):
         raster_settings: RasterSettings | None = None, backend: str = "auto", sh_degree: int | None = None,
         background: Tensor | None = None, frustum_cull: bool = False, mirror_planes: Tensor | None = None,
         specular_gradient_share: float = 1.0, generator: torch.Generator | None = None,
-        specular_weight: float = 1.0,
+        specular_weight: float = 1.0, specular_downsample: int = 1,
     ) -> RenderResult:
         """``background``: an RGB colour [3] that replaces the model's background for this render (the
         trainer's random background). ``frustum_cull``: rasterize only the surfels of :meth:`in_view`
@@ -259,9 +259,14 @@ class RTModel(nn.Module):
         plane refinement). ``specular_gradient_share`` < 1 (with autograd on): the specular network's gradient
         is sampled, see :meth:`_specular`; ``generator`` draws the sample. ``specular_weight`` w in [0, 1]: the
         full stage's C_spec scaled by w and beta by ``1 - w (1 - beta)``, so that w = 0 renders the subsurface
-        stage's image and w = 1 the full model's (the trainer's fade-in, ``schedule.specular_fade``)."""
+        stage's image and w = 1 the full model's (the trainer's fade-in, ``schedule.specular_fade``).
+        ``specular_downsample`` f > 1: the specular network shades f x f blocks of pixels, one sample each, and
+        every pixel reads C_spec and beta upsampled from them (:meth:`_specular_downsampled`; the trainer's
+        ``schedule.specular_coarse_share``): about 1/f^2 of the network's and the environment lookup's work."""
         if stage not in STAGES:
             raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+        if specular_downsample < 1:
+            raise ValueError(f"specular_downsample must be at least 1, got {specular_downsample}")
         if not 0.0 <= specular_weight <= 1.0:
             raise ValueError(f"specular_weight must be in [0, 1], got {specular_weight}")
         index = torch.nonzero(self.in_view(camera, raster_settings)).flatten() if frustum_cull else None
@@ -305,8 +310,12 @@ class RTModel(nn.Module):
                     near_color, near_alpha = clear * near_color, clear * near_alpha
                 near = (near_color, near_alpha)
                 layers.update(near=near_color, near_alpha=near_alpha)
-            spec, beta = self._specular(camera, normal, g, alpha_safe, wanted, near=near, rays=rays,
-                                         gradient_share=specular_gradient_share, generator=generator)
+            if specular_downsample > 1:
+                spec, beta = self._specular_downsampled(camera, out.normal, g, alpha, wanted, rays, near,
+                                                        specular_downsample, specular_gradient_share, generator)
+            else:
+                spec, beta = self._specular(camera, normal, g, alpha_safe, wanted, near=near, rays=rays,
+                                            gradient_share=specular_gradient_share, generator=generator)
             if not self.ablations.attenuation:
                 beta = torch.ones_like(beta)
             if specular_weight < 1.0:
@@ -413,6 +422,30 @@ class RTModel(nn.Module):
                 alpha = torch.where(on_plane, plane_alpha, alpha)
         return color, alpha
 
+    def _specular_downsampled(self, camera: Camera, normal_sum: Tensor, g: dict, alpha: Tensor, wanted: Tensor,
+                              rays: Tensor, near: tuple[Tensor, Tensor] | None, factor: int, gradient_share: float,
+                              generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+        """C_spec [H,W,3] and beta [H,W,1] at the ``wanted`` pixels [H,W,1] (0 and 1 elsewhere), shaded once per
+        ``factor`` x ``factor`` block: the network's inputs are the block's means (:func:`block_mean` of the
+        blended, alpha-weighted G-buffer channels and normal, so a block reads its covered pixels' surface; of the
+        unit pixel rays; of the near reflection), a block is shaded where any of its pixels is wanted, and every
+        pixel reads the bilinear interpolation of the shaded blocks around it (:func:`upsampled_from_blocks`).
+        ``normal_sum``: the rasterizer's blended normal, before normalisation. The gradient reaches every pixel of
+        a block through the means, and ``gradient_share`` samples the blocks as :meth:`_specular` samples pixels."""
+        H, W = alpha.shape[:2]
+        coarse_alpha = block_mean(alpha, factor)
+        coarse_g = {name: block_mean(g[name], factor) for name in ("roughness", "material", "reflectance")}
+        normal = F.normalize(block_mean(normal_sum, factor), dim=-1)
+        coarse_rays = F.normalize(block_mean(rays, factor), dim=-1)
+        shaded = block_mean(wanted.to(alpha.dtype), factor) > 0
+        coarse_near = None if near is None else (block_mean(near[0], factor), block_mean(near[1], factor))
+        spec, beta = self._specular(camera, normal, coarse_g, coarse_alpha.clamp_min(1e-6), shaded,
+                                    near=coarse_near, rays=coarse_rays, gradient_share=gradient_share,
+                                    generator=generator)
+        weight = shaded.to(spec.dtype)
+        spec, beta = upsampled_from_blocks(torch.cat([spec, beta], -1), weight, factor, (H, W)).split([3, 1], -1)
+        return torch.where(wanted, spec, 0.0), torch.where(wanted, beta, 1.0)
+
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
                   every_pixel: bool | None = None, near: tuple[Tensor, Tensor] | None = None,
                   rays: Tensor | None = None, gradient_share: float = 1.0,
@@ -501,6 +534,30 @@ class RTModel(nn.Module):
         s, b = self.specular_net(env, material, reflectance, reflected_background if self.uses_mirror else None,
                                  near=near_rows, cos_incidence=cos_incidence)
         return s, b
+
+
+def block_mean(t: Tensor, factor: int) -> Tensor:
+    """``t`` [H,W,C] -> [ceil(H / factor), ceil(W / factor), C]: the mean over each ``factor`` x ``factor`` block
+    of pixels; a block cut by the right or bottom edge averages the pixels it holds."""
+    return F.avg_pool2d(t.permute(2, 0, 1)[None], factor, ceil_mode=True)[0].permute(1, 2, 0)
+
+
+def upsampled_from_blocks(values: Tensor, weight: Tensor, factor: int, size: tuple[int, int]) -> Tensor:
+    """Per-block ``values`` [h,w,C] (each at its block's centre, :func:`block_mean`'s blocks) interpolated
+    bilinearly to the pixels [H,W,C] of ``size``, each block weighed by ``weight`` [h,w,1] (0 or 1): a pixel
+    reads the weighted mean of the nearest blocks, so blocks of weight 0 neither dim nor tint their
+    neighbours. A pixel whose four nearest blocks all weigh 0 gets 0. The pixels of a block of weight 1
+    always read it with a weight of at least 9/16."""
+    H, W = size
+    h, w = weight.shape[:2]
+
+    def spread(t: Tensor) -> Tensor:
+        grid = F.interpolate(t.permute(2, 0, 1)[None], size=(h * factor, w * factor), mode="bilinear",
+                             align_corners=False)
+        return grid[0, :, :H, :W].permute(1, 2, 0)
+
+    total = spread(weight)
+    return spread(values * weight) / total.clamp_min(1e-6)
 
 
 def gradient_scaled(t: Tensor, weight: Tensor | float) -> Tensor:

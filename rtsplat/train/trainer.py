@@ -331,8 +331,8 @@ class Trainer:
     def _render_training_view(self, camera: Camera, stage: str, it: int) -> RenderResult:
         """The model's render of a training view at the plan's iteration ``it``: its spherical harmonics
         degree, a random background (``model.background: random``), the mirror planes being learnt, the
-        specular gradient's share (``schedule.specular_gradient_share``) and the specular branch's fade-in
-        (``schedule.specular_fade``)."""
+        specular gradient's share (``schedule.specular_gradient_share``), the specular branch's fade-in
+        (``schedule.specular_fade``) and its shading resolution (``schedule.specular_coarse_share``)."""
         cfg = self.cfg
         sh_degree = min(it // cfg.schedule.sh_degree_every, cfg.model.sh_degree)
         background = torch.rand(3, generator=self.rng) if cfg.model.background == "random" else None
@@ -341,7 +341,8 @@ class Trainer:
                                  backend=cfg.backend, sh_degree=sh_degree, background=background,
                                  mirror_planes=planes,
                                  specular_gradient_share=self.specular_gradient_share,
-                                 generator=self.rng, specular_weight=cfg.schedule.specular_weight_at(it))
+                                 generator=self.rng, specular_weight=cfg.schedule.specular_weight_at(it),
+                                 specular_downsample=cfg.schedule.specular_downsample_at(it))
 
     def _loss_terms(self, it: int, result: RenderResult, color: Tensor, target: Tensor, mask: Tensor | None,
                     weight: Tensor | None, camera: Camera, appearance_view: int | None) -> dict[str, Tensor]:
