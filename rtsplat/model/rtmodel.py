@@ -66,6 +66,8 @@ STAGES = ("volume", "subsurface", "full")
 # surface G-buffer channels blended with the occupancy weights: name -> width, in the order of the rasterizer's
 # feature rows. A render rasterizes only the channels its model's effects and its stage read (RTModel.gbuffer_channels).
 GBUFFER_WIDTHS = {"scatter": 3, "tau": 1, "roughness": 1, "material": 4, "reflectance": 1, "roi": 1, "opacity": 1}
+# the G-buffer channels the specular network's inputs are made of (RTModel._specular_rows)
+SPECULAR_INPUT_CHANNELS = ("roughness", "material", "reflectance")
 # the surfel parameter behind each G-buffer channel (roi is the surfel's place, which has no gradient through it)
 GBUFFER_PARAMETERS = {"scatter": "scatter_logit", "tau": "transmissivity_logit", "roughness": "roughness_logit",
                       "material": "material_raw", "reflectance": "reflectance_logit", "opacity": "opacity_logit"}
@@ -173,7 +175,7 @@ class RTModel(nn.Module):
             if self.uses_scatter:
                 wanted |= {"scatter", "tau"}
             if self.effects.specular and stage == "full":
-                wanted |= {"roughness", "material", "reflectance"}
+                wanted |= set(SPECULAR_INPUT_CHANNELS)
         return tuple(name for name in GBUFFER_WIDTHS if name in wanted)
 
     def unread_channel_parameters(self, stage: str) -> list[nn.Parameter]:
@@ -434,7 +436,7 @@ class RTModel(nn.Module):
         a block through the means, and ``gradient_share`` samples the blocks as :meth:`_specular` samples pixels."""
         H, W = alpha.shape[:2]
         coarse_alpha = block_mean(alpha, factor)
-        coarse_g = {name: block_mean(g[name], factor) for name in ("roughness", "material", "reflectance")}
+        coarse_g = {name: block_mean(g[name], factor) for name in SPECULAR_INPUT_CHANNELS}
         normal = F.normalize(block_mean(normal_sum, factor), dim=-1)
         coarse_rays = F.normalize(block_mean(rays, factor), dim=-1)
         shaded = block_mean(wanted.to(alpha.dtype), factor) > 0
