@@ -48,6 +48,8 @@ OUTPUTS = {
     ("python -m rtsplat.bench.layer_strip", "--out"): ["entry: bench.layer_strip --out a user's PNG"],
     ("python -m rtsplat.bench.mask_propagation", "--figure"): ["entry: bench.mask_propagation --figure a user's PNG"],
     ("python -m rtsplat.bench.iteration", "--state-dir"): ["entry: bench.iteration --state-dir a user folder"],
+    ("python -m rtsplat.bench.paired_cost", "--out"): [
+        "test_paired_cost.py::test_the_out_folder_is_never_a_folder_of_the_users"],
     ("python -m rtsplat.bench.sfm_steps", "--out"): ["output: sfm out is a user folder"],  # each run is run_sfm's
     ("python -m rtsplat.synth.sfm_check", "work"): ["output: sfm out is a user folder"],  # run_sfm's --out
 }
