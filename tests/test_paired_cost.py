@@ -76,7 +76,8 @@ def test_two_methods_train_side_by_side_and_their_ratio_is_that_of_their_summari
         "2dgs": {"role": "baseline", "schedule": schedule, "model": model,
                  "effects": {"transmission": "off", "specular": "off"}}}}))
     out = tmp_path / "out"
-    assert paired_cost.main(["--config", str(config), "--prepared", str(prepared), "--out", str(out)]) == 0
+    assert paired_cost.main(["--config", str(config), "--prepared", str(prepared), "--out", str(out),
+                             "--equal-time"]) == 0
     result = json.loads((out / "paired_cost.json").read_text())
     scene = result["scenes"][0]
     assert scene["scene"] == "toy"
@@ -93,5 +94,11 @@ def test_two_methods_train_side_by_side_and_their_ratio_is_that_of_their_summari
     assert not (out / "toy" / ".filler").exists()  # the filler runs are gone
     assert "median ratio rtsplat / 2dgs" in capsys.readouterr().out
     assert result["complete"] and result["median_ratio"] == scene["ratio"]
+    # the equal-time run: every iteration count of rtsplat's config times 2dgs's / rtsplat's CPU seconds
+    equal = json.loads((out / "toy" / "rtsplat_equal_time" / "config.json").read_text())["schedule"]
+    assert scene["equal_time"]["budget"] == pytest.approx(1 / scene["ratio"])
+    for count, planned in (("iterations", 16), ("volume_until", 5), ("specular_from", 8)):
+        assert equal[count] == max(round(planned / scene["ratio"]), 1)
+    assert scene["equal_time"]["iterations"] == equal["iterations"]
     # a second run into its own folder is allowed; it replaces the runs
     assert paired_cost.check_out_folder(out, [prepared]) is None

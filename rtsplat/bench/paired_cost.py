@@ -12,6 +12,11 @@ ratio first / second, the same ratio per part of the schedule (the stages of the
 split where its specular shading runs on 2x2 blocks, ``schedule.specular_coarse_share``) and the final test PSNR
 (entire / transparent). A run that ends first is started again as a filler until the last one ends, so that the
 measured runs share the machine with the same load from start to end. Then the median ratio over the scenes.
+With ``--equal-time`` the first method is then trained again, alone, with every iteration count of its config
+times 1 / ratio (a method's ``budget: F``), and its test PSNR is printed against the second's: the first method at
+the second's CPU seconds, through the ratio measured side by side rather than a clock that drifts. It runs the
+specular gradient through every pixel, as every fixed-count run does; a time-budgeted run (``--seconds-of``) would
+run it through a quarter of them (``schedule.specular_gradient_share``) and take more, cheaper, iterations.
 ``<out>/paired_cost.json`` keeps the numbers (rewritten after every scene; ``complete`` once all are done); the runs
 stay in ``<out>/<scene>/<method>``. ``--out`` is a new folder or one this bench wrote, never a folder of the user's.
 
@@ -129,15 +134,43 @@ def train_side_by_side(prepared: Path, scene: str, methods: list[str], config: P
     return walls
 
 
-def measure_scene(prepared: Path, methods: list[str], config: Path, out: Path, seed: int) -> dict:
+def measure_scene(prepared: Path, methods: list[str], config: Path, out: Path, seed: int,
+                  equal_time: bool = False) -> dict:
+    """The paired runs of one scene (:func:`train_side_by_side`), their summaries and ratios first / second; with
+    ``equal_time`` also the first method at the second's CPU seconds (:func:`equal_time_run`, budget 1 / ratio)."""
     scene = scene_name(prepared)
     walls = train_side_by_side(prepared, scene, methods, config, out, seed)
     runs = {method: run_summary(out / scene / method) for method in methods}
     first, second = (runs[m] for m in methods[:2])
+    ratio = first["cpu_seconds"] / second["cpu_seconds"]
     ratio_parts = {part: first["parts"][part] / second["parts"][part] for part in first["parts"]
                    if second["parts"].get(part, 0.0) > 0}
-    return {"scene": scene, "runs": runs, "wall_seconds": walls, "ratio": first["cpu_seconds"] / second["cpu_seconds"],
-            "ratio_parts": ratio_parts}
+    result = {"scene": scene, "runs": runs, "wall_seconds": walls, "ratio": ratio, "ratio_parts": ratio_parts}
+    if equal_time:
+        result["equal_time"] = equal_time_run(prepared, scene, methods[0], config, out, seed, 1.0 / ratio)
+    return result
+
+
+def equal_time_run(prepared: Path, scene: str, method: str, config: Path, out: Path, seed: int,
+                   factor: float) -> dict:
+    """``method`` trained alone with every iteration count of its config times ``factor``
+    (:func:`rtsplat.train_config.scale_budget`, a method's ``budget: F``) in ``<out>/<scene>/<method>_equal_time``;
+    its :func:`run_summary`. A fixed count, so the result does not depend on the machine's speed while it trains."""
+    from rtsplat.config import load_config, trainer_options
+    from rtsplat.train_config import TrainConfig, scale_budget
+
+    tree = trainer_options(load_config(config), scene, method)
+    tree = scale_budget(TrainConfig.from_dict(tree), factor).validate().to_dict()
+    run_dir = out / scene / f"{method}_equal_time"
+    log_path = out / scene / f"{method}_equal_time.log"
+    command = [sys.executable, *TRAIN_COMMAND, "--data", str(prepared), "--out", str(run_dir), "--config-json",
+               json.dumps(tree), "--seed", str(seed), "--no-resume", "--quiet"]
+    with log_path.open("w") as log:
+        done = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **ONE_THREAD})
+    if done.returncode != 0:
+        raise PipelineError(f"training {method} at the equal-time budget on {scene} failed", path=log_path,
+                            fix="read the log's last lines; the trainer names the bad input")
+    return {**run_summary(run_dir), "budget": factor}
 
 
 def format_scene(result: dict, methods: list[str]) -> str:
@@ -152,6 +185,12 @@ def format_scene(result: dict, methods: list[str]) -> str:
     for part, ratio in result["ratio_parts"].items():
         lines.append(f"    {part:22s} {runs[methods[0]]['parts'][part]:7.1f} s against "
                      f"{runs[methods[1]]['parts'][part]:7.1f} s: {ratio:.2f}")
+    equal = result.get("equal_time")
+    if equal is not None:
+        gap = [equal[key] - runs[methods[1]][key] for key in ("test_psnr", "test_psnr_transparent")]
+        lines.append(f"    at {methods[1]}'s CPU seconds ({methods[0]} with budget {equal['budget']:.3f}: "
+                     f"{equal['iterations']} iterations): {psnr(equal)}, minus {methods[1]} {gap[0]:+.2f} / "
+                     f"{gap[1]:+.2f}")
     return "\n".join(lines)
 
 
@@ -167,6 +206,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "ratios are first / second")
     parser.add_argument("--out", type=Path, required=True, help="folder for the runs and paired_cost.json")
     parser.add_argument("--seed", type=int, default=0, help="every run's seed (default 0)")
+    parser.add_argument("--equal-time", action="store_true",
+                        help="then train the first method again, alone, with every iteration count times the "
+                        "scene's ratio second / first (budget 1 / ratio): the first method at the second's CPU "
+                        "seconds as measured side by side, a fixed count that the machine's speed cannot change")
     args = parser.parse_args(argv)
     args.methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     return args
@@ -229,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         write(False)
         for prepared in args.prepared:
-            results.append(measure_scene(prepared, args.methods, args.config, args.out, args.seed))
+            results.append(measure_scene(prepared, args.methods, args.config, args.out, args.seed, args.equal_time))
             print(format_scene(results[-1], args.methods), flush=True)
             write(prepared == args.prepared[-1])
         median = statistics.median(r["ratio"] for r in results)
