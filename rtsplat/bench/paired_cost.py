@@ -88,21 +88,33 @@ def scene_name(prepared: Path) -> str:
     return prepared.parent.name if prepared.name == "prepared" else prepared.name
 
 
+def start_training(prepared: Path, run_dir: Path, log_path: Path, seed: int,
+                   config_args: list[str]) -> subprocess.Popen:
+    """``rtsplat train`` of ``prepared`` into ``run_dir`` (from scratch, one thread, output to ``log_path``) with
+    the trainer config of ``config_args`` (``--config ... --method ...`` or ``--config-json ...``)."""
+    command = [sys.executable, *TRAIN_COMMAND, "--data", str(prepared), "--out", str(run_dir), *config_args,
+               "--seed", str(seed), "--no-resume", "--quiet"]
+    with log_path.open("w") as log:
+        return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **ONE_THREAD})
+
+
+def training_failed(what: str, log_path: Path) -> PipelineError:
+    return PipelineError(f"training {what} failed", path=log_path,
+                         fix="read the log's last lines; the trainer names the bad input")
+
+
 def train_side_by_side(prepared: Path, scene: str, methods: list[str], config: Path, out: Path,
                        seed: int) -> dict[str, float]:
     """Start ``rtsplat train`` of every method on ``prepared`` at once (one thread each) and wait for all; returns
     each method's wall seconds. A run that ends while others still train is started again as a filler (in
     ``<out>/<scene>/.filler/``, deleted after; again whenever a filler ends), so that the machine carries the same
     load until the last run ends. A run that fails raises a PipelineError naming its log."""
-    env = {**os.environ, **ONE_THREAD}
     scene_dir = out / scene
     scene_dir.mkdir(parents=True, exist_ok=True)
 
     def start(method: str, run_dir: Path, log_path: Path) -> subprocess.Popen:
-        command = [sys.executable, *TRAIN_COMMAND, "--data", str(prepared), "--out", str(run_dir), "--config",
-                   str(config), "--scene", scene, "--method", method, "--seed", str(seed), "--no-resume", "--quiet"]
-        with log_path.open("w") as log:
-            return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+        return start_training(prepared, run_dir, log_path, seed,
+                              ["--config", str(config), "--scene", scene, "--method", method])
 
     logs = {method: scene_dir / f"{method}.log" for method in methods}
     procs = {method: start(method, scene_dir / method, logs[method]) for method in methods}
@@ -116,8 +128,7 @@ def train_side_by_side(prepared: Path, scene: str, methods: list[str], config: P
                     continue
                 walls[method] = time.perf_counter() - begin
                 if proc.returncode != 0:
-                    raise PipelineError(f"training {method} on {scene} failed", path=logs[method],
-                                        fix="read the log's last lines; the trainer names the bad input")
+                    raise training_failed(f"{method} on {scene}", logs[method])
                 fillers[method] = None
             for method, filler in fillers.items():  # (re)start the fillers while a measured run trains
                 if len(walls) < len(methods) and (filler is None or filler.poll() is not None):
@@ -163,13 +174,8 @@ def equal_time_run(prepared: Path, scene: str, method: str, config: Path, out: P
     tree = scale_budget(TrainConfig.from_dict(tree), factor).validate().to_dict()
     run_dir = out / scene / f"{method}_equal_time"
     log_path = out / scene / f"{method}_equal_time.log"
-    command = [sys.executable, *TRAIN_COMMAND, "--data", str(prepared), "--out", str(run_dir), "--config-json",
-               json.dumps(tree), "--seed", str(seed), "--no-resume", "--quiet"]
-    with log_path.open("w") as log:
-        done = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **ONE_THREAD})
-    if done.returncode != 0:
-        raise PipelineError(f"training {method} at the equal-time budget on {scene} failed", path=log_path,
-                            fix="read the log's last lines; the trainer names the bad input")
+    if start_training(prepared, run_dir, log_path, seed, ["--config-json", json.dumps(tree)]).wait() != 0:
+        raise training_failed(f"{method} at the equal-time budget on {scene}", log_path)
     return {**run_summary(run_dir), "budget": factor}
 
 
@@ -274,10 +280,10 @@ def main(argv: list[str] | None = None) -> int:
         for prepared in args.prepared:
             results.append(measure_scene(prepared, args.methods, args.config, args.out, args.seed, args.equal_time))
             print(format_scene(results[-1], args.methods), flush=True)
-            write(prepared == args.prepared[-1])
-        median = statistics.median(r["ratio"] for r in results)
+            write(False)
+        write(True)
         print(f"median ratio {args.methods[0]} / {args.methods[1]} of the training CPU seconds over "
-              f"{len(results)} scene(s): {median:.2f}")
+              f"{len(results)} scene(s): {statistics.median(r['ratio'] for r in results):.2f}")
         return 0
 
     return run_command("paired_cost", work)
