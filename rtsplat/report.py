@@ -1265,30 +1265,11 @@ def _video_section(doc: Document, scene_dir: Path, main: str | None, out: Path) 
 
 def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: Roles, config_file,
            commands) -> None:
-    main = roles.main
     doc = Document("rtsplat benchmark report")
     trained_by = training_records(scenes)
     groups, mixture = group_runs(trained_by), mixture_sentences(trained_by)
     _provenance_first_screen(doc, mixture, groups)
-    doc.heading("Summary: RT-Splatting against plain 2DGS")
-    summary = [row for scene, runs in scenes.items() for row in summary_rows(scene, runs, roles, results)]
-    if summary:
-        doc.paragraph("PSNR of the RT-Splatting run minus PSNR of the plain-2DGS run with the same budget, on the "
-                      "test views' transparent region and on the entire image (positive: RT-Splatting is better). "
-                      "Beside each gap, the seed noise: the largest |dPSNR| between either run of the pair and "
-                      "its repeat with another seed (Noise section; 'noise from' names the repeats). A gap "
-                      "smaller than twice the seed noise is not significant; where the noise was not measured, "
-                      "no gap can be called significant. At equal time: the same gaps read from the two runs' "
-                      "test evaluations during training (train_log.jsonl, linearly between evaluations) at the "
-                      "training time of the shorter run, what a user with that much time gets; time ratio: the "
-                      "first run's training time over the second's (both by the measure of the scene's speed "
-                      "table). A pair whose first run trained for the time of the second (a method with "
-                      "`time_of`) compares finished runs at equal time: each run completed its own schedule, where "
-                      "the equal-time columns read the longer run mid-schedule.")
-        doc.table(["scene", "pair", "dPSNR transp.", "dPSNR", "seed noise transp.", "seed noise",
-                   "noise from", "dPSNR transp. at equal time", "dPSNR at equal time", "time ratio"], summary)
-    else:
-        doc.paragraph(f"No scene has both the main method and the baseline {PLAIN_2DGS!r}, so there is no summary.")
+    _summary_section(doc, scenes, roles, results)
     references = {scene: scene_layer_references(results / scene / "prepared", scene_test_views(runs))
                   for scene, runs in scenes.items()}
     family = family_scenes(scenes, roles, results, references)
@@ -1301,138 +1282,201 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
     _provenance_section(doc, groups, scenes, any_metrics)
     doc.paragraph("LPIPS: " + str(any_metrics.get("lpips", "not computed")))
     for scene, runs in scenes.items():
-        doc.heading(f"Scene {scene}")
-        sfm_summary = results / scene / "sfm" / "summary.json"
-        if sfm_summary.is_file():
-            text, sfm_header, sfm_rows = sfm_section(_read_json(sfm_summary))
-            doc.heading("Structure from motion", 3)
-            doc.paragraph(text)
-            if sfm_rows:
-                doc.table(sfm_header, sfm_rows)
-        if (results / scene / "masks" / "summary.json").is_file():
-            _masks_section(doc, results / scene, out)
-        doc.heading("Quality", 3)
-        other_splits = {m: r.metrics.get("split") for m, r in runs.items() if r.metrics.get("split", "test") != "test"}
-        if other_splits:
-            doc.paragraph("Not held-out scores: " + ", ".join(
-                f"{m} was scored on its {split} views" + (" (training views included)" if split in ("all", "train")
-                                                           else "") for m, split in sorted(other_splits.items()))
-                + "; the other runs on the test views.")
-        doc.table(QUALITY_HEADER, quality_rows(runs, main))
-        doc.heading("Speed and training time", 3)
-        doc.paragraph(TIME_CAPTION)
-        doc.table(TIME_HEADER, time_rows(runs, main))
+        _scene_section(doc, results, scene, runs, roles, references[scene], out)
+    _noise_section(doc, scenes, roles, results)
+    _reproduce_section(doc, commands, config_file)
+    _write_pages(doc, out, groups, mixture, scenes, any_metrics)
 
-        ablations = [(m, ablation_reference(m, runs, roles)) for m in roles.of_role(runs, "ablation")]
-        ablations = [(m, full) for m, full in ablations if full is not None]
-        if ablations:
-            doc.heading("Ablations (transparent-region PSNR)", 3)
-            doc.paragraph("Each ablation against the full model with the same budget (an ablation named "
-                          "`..._<suffix>` against the baseline `<main>_<suffix>`, e.g. `_x4`; otherwise the main "
-                          "method); a positive difference means the ablated term did not help here.")
-            rows = []
-            for m, full in ablations:
-                v, ref = runs[m].mean.get("psnr_transparent"), runs[full].mean.get("psnr_transparent")
-                rows.append([m, full, _fmt(v), _fmt(ref), _fmt(_difference(v, ref))])
-            doc.table(["ablation", "full model", "PSNR (transp.)", "full model PSNR (transp.)", "difference"], rows)
 
-        layer_rows = [[m, _fmt(r.mean.get("psnr_reflection_layer")), _fmt(r.mean.get("psnr_transmission_layer"))]
-                      for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]
-        if layer_rows:
-            doc.heading("Decomposition against the ground-truth layers (PSNR in the transparent region, test views)", 3)
-            reference_rows, text = layer_reference_rows(references[scene])
-            if text:
-                doc.paragraph(text)
-            doc.table(["method", "reflection", "transmission"], layer_rows + reference_rows)
+def _summary_section(doc: Document, scenes: dict[str, dict[str, Run]], roles: Roles, results: Path) -> None:
+    """The first table: every RT-Splatting run against its plain-2DGS run, final and at equal time."""
+    doc.heading("Summary: RT-Splatting against plain 2DGS")
+    summary = [row for scene, runs in scenes.items() for row in summary_rows(scene, runs, roles, results)]
+    if not summary:
+        doc.paragraph(f"No scene has both the main method and the baseline {PLAIN_2DGS!r}, so there is no summary.")
+        return
+    doc.paragraph("PSNR of the RT-Splatting run minus PSNR of the plain-2DGS run with the same budget, on the "
+                  "test views' transparent region and on the entire image (positive: RT-Splatting is better). "
+                  "Beside each gap, the seed noise: the largest |dPSNR| between either run of the pair and "
+                  "its repeat with another seed (Noise section; 'noise from' names the repeats). A gap "
+                  "smaller than twice the seed noise is not significant; where the noise was not measured, "
+                  "no gap can be called significant. At equal time: the same gaps read from the two runs' "
+                  "test evaluations during training (train_log.jsonl, linearly between evaluations) at the "
+                  "training time of the shorter run, what a user with that much time gets; time ratio: the "
+                  "first run's training time over the second's (both by the measure of the scene's speed "
+                  "table). A pair whose first run trained for the time of the second (a method with "
+                  "`time_of`) compares finished runs at equal time: each run completed its own schedule, where "
+                  "the equal-time columns read the longer run mid-schedule.")
+    doc.table(["scene", "pair", "dPSNR transp.", "dPSNR", "seed noise transp.", "seed noise",
+               "noise from", "dPSNR transp. at equal time", "dPSNR at equal time", "time ratio"], summary)
 
-        near_rows = near_reflection_rows(runs)
-        reach = scene_reflection_reach(results / scene / "prepared")
-        if near_rows or reach:
-            doc.heading("Near reflections (mirror planes of the glass)", 3)
-            if reach:
-                doc.paragraph(reach)
-            if near_rows:
-                doc.paragraph("Whether each run reflected its own surfels in planes fitted to the see-through "
-                              "surface (effects.near_reflection; auto keeps them where planes explain enough of it "
-                              "and their mirrored render covers enough of it), how many planes carry a bend "
-                              "(curved glass, model.near_reflection_bend), "
-                              "how far the image loss moved the planes where they are learnt "
-                              "(lr.mirror_plane_rotation, lr.mirror_plane_shift), and the seconds per training "
-                              "iteration it paid (wall seconds, and CPU seconds, which depend less on what ran "
-                              "beside it).")
-                doc.table(["method", "near reflection", "planes", "bent", "planar share", "coverage", "why",
-                           "planes learnt",
-                           "wall s / iteration", "CPU s / iteration"], near_rows)
 
-        exposure_rows = appearance_rows(runs)
-        if any(row[1] == "on" for row in exposure_rows):
-            doc.heading("Per-view appearance (exposure and white balance)", 3)
-            doc.paragraph("Whether each run learnt a colour correction per photo (effects.appearance; auto turns it "
-                          "on where the photos' colours of the SfM points spread by exposure beyond what the "
-                          "measurement's own noise explains, and keeps it off where too few observations lie off "
-                          "the see-through surface to tell), how confident that decision is, and how far the "
-                          "corrections moved (mean |log gain|; 0.1 is a 10% exposure change).")
-            doc.table(["method", "appearance", "exposure spread", "confidence", "why", "train |log gain|",
-                       "test |log gain|"], exposure_rows)
+def _scene_section(doc: Document, results: Path, scene: str, runs: dict[str, Run], roles: Roles,
+                   references, out: Path) -> None:
+    """One scene's part of the report: its stages' summaries, every run's quality and time, and its images."""
+    main = roles.main
+    doc.heading(f"Scene {scene}")
+    sfm_summary = results / scene / "sfm" / "summary.json"
+    if sfm_summary.is_file():
+        text, sfm_header, sfm_rows = sfm_section(_read_json(sfm_summary))
+        doc.heading("Structure from motion", 3)
+        doc.paragraph(text)
+        if sfm_rows:
+            doc.table(sfm_header, sfm_rows)
+    if (results / scene / "masks" / "summary.json").is_file():
+        _masks_section(doc, results / scene, out)
+    doc.heading("Quality", 3)
+    other_splits = {m: r.metrics.get("split") for m, r in runs.items() if r.metrics.get("split", "test") != "test"}
+    if other_splits:
+        doc.paragraph("Not held-out scores: " + ", ".join(
+            f"{m} was scored on its {split} views" + (" (training views included)" if split in ("all", "train")
+                                                       else "") for m, split in sorted(other_splits.items()))
+            + "; the other runs on the test views.")
+    doc.table(QUALITY_HEADER, quality_rows(runs, main))
+    doc.heading("Speed and training time", 3)
+    doc.paragraph(TIME_CAPTION)
+    doc.table(TIME_HEADER, time_rows(runs, main))
+    _ablation_section(doc, runs, roles)
+    _layer_scores_section(doc, runs, references)
+    _near_reflection_section(doc, results / scene / "prepared", runs)
+    _appearance_section(doc, runs)
+    _accuracy_time_section(doc, scene, runs, out)
+    _scene_images_section(doc, results, scene, runs, roles, out)
+    _video_section(doc, results / scene, main, out)
 
-        doc.heading("Accuracy against training time", 3)
-        measure = time_measure(runs)
-        doc.paragraph(measure.caption + " The Pareto front: the runs that no other run beats in both time and PSNR.")
-        for name in plot_accuracy_time(scene, runs, out):
-            doc.images([(name, name)])
-        key = "psnr_transparent" if time_points(runs, "psnr_transparent", measure) else "psnr"
-        points = time_points(runs, key, measure)
-        flags = pareto_front([(t, q) for _, t, q in points])
-        beside = [WALL_TIME] if measure is not WALL_TIME else []  # the wall seconds, for reference
-        doc.table(["method", measure.label, *(b.label for b in beside), key, "Pareto front"],
-                  [[m, _fmt(t, 1), *(_fmt(runs[m].seconds(b), 1) for b in beside), _fmt(q), "yes" if f else ""]
-                   for (m, t, q), f in sorted(zip(points, flags, strict=True), key=lambda x: x[0][1])])
 
-        test_names = next((r.metrics.get("views") for r in runs.values() if r.metrics.get("views")), {})
-        if test_names:
-            gt_layers = results / scene / "prepared" / GT_LAYERS_DIR
-            with_layers = [v for v in sorted(test_names) if all((gt_layers / layer / f"{v}.png").is_file()
-                                                                for layer in ("reflection", "transmission"))]
-            view = (with_layers or sorted(test_names))[0]
-            compared = [main] if main in runs else []
-            compared += [m for m in sorted(runs) if m != main and roles.role.get(m, "baseline") != "ablation"]
-            _test_view_section(doc, results, scene, view, compared, out)
-            layers = []
-            for layer in ("reflection", "transmission", "scatter", "normal", "depth"):
-                if main is None:
-                    break
-                img = _copy_image(results / scene / "renders" / main / layer / f"{view}.png", out,
-                                  f"{scene}_{view}_{layer}.png")
-                if img:
-                    layers.append((img, layer))
-            if layers:
-                doc.heading(f"Decomposition ({main})", 3)
-                doc.images(layers)
-            if with_layers and main in runs:
-                _layer_comparison_section(doc, results / scene, view, main, out)
-            edits = []
-            for edit_dir in sorted((results / scene / "renders").glob(f"{main}@*") if main else []):
-                img = _copy_image(edit_dir / "color" / f"{view}.png", out, f"{scene}_{view}_{edit_dir.name}.png")
-                if img:
-                    edits.append((img, edit_dir.name.split("@", 1)[1]))
-            if edits:
-                doc.heading("Scene editing", 3)
-                doc.images(edits)
+def _ablation_section(doc: Document, runs: dict[str, Run], roles: Roles) -> None:
+    ablations = [(m, ablation_reference(m, runs, roles)) for m in roles.of_role(runs, "ablation")]
+    ablations = [(m, full) for m, full in ablations if full is not None]
+    if not ablations:
+        return
+    doc.heading("Ablations (transparent-region PSNR)", 3)
+    doc.paragraph("Each ablation against the full model with the same budget (an ablation named "
+                  "`..._<suffix>` against the baseline `<main>_<suffix>`, e.g. `_x4`; otherwise the main "
+                  "method); a positive difference means the ablated term did not help here.")
+    rows = []
+    for m, full in ablations:
+        v, ref = runs[m].mean.get("psnr_transparent"), runs[full].mean.get("psnr_transparent")
+        rows.append([m, full, _fmt(v), _fmt(ref), _fmt(_difference(v, ref))])
+    doc.table(["ablation", "full model", "PSNR (transp.)", "full model PSNR (transp.)", "difference"], rows)
 
-        _video_section(doc, results / scene, main, out)
 
+def _layer_scores_section(doc: Document, runs: dict[str, Run], references) -> None:
+    layer_rows = [[m, _fmt(r.mean.get("psnr_reflection_layer")), _fmt(r.mean.get("psnr_transmission_layer"))]
+                  for m, r in sorted(runs.items()) if "psnr_transmission_layer" in r.mean]
+    if not layer_rows:
+        return
+    doc.heading("Decomposition against the ground-truth layers (PSNR in the transparent region, test views)", 3)
+    reference_rows, text = layer_reference_rows(references)
+    if text:
+        doc.paragraph(text)
+    doc.table(["method", "reflection", "transmission"], layer_rows + reference_rows)
+
+
+def _near_reflection_section(doc: Document, prepared: Path, runs: dict[str, Run]) -> None:
+    near_rows = near_reflection_rows(runs)
+    reach = scene_reflection_reach(prepared)
+    if not (near_rows or reach):
+        return
+    doc.heading("Near reflections (mirror planes of the glass)", 3)
+    if reach:
+        doc.paragraph(reach)
+    if near_rows:
+        doc.paragraph("Whether each run reflected its own surfels in planes fitted to the see-through "
+                      "surface (effects.near_reflection; auto keeps them where planes explain enough of it "
+                      "and their mirrored render covers enough of it), how many planes carry a bend "
+                      "(curved glass, model.near_reflection_bend), "
+                      "how far the image loss moved the planes where they are learnt "
+                      "(lr.mirror_plane_rotation, lr.mirror_plane_shift), and the seconds per training "
+                      "iteration it paid (wall seconds, and CPU seconds, which depend less on what ran "
+                      "beside it).")
+        doc.table(["method", "near reflection", "planes", "bent", "planar share", "coverage", "why",
+                   "planes learnt",
+                   "wall s / iteration", "CPU s / iteration"], near_rows)
+
+
+def _appearance_section(doc: Document, runs: dict[str, Run]) -> None:
+    exposure_rows = appearance_rows(runs)
+    if not any(row[1] == "on" for row in exposure_rows):
+        return
+    doc.heading("Per-view appearance (exposure and white balance)", 3)
+    doc.paragraph("Whether each run learnt a colour correction per photo (effects.appearance; auto turns it "
+                  "on where the photos' colours of the SfM points spread by exposure beyond what the "
+                  "measurement's own noise explains, and keeps it off where too few observations lie off "
+                  "the see-through surface to tell), how confident that decision is, and how far the "
+                  "corrections moved (mean |log gain|; 0.1 is a 10% exposure change).")
+    doc.table(["method", "appearance", "exposure spread", "confidence", "why", "train |log gain|",
+               "test |log gain|"], exposure_rows)
+
+
+def _accuracy_time_section(doc: Document, scene: str, runs: dict[str, Run], out: Path) -> None:
+    doc.heading("Accuracy against training time", 3)
+    measure = time_measure(runs)
+    doc.paragraph(measure.caption + " The Pareto front: the runs that no other run beats in both time and PSNR.")
+    for name in plot_accuracy_time(scene, runs, out):
+        doc.images([(name, name)])
+    key = "psnr_transparent" if time_points(runs, "psnr_transparent", measure) else "psnr"
+    points = time_points(runs, key, measure)
+    flags = pareto_front([(t, q) for _, t, q in points])
+    beside = [WALL_TIME] if measure is not WALL_TIME else []  # the wall seconds, for reference
+    doc.table(["method", measure.label, *(b.label for b in beside), key, "Pareto front"],
+              [[m, _fmt(t, 1), *(_fmt(runs[m].seconds(b), 1) for b in beside), _fmt(q), "yes" if f else ""]
+               for (m, t, q), f in sorted(zip(points, flags, strict=True), key=lambda x: x[0][1])])
+
+
+def _scene_images_section(doc: Document, results: Path, scene: str, runs: dict[str, Run], roles: Roles,
+                          out: Path) -> None:
+    """One test view of the scene: every run's render, the main method's layers and edits."""
+    main = roles.main
+    test_names = next((r.metrics.get("views") for r in runs.values() if r.metrics.get("views")), {})
+    if not test_names:
+        return
+    gt_layers = results / scene / "prepared" / GT_LAYERS_DIR
+    with_layers = [v for v in sorted(test_names) if all((gt_layers / layer / f"{v}.png").is_file()
+                                                        for layer in ("reflection", "transmission"))]
+    view = (with_layers or sorted(test_names))[0]
+    compared = [main] if main in runs else []
+    compared += [m for m in sorted(runs) if m != main and roles.role.get(m, "baseline") != "ablation"]
+    _test_view_section(doc, results, scene, view, compared, out)
+    if main is None:
+        return
+    layers = []
+    for layer in ("reflection", "transmission", "scatter", "normal", "depth"):
+        img = _copy_image(results / scene / "renders" / main / layer / f"{view}.png", out,
+                          f"{scene}_{view}_{layer}.png")
+        if img:
+            layers.append((img, layer))
+    if layers:
+        doc.heading(f"Decomposition ({main})", 3)
+        doc.images(layers)
+    if with_layers and main in runs:
+        _layer_comparison_section(doc, results / scene, view, main, out)
+    edits = []
+    for edit_dir in sorted((results / scene / "renders").glob(f"{main}@*")):
+        img = _copy_image(edit_dir / "color" / f"{view}.png", out, f"{scene}_{view}_{edit_dir.name}.png")
+        if img:
+            edits.append((img, edit_dir.name.split("@", 1)[1]))
+    if edits:
+        doc.heading("Scene editing", 3)
+        doc.images(edits)
+
+
+def _noise_section(doc: Document, scenes: dict[str, dict[str, Run]], roles: Roles, results: Path) -> None:
     doc.heading("Noise")
     noise = [row for scene, runs in scenes.items() for row in _noise_rows(scene, runs, roles, results)]
-    if noise:
-        doc.paragraph("Differences between runs of the same config on this machine. Same seed: quality differences "
-                      "come from non-deterministic floating-point reductions, time differences from machine load; "
-                      "expect a rerun to reproduce the numbers within these. Another seed: the spread to expect "
-                      "between methods that are in truth equally good, so smaller gaps between methods are not "
-                      "significant. Time diff: of the training CPU seconds where both runs trained on the CPU and "
-                      "recorded them, else of the wall seconds.")
-        doc.table(["scene", "method", "rerun", "|dPSNR|", "|dPSNR transp.|", "time diff %"], noise)
-    else:
+    if not noise:
         doc.paragraph("No repeated runs in these results, so run-to-run noise was not measured here.")
+        return
+    doc.paragraph("Differences between runs of the same config on this machine. Same seed: quality differences "
+                  "come from non-deterministic floating-point reductions, time differences from machine load; "
+                  "expect a rerun to reproduce the numbers within these. Another seed: the spread to expect "
+                  "between methods that are in truth equally good, so smaller gaps between methods are not "
+                  "significant. Time diff: of the training CPU seconds where both runs trained on the CPU and "
+                  "recorded them, else of the wall seconds.")
+    doc.table(["scene", "method", "rerun", "|dPSNR|", "|dPSNR transp.|", "time diff %"], noise)
+
+
+def _reproduce_section(doc: Document, commands, config_file) -> None:
     doc.heading("Reproduce")
     doc.code("\n".join(commands or ["make demo"]))
     files = config_file if isinstance(config_file, (list, tuple)) else [config_file] if config_file else []
@@ -1440,6 +1484,10 @@ def _write(results: Path, scenes: dict[str, dict[str, Run]], out: Path, roles: R
         if Path(path).is_file():
             doc.paragraph(f"{Path(path).name}:")
             doc.code(Path(path).read_text())
+
+
+def _write_pages(doc: Document, out: Path, groups, mixture, scenes, any_metrics) -> None:
+    """index.html, index.md and the report's record (report.json: provenance and every table)."""
     page, markdown = doc.finish()
     (out / "index.html").write_text(page)
     (out / "index.md").write_text(markdown)
