@@ -405,13 +405,13 @@ def test_gate_is_one_on_flat_specular_and_small_on_busy_specular(mode):
         assert torch.isclose(specular_complexity(busy, alpha, mode)[2, 2, 0], window.var(unbiased=False))
 
 
-def _model(effects=None, ablations=None, seed=0):
+def _model(effects=None, ablations=None, seed=0, settings=SMALL):
     torch.manual_seed(seed)  # the specular network's initialisation
     g = torch.Generator().manual_seed(seed)
     xyz = torch.rand(300, 3, generator=g) * 1.2 - 0.6
     rgb = torch.rand(300, 3, generator=g)
     surfels = init_from_points(xyz, rgb, occupancy=0.6, opacity=0.5, generator=g)
-    model = RTModel(surfels, effects=effects or ActiveEffects(), ablations=ablations or Ablations(), settings=SMALL,
+    model = RTModel(surfels, effects=effects or ActiveEffects(), ablations=ablations or Ablations(), settings=settings,
                     roi_center=(0.0, 0.0, 0.0), roi_radius=5.0)
     if model.env is not None:  # drawn in the map's logical order, whatever its memory layout
         with torch.no_grad():
@@ -670,13 +670,11 @@ def test_a_model_rasterizes_only_the_gbuffer_channels_its_effects_and_stage_read
         stage, effects, ablations, backend):
     results = []
     for cls in (RTModel, _EveryGBufferChannel):
-        model = _model(effects, ablations)
-        model.__class__ = cls
         # float32 products: on a CPU with bfloat16 products (precision auto) the network rounds its inputs to
         # bfloat16, and inputs that differ in the last float32 bit (the reference backend's summation order, below)
         # can round to neighbouring bfloat16 values
-        if model.specular_net is not None:
-            model.specular_net.precision = "float32"
+        model = _model(effects, ablations, settings=dataclasses.replace(SMALL, specular_precision="float32"))
+        model.__class__ = cls
         result = model.render(small_camera(24, 18, torch.float32), stage=stage, backend=backend)
         weights = torch.linspace(0.5, 1.5, result.color.numel()).reshape(result.color.shape)
         loss = (result.color * weights).sum() + result.layers["blended_opacity"].sum()
