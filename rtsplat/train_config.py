@@ -410,6 +410,12 @@ class TrainConfig:
         True, help="with transmission on and a prepared transparent_surface.npz, also start surfels on the "
         "masks' visual hull, oriented along its normals (clear: opacity 0.1, transmissivity 0.9)"
     )
+    transparent_surface_scale: float = setting(
+        1.0, help="the initial scale of the surfels started on the masks' visual hull, as a multiple of their "
+        "points' neighbour distance (about the hull grid's step). Smaller seeds save little time and lose the "
+        "glass (0.5: 0.95-1.02x the training CPU seconds, case-0 -1.15 / -1.29 dB), larger ones (1.5) changed "
+        "nothing measurable (docs/performance.md, \"The glass seeds' size\")", exclusiveMinimum=0.0
+    )
     ablations: Ablations = setting(help="the paper's ablation switches", factory=Ablations)
     effects: Effects = setting(help="which branches run", factory=Effects)
     gating: Gating = setting(help="specular-aware gradient gating", factory=Gating)

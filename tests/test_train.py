@@ -517,6 +517,15 @@ def test_surfels_start_on_the_transparent_surface_only_with_transmission(tmp_pat
     R = quat_to_rotmat(surfels.quats[seeds].detach())
     assert torch.allclose(R[:, :, 2], torch.tensor([0.0, 0.6, 0.8]).expand(5, 3), atol=1e-6)
     assert torch.allclose(surfels.opacity[seeds], torch.tensor(0.1)) and (surfels.transmissivity[seeds] > 0.85).all()
+    # the seeds' scale: transparent_surface_scale times the RMS distance to their 3 nearest seeds
+    nearest = np.sort(np.linalg.norm(xyz[:, None] - xyz[None], axis=-1), 1)[:, 1:4]
+    spacing = np.sqrt((nearest ** 2).mean(1))[:, None]
+    factor = config(4).transparent_surface_scale
+    assert np.allclose(surfels.scales[seeds].detach().numpy(), factor * spacing, rtol=1e-5)
+    halved = Trainer(scene, config(4, transparent_surface_scale=factor / 2), tmp_path / "halved", progress=False,
+                     log=lambda m: None)
+    assert np.allclose(halved.model.surfels.scales[seeds].detach().numpy(), factor / 2 * spacing, rtol=1e-5)
+    assert torch.equal(halved.model.surfels.scales[:n_points], surfels.scales[:n_points])  # the SfM surfels' stay
     rt.train()  # the seeded model trains
     plain = Trainer(scene, config(4, effects={"transmission": "off"}), tmp_path / "2dgs", progress=False,
                     log=lambda m: None)

@@ -179,9 +179,10 @@ def concat_surfels(parts: list[SurfelParameters]) -> SurfelParameters:
 def init_from_points(
     xyz: Tensor, rgb: Tensor, *, sh_degree: int = 3, occupancy: float = 0.1, opacity: float = 0.5,
     transmissivity: float = 0.5, roughness: float = 0.1, reflectance: float = 0.5,
-    generator: torch.Generator | None = None, normals: Tensor | None = None,
+    generator: torch.Generator | None = None, normals: Tensor | None = None, scale_factor: float = 1.0,
 ) -> SurfelParameters:
-    """Surfels at the SfM points: colours from the points, scales from neighbour distances.
+    """Surfels at the SfM points: colours from the points, scales from neighbour distances (times
+    ``scale_factor``).
 
     ``rgb`` in [0,1]. Rotations turn each surfel's normal onto ``normals`` [N,3], or are random (as in
     2DGS) without them; the random rotations are drawn either way, so that ``generator`` gives the same
@@ -191,7 +192,7 @@ def init_from_points(
     n = xyz.shape[0]
     dtype = torch.float32
     xyz = xyz.to(dtype)
-    scale = nearest_neighbour_scale(xyz)
+    scale = nearest_neighbour_scale(xyz) * scale_factor
     quats = F.normalize(torch.rand(n, 4, generator=generator, dtype=dtype), dim=-1)
     if normals is not None:
         quats = quats_with_normal(normals.to(dtype))

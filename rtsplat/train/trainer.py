@@ -247,7 +247,7 @@ class Trainer:
         seeds = init_from_points(
             xyz_t, torch.zeros_like(xyz_t), sh_degree=m.sh_degree, occupancy=m.occupancy_init, opacity=0.1,
             transmissivity=0.9, roughness=m.roughness_init, reflectance=m.reflectance_init, generator=self.rng,
-            normals=torch.as_tensor(normal, dtype=torch.float32),
+            normals=torch.as_tensor(normal, dtype=torch.float32), scale_factor=self.cfg.transparent_surface_scale,
         )
         return seeds
 
