@@ -22,8 +22,10 @@ from rtsplat.bench.toy_scene import write_scene
 from rtsplat.errors import ConfigError
 from rtsplat.model.checkpoint import CheckpointError, read_checkpoint
 from rtsplat.model.export import read_surfel_ply
+from rtsplat.model.rtmodel import STAGES
 from rtsplat.train.optim import load_optimizer_state
 from rtsplat.train.trainer import Trainer
+from rtsplat.train.warmup import warm_up_kernels
 from rtsplat.train_config import TrainConfig
 from rtsplat.usage import machine_steal_seconds
 
@@ -88,6 +90,28 @@ def test_a_rerun_with_the_same_seed_trains_the_same_model_and_another_seed_does_
         assert torch.equal(value, again[key]), key
     means, other_means = first["surfels.means"], other["surfels.means"]
     assert means.shape != other_means.shape or not torch.equal(means, other_means)
+
+
+def test_the_kernel_warm_up_draws_in_every_stage_and_leaves_the_training_as_it_was(glass_scene, tmp_path):
+    # the warm-up renders a throwaway model before the run's clock starts, so that compiling the kernels is not
+    # counted as training time; the run itself must train the same model with it as without it
+    def trained(name: str, warm: bool) -> dict:
+        trainer = Trainer(glass_scene, config(12, schedule={"eval_every": 0}), tmp_path / name, progress=False,
+                          log=lambda m: None)
+        if warm:
+            rng = torch.get_rng_state()
+            warmed = warm_up_kernels(trainer)
+            assert torch.equal(torch.get_rng_state(), rng)  # the throwaway model drew from a forked generator
+            assert set(warmed.drawn) == set(STAGES) and min(warmed.drawn.values()) > 0, warmed.drawn
+            assert all(p.grad is None for p in trainer.model.parameters())
+        stages = {trainer.step().stage for _ in range(12)}
+        assert stages == set(STAGES)
+        return trainer.model.state_dict()
+
+    plain, warmed = trained("plain", False), trained("warmed", True)
+    assert plain.keys() == warmed.keys()
+    for key, value in plain.items():
+        assert torch.equal(value, warmed[key]), key
 
 
 def test_run_directory_contents_and_ply_export(glass_scene, tmp_path):

@@ -26,6 +26,8 @@ same steps, which depend much less on what else the machine runs. The summary ad
 ``cpu_share`` (train_cpu_seconds / (train_seconds x threads)) and ``run_usage``: the usage of
 :meth:`TrainingRun.train` as a whole (steps, evaluations, checkpoints; every resumed part included), with
 ``other_busy_cores``, the mean number of cores other processes kept busy meanwhile: how much ran beside it.
+Before the first step the rasterizer's kernels are compiled or loaded (:mod:`rtsplat.train.warmup`), outside
+the steps' seconds; the summary's ``kernel_warm_up_seconds`` says how long that took in the part that wrote it.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from rtsplat.raster import default_backend
 from rtsplat.train.clock import passed
 from rtsplat.train.evaluation import best_test_psnr
 from rtsplat.train.resume import restore_log
+from rtsplat.train.warmup import warm_up_kernels
 from rtsplat.usage import compute_threads
 
 if TYPE_CHECKING:
@@ -67,6 +70,7 @@ class TrainingRun:
     def __init__(self, trainer: Trainer):
         self.trainer = trainer
         self.log_path = trainer.out / LOG_NAME
+        self.warm_up_seconds: float | None = None  # this part's kernel warm-up (rtsplat.train.warmup), once run
 
     def train(self, resume: bool = True, new_config: bool = False) -> dict:
         """Train to ``schedule.iterations``, resuming from ``checkpoints/last.pt`` when ``resume``
@@ -82,6 +86,10 @@ class TrainingRun:
         write_json_atomic(t.out / "config.json", cfg.to_dict())
         write_effects(t)
         self._log_settings()
+        warm = warm_up_kernels(t)
+        self.warm_up_seconds = round(warm.seconds, 3)
+        t.log(f"kernels ready in {warm.seconds:.1f} s (compiled, or loaded from numba's cache; not in the "
+              "training's seconds)")
         # reading the divergence record waits for the device: on a CPU that costs nothing, elsewhere it
         # is read where the loop reads the device anyway (logging steps) and before every write
         watch_every_step = t.device.type == "cpu"
@@ -218,6 +226,7 @@ class TrainingRun:
                    "cpu_share": _rounded(share, 3), "device": str(t.device),
                    "run_usage": None if usage is None else usage.to_dict(),
                    "seconds_per_iteration": round(t.elapsed / max(t.iteration, 1), 5),
+                   "kernel_warm_up_seconds": self.warm_up_seconds,
                    "surfels": len(t.model.surfels), "starting_surfels": t.starting.to_dict(),
                    "effects": t.effects.to_dict(), "specular_products": t.model.specular_products(),
                    "specular_gradient_share": t.specular_gradient_share if t.effects.specular else None,

@@ -138,7 +138,7 @@ class Trainer:
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
                            if self.appearance_decision.on else None)
         self.test_appearance = torch.zeros(len(self.test_views), 6, device=self.device)
-        self.model = self._new_model(self._init_surfels())
+        self.model = self.new_model(self._init_surfels())
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
         self.density = DensityControl(cfg.densify, cfg.schedule, self.extent)
         c = cfg.cameras
@@ -251,7 +251,8 @@ class Trainer:
         )
         return seeds
 
-    def _new_model(self, surfels: SurfelParameters) -> RTModel:
+    def new_model(self, surfels: SurfelParameters) -> RTModel:
+        """A model of this run's effects and settings made of ``surfels``, on the training device."""
         roi = self.scene.roi
         return RTModel(
             surfels, effects=self.effects, ablations=self.cfg.ablations, settings=self.cfg.model,
