@@ -67,8 +67,9 @@ METHODS = {
                             "lr": {"mirror_plane_rotation": 3e-4, "mirror_plane_shift": 1e-4}},
     # the attenuation beta as the specular network's fourth output (the paper's) instead of the material's head
     "rtsplat_paper_beta": {"model": {**DEMO_OPTIONS["model"], "attenuation_from": "network"}},
-    # the specular network on see-through surfaces alone (model.specular_surfaces)
-    "rtsplat_see_through": {"model": {**DEMO_OPTIONS["model"], "specular_surfaces": "see_through"}},
+    # the specular network on every surface of the region of interest, opaque ones too (model.specular_surfaces
+    # all; the default shades the see-through ones alone)
+    "rtsplat_all_surfaces": {"model": {**DEMO_OPTIONS["model"], "specular_surfaces": "all"}},
     # the specular network's matrix products in float32 and in bfloat16 (model.specular_precision)
     "rtsplat_float32": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "float32"}},
     "rtsplat_bfloat16": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "bfloat16"}},
