@@ -67,11 +67,11 @@ class ModelSettings:
         f"{SEE_THROUGH_OPACITY[0]}, fading out by {SEE_THROUGH_OPACITY[1]}), where a thin surface reflects over what "
         "it lets through; an opaque surface shows its volume colour, view-dependent through its SH degree as in "
         "2DGS, and on the CPU the network's cost follows the glass's share of the image. all: every one (the "
-        "paper), for scenes whose opaque surfaces near the glass are shiny. On five tuning scenes of the glass "
-        "family see_through trained the same test PSNR to within 0.2 dB (mean -0.02 dB in the transparent region) "
-        "and, at 2DGS's training time, put RT-Splatting ahead of 2DGS in the transparent region on all five "
-        "(docs/fidelity.md, finding 33). Only with transmission (the optical opacity); without it every surface, "
-        "as all"
+        "paper), for scenes whose opaque surfaces near the glass are shiny. On seven tuning scenes of the glass "
+        "family see_through trained the same test PSNR to within 0.2 dB (mean -0.04 dB in the transparent region; "
+        "the display cases -0.2) in 2-6% less time, and at 2DGS's training time put RT-Splatting ahead of 2DGS in "
+        "the transparent region on all five seed-0 scenes (docs/fidelity.md, finding 33). Only with "
+        "transmission (the optical opacity); without it every surface, as all"
     )
     specular_view_angle: bool = setting(
         True, help="feed |cos| of the angle between the view ray and the surface normal to the specular network "
