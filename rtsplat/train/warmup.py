@@ -1,8 +1,8 @@
 """The rasterizer's kernels made ready before a training run's clock starts.
 
-The ``cpu`` backend's numba kernels compile on their first call in a process (about 12 s on the 2-core
-development machine) or load from numba's cache (a fraction of a second); Triton kernels compile on a GPU's
-first call. Without a warm-up that time lands in the first training step, so the run's ``seconds`` and
+The ``cpu`` backend's numba kernels compile on their first call in a process (tens of seconds on the 2-core
+development machine) or load from numba's cache (about a second); Triton kernels compile on a GPU's first
+call. Without a warm-up that time lands in the first training step, so the run's ``seconds`` and
 ``cpu_seconds`` would count it, a time budget (``schedule.seconds``) would lose it, and the first of two runs
 trained side by side in a fresh checkout would look dearer or cheaper than it is. :func:`warm_up_kernels`
 renders a small throwaway model of the run's settings through every stage, forward and backward, so that
@@ -23,6 +23,8 @@ from rtsplat.model.rtmodel import STAGES
 from rtsplat.model.surfels import init_from_points
 
 if TYPE_CHECKING:
+    from rtsplat.camera import Camera
+    from rtsplat.model.surfels import SurfelParameters
     from rtsplat.train.trainer import Trainer
 
 WARM_UP_SIDE = 32  # pixels on the long side of the warm-up camera
@@ -38,7 +40,8 @@ class WarmUp:
 def warm_up_kernels(trainer: Trainer) -> WarmUp:
     """Render a throwaway model with ``trainer``'s settings (effects, model settings, raster settings, backend,
     device) in every stage from a small copy of its first training camera, and run the backward of every
-    output, so that every kernel of a training step is compiled or loaded; returns the seconds it took."""
+    output, so that every kernel of a training step is compiled or loaded; returns how long it took and how
+    many surfels each stage's render drew."""
     start = time.perf_counter()
     devices = [trainer.device] if trainer.device.type == "cuda" else []
     drawn = {}
@@ -55,7 +58,7 @@ def warm_up_kernels(trainer: Trainer) -> WarmUp:
     return WarmUp(time.perf_counter() - start, drawn)
 
 
-def _surfels_in_view(camera, points: torch.Tensor, near: float):
+def _surfels_in_view(camera: Camera, points: torch.Tensor, near: float) -> SurfelParameters:
     """Two layers of :data:`WARM_UP_GRID` x :data:`WARM_UP_GRID` camera-facing surfels across ``camera``'s
     image, at the median distance of the scene's ``points`` from it (and half again behind), past ``near``."""
     camera = camera.to("cpu")
