@@ -71,8 +71,7 @@ class ModelSettings:
         "family see_through trained the same test PSNR to within 0.2 dB (mean -0.04 dB in the transparent region; "
         "the display cases -0.2) in 2-6% less time, and at 2DGS's training time put RT-Splatting ahead of 2DGS in "
         "the transparent region on four of five seed-0 scenes, even on the fifth (docs/fidelity.md, finding 33). "
-        "Only with "
-        "transmission (the optical opacity); without it every surface, as all"
+        "Only with transmission (the optical opacity); without it every surface, as all"
     )
     specular_view_angle: bool = setting(
         True, help="feed |cos| of the angle between the view ray and the surface normal to the specular network "
