@@ -115,6 +115,60 @@ def test_a_density_step_does_not_undo_the_training_before_it(tmp_path, rules, ma
         assert after >= trained - max_loss
 
 
+def test_early_pruning_removes_only_seen_low_occupancy_surfels_before_the_first_densification():
+    """Prune-only steps at the multiples of densify_every below densify_from: the seen surfels under the early
+    threshold (capped at prune_occupancy) go with their optimizer rows and statistics; nothing is cloned or
+    split, frozen, spared and unseen surfels stay, and no early step runs at or after the first densification."""
+    surfels = _surfels(n=40)
+    occupancy = torch.linspace(0.01, 0.5, 40)
+    with torch.no_grad():
+        surfels.occupancy_logit.copy_(torch.logit(occupancy))
+    config = Densification(grad_threshold=1e9, prune_occupancy=0.2, early_prune_occupancy=0.3)
+    control = DensityControl(config, Schedule(iterations=100, densify_from=25, densify_every=10), extent=1.0,
+                             spared_early=torch.arange(40) == 2)  # a see-through seed: left to densification
+    optimizer = build_optimizer(torch.nn.Module(), surfels, TrainConfig().lr, 1.0)
+    control._ensure(40, "cpu")
+    control.seen_since_reset[:] = True
+    control.seen_since_reset[0] = False  # unseen: kept whatever its occupancy
+    control.grad_count = torch.arange(40.0)
+    frozen = torch.zeros(40, dtype=torch.bool)
+    frozen[1] = True
+    events, frozen = control.step(9, surfels, optimizer, torch.Generator(), frozen)
+    assert not events.any() and len(surfels) == 40  # not a multiple of densify_every
+    events, frozen = control.step(10, surfels, optimizer, torch.Generator(), frozen)
+    expected_keep = (occupancy >= 0.2) | (torch.arange(40) < 3)  # the threshold is capped at prune_occupancy
+    assert events.pruned == events.pruned_occupancy == int((~expected_keep).sum()) > 0
+    assert events.cloned == events.split == 0
+    assert len(surfels) == len(frozen) == len(control.grad_count) == int(expected_keep.sum())
+    assert torch.equal(control.grad_count, torch.arange(40.0)[expected_keep])
+    assert torch.allclose(surfels.occupancy.detach(), occupancy[expected_keep], atol=1e-6)
+    assert frozen[1] and not frozen[2:].any()
+    assert torch.equal(control.spared_early, torch.arange(len(surfels)) == 2)  # the spared row, moved with the rows
+    for group in optimizer.param_groups:  # Adam's rows follow the surfels
+        for p in group["params"]:
+            state = optimizer.state.get(p, {})
+            if "exp_avg" in state:
+                assert state["exp_avg"].shape[0] == len(surfels)
+    with torch.no_grad():  # a seen surfel now below the threshold: the next early step (20) prunes it ...
+        surfels.occupancy_logit[-1] = torch.logit(torch.tensor(0.1))
+    events, frozen = control.step(20, surfels, optimizer, torch.Generator(), frozen)
+    assert events.pruned == 1 and frozen[1]
+    with torch.no_grad():  # ... but the first densification step (30) is the regular one
+        surfels.occupancy_logit[-1] = torch.logit(torch.tensor(0.1))
+    control.seen_since_reset[:] = True
+    low = int(((surfels.occupancy.detach() < 0.2) & ~frozen).sum())
+    events, _ = control.step(30, surfels, optimizer, torch.Generator(), frozen)
+    assert events.pruned == low == 3 and control.grad_count.sum() == 0  # it spares none, resets the statistics
+    off = DensityControl(Densification(prune_occupancy=0.2), Schedule(iterations=100, densify_from=25,
+                                                                       densify_every=10), extent=1.0)
+    surfels = _surfels(n=10, occupancy=0.01)
+    off._ensure(10, "cpu")
+    off.seen_since_reset[:] = True
+    events, _ = off.step(10, surfels, build_optimizer(torch.nn.Module(), surfels, TrainConfig().lr, 1.0),
+                         torch.Generator())
+    assert not events.any() and len(surfels) == 10  # early_prune_occupancy 0: off
+
+
 def test_density_control_ends_at_half_the_run_by_default():
     assert TrainConfig.from_dict({"schedule": {"iterations": 600}}).schedule.densify_stop() == 300
     assert TrainConfig.from_dict({"schedule": {"densify_until": 450}}).schedule.densify_stop() == 450

@@ -10,6 +10,8 @@
   2DGS, whose size pruning starts after its first opacity reset), over-large surfels: before that,
   large surfels are the floor, walls and backdrop that the initial points describe coarsely, and
   deleting them leaves holes that the remaining steps cannot fill;
+* before the first densification, with ``early_prune_occupancy`` set, every ``densify_every`` iterations:
+  prune alone, the surfels seen so far whose occupancy is below it, the see-through surface's seeds excepted;
 * every ``reset_every`` iterations, alternately clamp occupancy then opacity to <= 0.01.
 """
 
@@ -55,6 +57,9 @@ class DensityControl:
     max_radius: Tensor = field(default_factory=lambda: torch.zeros(0))
     seen_since_reset: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
     resets_done: int = 0
+    # the rows that early pruning leaves to the first densification: the see-through surface's seeds, which
+    # the volume stage has no use for (their occupancy dips there and recovers once transmission is on)
+    spared_early: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
 
     def _ensure(self, n: int, device) -> None:
         if self.grad_sum.shape[0] != n:
@@ -83,7 +88,8 @@ class DensityControl:
 
     def state_dict(self) -> dict:
         return {"grad_sum": self.grad_sum, "grad_count": self.grad_count, "max_radius": self.max_radius,
-                "seen_since_reset": self.seen_since_reset, "resets_done": self.resets_done}
+                "seen_since_reset": self.seen_since_reset, "resets_done": self.resets_done,
+                "spared_early": self.spared_early}
 
     def load_state_dict(self, state: dict) -> None:
         for key, value in state.items():
@@ -106,6 +112,9 @@ class DensityControl:
         previous = iteration - 1 if previous is None else previous
         if passed(previous, iteration, s.densify_every, start=s.densify_from, stop=stop) is not None:
             frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events)
+        elif self.config.early_prune_occupancy > 0 and passed(
+                previous, iteration, s.densify_every, stop=min(s.densify_from, stop)) is not None:
+            frozen = self._prune_early(surfels, optimizer, frozen, events)
         if passed(previous, iteration, s.reset_every, stop=stop) is not None:
             self._reset(surfels, optimizer, events)
         return events, frozen
@@ -181,6 +190,27 @@ class DensityControl:
         self.grad_sum = torch.zeros(n_new, device=device)
         self.grad_count = torch.zeros(n_new, device=device)
         self.max_radius = torch.zeros(n_new, device=device)
+        return frozen[keep]
+
+    def _prune_early(self, surfels, optimizer, frozen, events) -> Tensor:
+        """Prune alone, before the first densification: the surfels seen so far whose occupancy is below
+        ``early_prune_occupancy`` (at most ``prune_occupancy``), except the ``spared_early`` rows; the
+        statistics of the others are kept."""
+        c = self.config
+        threshold = min(c.early_prune_occupancy, c.prune_occupancy)
+        n = len(surfels)
+        spared = self.spared_early[:n]
+        spared = torch.cat([spared, torch.zeros(n - len(spared), dtype=torch.bool, device=spared.device)])
+        remove = (surfels.occupancy.detach() < threshold) & self.seen_since_reset & ~frozen & ~spared
+        n_removed = int(remove.sum())
+        if n_removed == 0 or n_removed == len(surfels):  # never prune the scene away entirely
+            return frozen
+        keep = ~remove
+        keep_rows(optimizer, surfels, keep)
+        events.pruned = events.pruned_occupancy = n_removed
+        for name in ("grad_sum", "grad_count", "max_radius", "seen_since_reset"):
+            setattr(self, name, getattr(self, name)[keep])
+        self.spared_early = spared[keep]
         return frozen[keep]
 
     def _reset(self, surfels, optimizer, events) -> None:

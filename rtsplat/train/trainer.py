@@ -138,9 +138,12 @@ class Trainer:
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
                            if self.appearance_decision.on else None)
         self.test_appearance = torch.zeros(len(self.test_views), 6, device=self.device)
-        self.model = self.new_model(self._init_surfels())
+        surfels, n_see_through = self._init_surfels()
+        self.model = self.new_model(surfels)
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
-        self.density = DensityControl(cfg.densify, cfg.schedule, self.extent)
+        self.density = DensityControl(cfg.densify, cfg.schedule, self.extent,
+                                      spared_early=torch.arange(len(surfels), device=self.device)
+                                      >= len(surfels) - n_see_through)
         c = cfg.cameras
         self.poses = PoseCorrections(len(self.train_views), self.extent, c.lr_rotation, c.lr_translation,
                                      self.device) if c.refine else None
@@ -178,7 +181,9 @@ class Trainer:
         exposure = exposure_spread(gains)
         return exposure, decide_appearance(self.cfg.effects.appearance, exposure, source, threshold)
 
-    def _init_surfels(self) -> SurfelParameters:
+    def _init_surfels(self) -> tuple[SurfelParameters, int]:
+        """The starting surfels: those from the SfM points, then the see-through surface's seeds (their
+        number is the second value)."""
         m = self.cfg.model
         surfels = initial_surfels(
             *self.points, self.starting, self.rng,
@@ -188,8 +193,9 @@ class Trainer:
         )
         surface = self.scene.load_transparent_surface() if self.cfg.seed_transparent_surface else None
         if surface is None or not self.effects.transmission or len(surface[0]) < 4:
-            return surfels
-        return concat_surfels([surfels, self._transparent_surface_surfels(*surface)])
+            return surfels, 0
+        seeds = self._transparent_surface_surfels(*surface)
+        return concat_surfels([surfels, seeds]), len(seeds)
 
     @torch.no_grad()
     def fit_mirror_planes(self) -> dict:
@@ -426,7 +432,7 @@ class Trainer:
     def _freeze_background(self) -> None:
         """joint_optimization off: freeze what was learnt on the background pixels and start fresh
         surfels (from the SfM points) for the see-through surfaces."""
-        fresh = self._init_surfels()
+        fresh, _ = self._init_surfels()
         n_old = len(self.model.surfels)
         append_rows(self.optimizer, self.model.surfels,
                     {k: v.detach().to(self.device) for k, v in fresh.tensors().items()})
