@@ -133,6 +133,9 @@ def test_early_pruning_removes_only_seen_low_occupancy_surfels_before_the_first_
     control.grad_count = torch.arange(40.0)
     frozen = torch.zeros(40, dtype=torch.bool)
     frozen[1] = True
+    for p in surfels.parameters():  # one Adam step, so that the optimizer has rows to move
+        p.grad = torch.zeros_like(p)
+    optimizer.step()
     events, frozen = control.step(9, surfels, optimizer, torch.Generator(), frozen)
     assert not events.any() and len(surfels) == 40  # not a multiple of densify_every
     events, frozen = control.step(10, surfels, optimizer, torch.Generator(), frozen)
@@ -144,11 +147,9 @@ def test_early_pruning_removes_only_seen_low_occupancy_surfels_before_the_first_
     assert torch.allclose(surfels.occupancy.detach(), occupancy[expected_keep], atol=1e-6)
     assert frozen[1] and not frozen[2:].any()
     assert torch.equal(control.spared_early, torch.arange(len(surfels)) == 2)  # the spared row, moved with the rows
-    for group in optimizer.param_groups:  # Adam's rows follow the surfels
-        for p in group["params"]:
-            state = optimizer.state.get(p, {})
-            if "exp_avg" in state:
-                assert state["exp_avg"].shape[0] == len(surfels)
+    moments = [optimizer.state[p]["exp_avg"] for group in optimizer.param_groups for p in group["params"]
+               if "exp_avg" in optimizer.state.get(p, {})]
+    assert moments and all(m.shape[0] == len(surfels) for m in moments)  # Adam's rows follow the surfels
     with torch.no_grad():  # a seen surfel now below the threshold: the next early step (20) prunes it ...
         surfels.occupancy_logit[-1] = torch.logit(torch.tensor(0.1))
     events, frozen = control.step(20, surfels, optimizer, torch.Generator(), frozen)
@@ -159,6 +160,7 @@ def test_early_pruning_removes_only_seen_low_occupancy_surfels_before_the_first_
     low = int(((surfels.occupancy.detach() < 0.2) & ~frozen).sum())
     events, _ = control.step(30, surfels, optimizer, torch.Generator(), frozen)
     assert events.pruned == low == 3 and control.grad_count.sum() == 0  # it spares none, resets the statistics
+    assert len(control.spared_early) == 0  # and ends early pruning's mask
     off = DensityControl(Densification(prune_occupancy=0.2), Schedule(iterations=100, densify_from=25,
                                                                        densify_every=10), extent=1.0)
     surfels = _surfels(n=10, occupancy=0.01)

@@ -190,6 +190,7 @@ class DensityControl:
         self.grad_sum = torch.zeros(n_new, device=device)
         self.grad_count = torch.zeros(n_new, device=device)
         self.max_radius = torch.zeros(n_new, device=device)
+        self.spared_early = self.spared_early[:0]  # early pruning is over: its rows no longer name the seeds
         return frozen[keep]
 
     def _prune_early(self, surfels, optimizer, frozen, events) -> Tensor:
@@ -203,7 +204,7 @@ class DensityControl:
         spared = torch.cat([spared, torch.zeros(n - len(spared), dtype=torch.bool, device=spared.device)])
         remove = (surfels.occupancy.detach() < threshold) & self.seen_since_reset & ~frozen & ~spared
         n_removed = int(remove.sum())
-        if n_removed == 0 or n_removed == len(surfels):  # never prune the scene away entirely
+        if n_removed == 0 or n_removed == n:  # never prune the scene away entirely
             return frozen
         keep = ~remove
         keep_rows(optimizer, surfels, keep)
