@@ -74,10 +74,11 @@ def test_two_methods_train_side_by_side_and_their_ratio_is_that_of_their_summari
     config.write_text(json.dumps({"methods": {
         "rtsplat": {"role": "main", "schedule": schedule, "model": model},
         "2dgs": {"role": "baseline", "schedule": schedule, "model": model,
-                 "effects": {"transmission": "off", "specular": "off"}}}}))
+                 "effects": {"transmission": "off", "specular": "off"}},
+        "narrow": {"role": "ablation", "schedule": schedule, "model": {**model, "mlp_width": 8}}}}))
     out = tmp_path / "out"
     assert paired_cost.main(["--config", str(config), "--prepared", str(prepared), "--out", str(out),
-                             "--equal-time"]) == 0
+                             "--methods", "rtsplat,2dgs,narrow", "--equal-time"]) == 0
     result = json.loads((out / "paired_cost.json").read_text())
     scene = result["scenes"][0]
     assert scene["scene"] == "toy"
@@ -90,15 +91,23 @@ def test_two_methods_train_side_by_side_and_their_ratio_is_that_of_their_summari
         parts = scene["runs"][method]["parts"]
         assert set(parts) == {"volume", "subsurface", "full, 2x2 shading", "full"}
         assert 0 < sum(parts.values()) <= summaries[method]["train_cpu_seconds"] + 1e-6
-    assert set(scene["wall_seconds"]) == {"rtsplat", "2dgs"}
+    assert set(scene["wall_seconds"]) == {"rtsplat", "2dgs", "narrow"}
     assert not (out / "toy" / ".filler").exists()  # the filler runs are gone
-    assert "median ratio rtsplat / 2dgs" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "median ratio rtsplat / 2dgs" in printed and "median ratio narrow / 2dgs" in printed
     assert result["complete"] and result["median_ratio"] == scene["ratio"]
-    # the equal-time run: every iteration count of rtsplat's config times 2dgs's / rtsplat's CPU seconds
-    equal = json.loads((out / "toy" / "rtsplat_equal_time" / "config.json").read_text())["schedule"]
-    assert scene["equal_time"]["budget"] == pytest.approx(1 / scene["ratio"])
-    for count, planned in (("iterations", 16), ("volume_until", 5), ("specular_from", 8)):
-        assert equal[count] == max(round(planned / scene["ratio"]), 1)
-    assert scene["equal_time"]["iterations"] == equal["iterations"]
+    narrow = json.loads((out / "toy" / "narrow" / "summary.json").read_text())["train_cpu_seconds"]
+    assert scene["ratios"]["narrow"] == pytest.approx(narrow / summaries["2dgs"]["train_cpu_seconds"])
+    assert set(scene["ratios"]) == set(scene["equal_time_runs"]) == {"rtsplat", "narrow"}
+    # the equal-time runs: every iteration count of each method's config times 2dgs's / its CPU seconds
+    for method in ("rtsplat", "narrow"):
+        config_json = json.loads((out / "toy" / f"{method}_equal_time" / "config.json").read_text())
+        equal, ratio = config_json["schedule"], scene["ratios"][method]
+        assert scene["equal_time_runs"][method]["budget"] == pytest.approx(1 / ratio)
+        for count, planned in (("iterations", 16), ("volume_until", 5), ("specular_from", 8)):
+            assert equal[count] == max(round(planned / ratio), 1)
+        assert scene["equal_time_runs"][method]["iterations"] == equal["iterations"]
+    assert config_json["model"]["mlp_width"] == 8  # the method's own config, scaled
+    assert scene["equal_time"] == scene["equal_time_runs"]["rtsplat"]
     # a second run into its own folder is allowed; it replaces the runs
     assert paired_cost.check_out_folder(out, [prepared]) is None

@@ -12,9 +12,10 @@ ratio first / second, the same ratio per part of the schedule (the stages of the
 split where its specular shading runs on 2x2 blocks, ``schedule.specular_coarse_share``) and the final test PSNR
 (entire / transparent). A run that ends first is started again as a filler until the last one ends, so that the
 measured runs share the machine with the same load from start to end. Then the median ratio over the scenes.
-With ``--equal-time`` the first method is then trained again, alone, with every iteration count of its config
-times 1 / ratio (a method's ``budget: F``), and its test PSNR is printed against the second's: the first method at
-the second's CPU seconds, through the ratio measured side by side rather than a clock that drifts. It runs the
+With more than two methods, every other method's ratio to the second is printed too. With ``--equal-time``
+every method but the second is then trained again, alone, with every iteration count of its config times 1 / its
+ratio (a method's ``budget: F``), and its test PSNR is printed against the second's: that method at the second's
+CPU seconds, through the ratio measured side by side rather than a clock that drifts. It runs the
 specular gradient through every pixel, as every fixed-count run does; a time-budgeted run (``--seconds-of``) would
 run it through a quarter of them (``schedule.specular_gradient_share``) and take more, cheaper, iterations.
 ``<out>/paired_cost.json`` keeps the numbers (rewritten after every scene; ``complete`` once all are done); the runs
@@ -147,18 +148,23 @@ def train_side_by_side(prepared: Path, scene: str, methods: list[str], config: P
 
 def measure_scene(prepared: Path, methods: list[str], config: Path, out: Path, seed: int,
                   equal_time: bool = False) -> dict:
-    """The paired runs of one scene (:func:`train_side_by_side`), their summaries and ratios first / second; with
-    ``equal_time`` also the first method at the second's CPU seconds (:func:`equal_time_run`, budget 1 / ratio)."""
+    """The paired runs of one scene (:func:`train_side_by_side`), their summaries and ratios first / second (and,
+    in ``ratios``, every method but the second against the second); with ``equal_time`` also each of those methods
+    at the second's CPU seconds (:func:`equal_time_run`, budget 1 / its ratio; ``equal_time`` holds the first's,
+    ``equal_time_runs`` all of them)."""
     scene = scene_name(prepared)
     walls = train_side_by_side(prepared, scene, methods, config, out, seed)
     runs = {method: run_summary(out / scene / method) for method in methods}
     first, second = (runs[m] for m in methods[:2])
-    ratio = first["cpu_seconds"] / second["cpu_seconds"]
+    ratios = {m: runs[m]["cpu_seconds"] / second["cpu_seconds"] for m in methods if m != methods[1]}
     ratio_parts = {part: first["parts"][part] / second["parts"][part] for part in first["parts"]
                    if second["parts"].get(part, 0.0) > 0}
-    result = {"scene": scene, "runs": runs, "wall_seconds": walls, "ratio": ratio, "ratio_parts": ratio_parts}
+    result = {"scene": scene, "runs": runs, "wall_seconds": walls, "ratio": ratios[methods[0]], "ratios": ratios,
+              "ratio_parts": ratio_parts}
     if equal_time:
-        result["equal_time"] = equal_time_run(prepared, scene, methods[0], config, out, seed, 1.0 / ratio)
+        result["equal_time_runs"] = {m: equal_time_run(prepared, scene, m, config, out, seed, 1.0 / ratio)
+                                     for m, ratio in ratios.items()}
+        result["equal_time"] = result["equal_time_runs"][methods[0]]
     return result
 
 
@@ -191,10 +197,12 @@ def format_scene(result: dict, methods: list[str]) -> str:
     for part, ratio in result["ratio_parts"].items():
         lines.append(f"    {part:22s} {runs[methods[0]]['parts'][part]:7.1f} s against "
                      f"{runs[methods[1]]['parts'][part]:7.1f} s: {ratio:.2f}")
-    equal = result.get("equal_time")
-    if equal is not None:
+    for method in methods[2:]:
+        lines.append(f"    {method} {runs[method]['cpu_seconds']:.1f} CPU s: ratio to {methods[1]} "
+                     f"{result['ratios'][method]:.2f}; test PSNR {psnr(runs[method])}")
+    for method, equal in result.get("equal_time_runs", {}).items():
         gap = [equal[key] - runs[methods[1]][key] for key in ("test_psnr", "test_psnr_transparent")]
-        lines.append(f"    at {methods[1]}'s CPU seconds ({methods[0]} with budget {equal['budget']:.3f}: "
+        lines.append(f"    at {methods[1]}'s CPU seconds ({method} with budget {equal['budget']:.3f}: "
                      f"{equal['iterations']} iterations): {psnr(equal)}, minus {methods[1]} {gap[0]:+.2f} / "
                      f"{gap[1]:+.2f}")
     return "\n".join(lines)
@@ -213,8 +221,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, required=True, help="folder for the runs and paired_cost.json")
     parser.add_argument("--seed", type=int, default=0, help="every run's seed (default 0)")
     parser.add_argument("--equal-time", action="store_true",
-                        help="then train the first method again, alone, with every iteration count times the "
-                        "scene's ratio second / first (budget 1 / ratio): the first method at the second's CPU "
+                        help="then train every method but the second again, alone, with every iteration count "
+                        "times the scene's ratio second / that method (budget 1 / ratio): each at the second's CPU "
                         "seconds as measured side by side, a fixed count that the machine's speed cannot change")
     args = parser.parse_args(argv)
     args.methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -282,8 +290,9 @@ def main(argv: list[str] | None = None) -> int:
             print(format_scene(results[-1], args.methods), flush=True)
             write(False)
         write(True)
-        print(f"median ratio {args.methods[0]} / {args.methods[1]} of the training CPU seconds over "
-              f"{len(results)} scene(s): {statistics.median(r['ratio'] for r in results):.2f}")
+        for method in results[0]["ratios"] if results else ():
+            print(f"median ratio {method} / {args.methods[1]} of the training CPU seconds over "
+                  f"{len(results)} scene(s): {statistics.median(r['ratios'][method] for r in results):.2f}")
         return 0
 
     return run_command("paired_cost", work)
