@@ -1,4 +1,4 @@
-"""``python -m rtsplat.bench.paired_cost``: two methods trained at the same time, their CPU seconds split by the
+"""``python -m rtsplat.bench.paired_cost``: two or more methods trained at the same time, their CPU seconds split by the
 parts of the schedule. The split is checked on a log written here; the whole bench on a toy scene."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Two methods' training cost measured side by side: ``python -m rtsplat.bench.paired_cost``.
+"""Two or more methods' training cost measured side by side: ``python -m rtsplat.bench.paired_cost``.
 
     python -m rtsplat.bench.paired_cost --config benchmarks/family.yaml \
         --prepared family/results/car-0/prepared family/results/shop_window-0/prepared --out /tmp/paired
