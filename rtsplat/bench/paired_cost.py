@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
             print(format_scene(results[-1], args.methods), flush=True)
             write(False)
         write(True)
-        for method in results[0]["ratios"] if results else ():
+        for method in results[0]["ratios"]:  # --prepared names at least one scene
             print(f"median ratio {method} / {args.methods[1]} of the training CPU seconds over "
                   f"{len(results)} scene(s): {statistics.median(r['ratios'][method] for r in results):.2f}")
         return 0
