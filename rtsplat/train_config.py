@@ -213,7 +213,10 @@ class LearningRates:
     position_final: float = setting(1.6e-6, help="surfel centres at position_max_steps (log-linear decay)",
                                     exclusiveMinimum=0.0)
     position_max_steps: int = setting(30000, help="iterations of the position decay", minimum=1)
-    sh_dc: float = setting(2e-3, help="SH DC coefficients (the rest: sh_dc / 20)", minimum=0.0)
+    sh_dc: float = setting(2e-3, help="SH DC coefficients", minimum=0.0)
+    sh_rest: float | None = setting(
+        None, help="SH coefficients of degree 1 and up (the view-dependent colour); null: sh_dc / 20, the 3DGS ratio",
+        minimum=0.0)
     occupancy: float = setting(0.05, help="occupancy logits", minimum=0.0)
     opacity: float = setting(0.05, help="optical opacity logits", minimum=0.0)
     scaling: float = setting(2e-2, help="log scales (4x the 2DGS rate: surfels reach their size in a short run)",

@@ -13,7 +13,7 @@ from rtsplat.train_config import LearningRates
 
 LR_OF = {
     "means": "position_init", "quats": "rotation", "log_scales": "scaling", "occupancy_logit": "occupancy",
-    "opacity_logit": "opacity", "sh_dc": "sh_dc", "sh_rest": "sh_dc", "scatter_logit": "scatter",
+    "opacity_logit": "opacity", "sh_dc": "sh_dc", "sh_rest": "sh_rest", "scatter_logit": "scatter",
     "transmissivity_logit": "transmissivity", "roughness_logit": "roughness", "material_raw": "material",
     "reflectance_logit": "reflectance",
 }
@@ -31,11 +31,11 @@ def learning_rate_key(group: str) -> str:
 
 
 def surfel_learning_rate(name: str, lr: LearningRates, extent: float) -> float:
+    if name == "sh_rest" and lr.sh_rest is None:
+        return lr.sh_dc / 20.0
     value = getattr(lr, LR_OF[name])
     if name == "means":
         value *= extent
-    if name == "sh_rest":
-        value /= 20.0
     return value
 
 
