@@ -4,16 +4,21 @@ from __future__ import annotations
 
 import pytest
 
-from rtsplat.bench.iteration import DEMO_OPTIONS, METHODS, method_options
+from rtsplat.bench.iteration import METHODS, demo_options, method_options
 from rtsplat.train_config import TrainConfig
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))
 def test_every_method_is_a_valid_config_with_the_demo_map(method):
     cfg = TrainConfig.from_dict(method_options(method))
-    # a method that sets a model option must keep the demo's map (method_options replaces whole sections)
+    # a method's options are merged key by key: one that sets a model, schedule or rate option keeps the demo's
+    # map, schedule and rates
+    demo = demo_options()
     assert (cfg.model.env_height, cfg.model.env_width, cfg.model.env_levels) == (128, 256, 7)
-    assert cfg.schedule.specular_from == DEMO_OPTIONS["schedule"]["specular_from"]
+    assert cfg.schedule.specular_from == demo["schedule"]["specular_from"] == 250
+    assert (cfg.lr.sh_dc, cfg.lr.sh_rest) == (demo["lr"]["sh_dc"], demo["lr"]["sh_rest"])
+    assert cfg.densify.prune_occupancy == demo["densify"]["prune_occupancy"]
+    assert (cfg.schedule.eval_every, cfg.schedule.checkpoint_every) == (0, 0)
 
 
 def test_the_width_method_halves_the_network_and_2dgs_turns_both_effects_off():
@@ -30,17 +35,30 @@ def test_the_one_effect_methods_keep_exactly_one_effect_whatever_the_scene(metho
     assert (effects.transmission, effects.specular) == expected
 
 
-def test_the_demo_options_are_demo_config_yaml_s_training_settings():
-    """The benchmark times the demo's training: its options build demo/config.yaml's trainer config, less the
-    evaluations, checkpoints and logging it switches off."""
-    from pathlib import Path
+def test_the_demo_options_are_read_from_demo_config_yaml(tmp_path, monkeypatch):
+    """The benchmark times the demo's training as demo/config.yaml sets it (a change there reaches every method),
+    less the evaluations, checkpoints and logging it switches off; ``--options`` merge key by key."""
+    import yaml
 
-    from rtsplat.config import load_config, trainer_options
+    import rtsplat.bench.iteration as bench
 
-    demo = load_config(Path(__file__).resolve().parent.parent / "demo" / "config.yaml")
-    ours = TrainConfig.from_dict(method_options("rtsplat")).to_dict()
-    theirs = TrainConfig.from_dict(trainer_options(demo, demo.scenes[0], "rtsplat")).to_dict()
-    for tree in (ours, theirs):
-        for key in ("eval_every", "checkpoint_every", "log_every"):
-            tree["schedule"].pop(key)
-    assert ours == theirs
+    demo = yaml.safe_load(bench.DEMO_CONFIG.read_text())
+    demo["defaults"]["train"]["options"]["lr"]["sh_dc"] = 0.003
+    demo["defaults"]["train"]["iterations"] = 500
+    changed = tmp_path / "config.yaml"
+    changed.write_text(yaml.safe_dump(demo))
+    monkeypatch.setattr(bench, "DEMO_CONFIG", changed)
+    for method in ("rtsplat", "2dgs", "rtsplat_near_planes"):
+        cfg = TrainConfig.from_dict(method_options(method, {"model": {"mlp_width": 64}}))
+        assert (cfg.lr.sh_dc, cfg.schedule.iterations, cfg.model.mlp_width, cfg.model.env_height) == (
+            0.003, 500, 64, 128)
+        assert cfg.schedule.eval_every == 0
+
+
+def test_a_missing_demo_config_is_a_clear_error(tmp_path, monkeypatch):
+    import rtsplat.bench.iteration as bench
+    from rtsplat.errors import PipelineError
+
+    monkeypatch.setattr(bench, "DEMO_CONFIG", tmp_path / "config.yaml")
+    with pytest.raises(PipelineError, match="demo/config.yaml"):
+        method_options("rtsplat")

@@ -1,10 +1,10 @@
 """Time of one training iteration, per phase: ``python -m rtsplat.bench.iteration --scene DIR``.
 
 Trains rtsplat and 2dgs (transmission and specular off) on a prepared scene at the demo's settings
-(demo/config.yaml: 750 iterations, 128x256 environment map with 7 levels, volume until 125, specular
-from 250, densification every 62 from 188 pruning below occupancy 0.2, SH degree up by one every
-125, the colours' rate 0.004, 0.0004 for their view-dependent part; evaluations, checkpoints and
-logging off). Each (checkout, method) pair runs in its own worker process. A process of the first
+(the training options of demo/config.yaml, read from the checkout this script belongs to: 750
+iterations, 128x256 environment map with 7 levels, the compressed schedule, its pruning and rates;
+evaluations, checkpoints and logging off). A method's options and ``--options`` are merged over them
+key by key. Each (checkout, method) pair runs in its own worker process. A process of the first
 checkout first trains ``--warmup`` iterations (default 300: past ``specular_from``, so the full
 model runs, at SH degree 2, after two densifications, so the surfel count is a trained one) and
 writes the training state; every worker loads it (so all start from the same model and the same C
@@ -45,15 +45,9 @@ import tempfile
 import time
 from pathlib import Path
 
-DEMO_OPTIONS = {
-    "model": {"env_height": 128, "env_width": 256, "env_levels": 7},
-    "schedule": {"iterations": 750, "volume_until": 125, "specular_from": 250, "densify_from": 188,
-                 "densify_every": 62, "reset_every": 0, "eval_every": 0, "checkpoint_every": 0,
-                 "sh_degree_every": 125, "log_every": 10**9},
-    "cameras": {"refine_from": 125},
-    "densify": {"prune_occupancy": 0.2},
-    "lr": {"sh_dc": 0.004, "sh_rest": 0.0004},
-}
+DEMO_CONFIG = Path(__file__).resolve().parents[2] / "demo" / "config.yaml"
+# what the demo's training writes that a timing run leaves out
+TIMING_SCHEDULE = {"eval_every": 0, "checkpoint_every": 0, "log_every": 10**9}
 METHODS = {
     "rtsplat": {},
     # near reflections forced on (their planes fitted at specular_from, inside the warm-up) and off
@@ -61,25 +55,25 @@ METHODS = {
     "rtsplat_no_near": {"effects": {"near_reflection": "off"}},
     # near reflections that read the reflected surfels without training them (no backward of the mirrored pass)
     "rtsplat_near_reads": {"effects": {"near_reflection": "on"},
-                           "model": {**DEMO_OPTIONS["model"], "near_reflection_trains_surfels": False}},
+                           "model": {"near_reflection_trains_surfels": False}},
     # near reflections whose mirror planes are learnt from the images (rtsplat.train.planes)
     "rtsplat_near_planes": {"effects": {"near_reflection": "on"},
                             "lr": {"mirror_plane_rotation": 3e-4, "mirror_plane_shift": 1e-4}},
     # the attenuation beta as the specular network's fourth output (the paper's) instead of the material's head
-    "rtsplat_paper_beta": {"model": {**DEMO_OPTIONS["model"], "attenuation_from": "network"}},
+    "rtsplat_paper_beta": {"model": {"attenuation_from": "network"}},
     # the specular network on every surface of the region of interest, opaque ones too (model.specular_surfaces
     # all; the default shades the see-through ones alone)
-    "rtsplat_all_surfaces": {"model": {**DEMO_OPTIONS["model"], "specular_surfaces": "all"}},
+    "rtsplat_all_surfaces": {"model": {"specular_surfaces": "all"}},
     # the specular network's matrix products in float32 and in bfloat16 (model.specular_precision)
-    "rtsplat_float32": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "float32"}},
-    "rtsplat_bfloat16": {"model": {**DEMO_OPTIONS["model"], "specular_precision": "bfloat16"}},
+    "rtsplat_float32": {"model": {"specular_precision": "float32"}},
+    "rtsplat_bfloat16": {"model": {"specular_precision": "bfloat16"}},
     # the specular network's hidden width halved (model.mlp_width)
-    "rtsplat_mlp128": {"model": {**DEMO_OPTIONS["model"], "mlp_width": 128}},
+    "rtsplat_mlp128": {"model": {"mlp_width": 128}},
     # the specular network's gradient through a quarter of the shaded pixels (schedule.specular_gradient_share)
-    "rtsplat_gradient_share": {"schedule": {**DEMO_OPTIONS["schedule"], "specular_gradient_share": 0.25}},
+    "rtsplat_gradient_share": {"schedule": {"specular_gradient_share": 0.25}},
     # the specular network on every pixel through the whole full stage (schedule.specular_coarse_share 0); the
     # default shades 2x2 blocks in the first half of the full stage, where the default warm-up (300) lands
-    "rtsplat_full_res_specular": {"schedule": {**DEMO_OPTIONS["schedule"], "specular_coarse_share": 0.0}},
+    "rtsplat_full_res_specular": {"schedule": {"specular_coarse_share": 0.0}},
     # one effect alone: transmission without the specular branch (no environment map, no network), and the
     # specular branch without transmission (Ref-GS-like); with 2dgs they split rtsplat's extra cost by effect
     "rtsplat_no_specular": {"effects": {"transmission": "on", "specular": "off"}},
@@ -172,8 +166,9 @@ def _worker(args) -> int:
         keep_freed_memory()
     sections = _Sections()
     _instrument(sections)
-    options = json.loads(args.options)
-    cfg = TrainConfig.from_dict(method_options(args.method, options))
+    # the parent merged the demo's options, the method's and --options (method_options): a worker's checkout
+    # may predate them
+    cfg = TrainConfig.from_dict(json.loads(args.options))
     scene = PreparedScene.load(args.scene)
     with tempfile.TemporaryDirectory(prefix="rtsplat_bench_iteration_") as tmp:
         trainer = Trainer(scene, cfg, tmp, progress=False, log=lambda m: None)
@@ -225,10 +220,25 @@ def _worker(args) -> int:
     return 0
 
 
+def demo_options() -> dict:
+    """The demo's training options (demo/config.yaml's ``rtsplat``, through :func:`rtsplat.config.trainer_options`)
+    with its evaluations, checkpoints and logging off (:data:`TIMING_SCHEDULE`)."""
+    from rtsplat.config import deep_merge, load_config, trainer_options
+    from rtsplat.errors import PipelineError
+
+    if not DEMO_CONFIG.is_file():
+        raise PipelineError(f"{DEMO_CONFIG} is missing: the benchmark times the demo's settings",
+                            fix="run it from a checkout of the repository (it reads demo/config.yaml)")
+    demo = load_config(DEMO_CONFIG)
+    return deep_merge(trainer_options(demo, demo.scenes[0], "rtsplat"), {"schedule": TIMING_SCHEDULE})
+
+
 def method_options(method: str, options: dict | None = None) -> dict:
-    """The training options a worker of ``method`` trains with: the demo's sections, then the method's, then
-    ``options`` (``--options``), each replacing a whole top-level section."""
-    return {**DEMO_OPTIONS, **METHODS[method], **(options or {})}
+    """The training options of ``method``: the demo's (:func:`demo_options`), the method's merged over them, then
+    ``options`` (``--options``), each merged key by key."""
+    from rtsplat.config import deep_merge
+
+    return deep_merge(deep_merge(demo_options(), METHODS[method]), options or {})
 
 
 def _check_methods(methods: list[str], given: str) -> None:
@@ -295,10 +305,10 @@ def main(argv: list[str] | None = None) -> int:
                                                                    flag="--state-dir"))
         if status:
             return status
-    options = json.loads(args.options)
-    if any(key in options for key in ("schedule", "model")):
-        merged = {k: {**DEMO_OPTIONS.get(k, {}), **v} if isinstance(v, dict) else v for k, v in options.items()}
-        args.options = json.dumps(merged)
+    extra, trees = json.loads(args.options), {}
+    status = run_command(parser.prog, lambda: trees.update({m: json.dumps(method_options(m, extra)) for m in methods}))
+    if status:
+        return status
 
     checkouts = [c.resolve() for c in (args.checkout or [Path(__file__).resolve().parents[2]])]
     workers: dict[tuple[int, str], CheckoutWorker] = {}
@@ -311,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     def start(checkout: Path, method: str) -> tuple[CheckoutWorker, dict]:
         w = CheckoutWorker(__file__, checkout, [
             "--worker", "--method", method, "--scene", str(args.scene), "--warmup", str(args.warmup),
-            "--options", args.options, "--state", str(args.state_dir / f"{method}.pt"),
+            "--options", trees[method], "--state", str(args.state_dir / f"{method}.pt"),
             "--threads", str(args.threads)], f"{method} @ {checkout}")
         return w, w.receive()
 
