@@ -1,9 +1,11 @@
 """Learnable equirectangular environment *feature* map with mip levels (Ref-GS "Sph-Mip").
 
 Sampled at a direction with trilinear filtering: bilinear inside two adjacent mip levels,
-linear between them; the mip level is ``roughness * levels``. Longitude wraps around (the map
-is padded circularly before sampling); latitude is clamped at the poles. Written in torch
-(``grid_sample``) instead of nvdiffrast.
+linear between them; the mip level is ``roughness * (levels - 1)``. Longitude wraps around (the
+columns' indices wrap); latitude is clamped at the poles. The mip levels are rows of one texel
+table (:class:`MipTable`); a lookup gathers its eight taps from it, in torch's ops
+(:meth:`EnvironmentMap.lookup_reference`, any device) or on the CPU in numba kernels with a
+hand-written backward (:class:`TrilinearLookup`), instead of nvdiffrast.
 
 Direction convention: world z is up; longitude phi = atan2(y, x) maps to the map's columns,
 colatitude theta = acos(z) to its rows (row 0 = +z).
@@ -13,9 +15,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from rtsplat.raster.numba_runtime import SURFEL_CHUNK, load_numba_module, numba_threads
 
 
 class EnvironmentMap(nn.Module):
@@ -116,25 +121,44 @@ class EnvironmentMap(nn.Module):
 
         Trilinear: the bilinear samples of levels ``floor(l)`` and ``floor(l) + 1`` (l = roughness x
         (levels - 1)) blended by the fraction of l. All eight taps of a sample are rows of one texel
-        table, so the forward is one gather and the backward one scatter into the table, whatever the
-        number of levels; levels above the largest one sampled are not built. ``table``: the texel
-        table of every level (:meth:`texel_table`) when the caller shares one between lookups of the
-        same map (a render's tracked and untracked pixels); its gradient, if any, is the caller's."""
+        table; levels above the largest one sampled are not built. ``table``: the texel table of every
+        level (:meth:`texel_table`) when the caller shares one between lookups of the same map (a render's
+        tracked and untracked pixels); its gradient, if any, is the caller's. On the CPU (float32 or float64,
+        numba installed) the lookup and its backward are numba kernels (:class:`TrilinearLookup`), with and
+        without autograd alike; elsewhere torch's ops (:meth:`lookup_reference`), which the kernels are tested
+        against."""
         u, v = self.direction_to_uv(directions)
         level = (roughness.clamp(0, 1) * (self.levels - 1)).reshape(-1)
+        if table is None:
+            table = self._lookup_table(self._levels_read(level))
+        if TrilinearLookup.applies(table, u, v, level):
+            out = TrilinearLookup.apply(table, u, v, level, self.level_layout)
+        else:
+            out = self.lookup_reference(table, u, v, level)
+        return out.to(directions.dtype)
+
+    def _levels_read(self, level: Tensor) -> int:
+        """How many levels (from the first) a lookup at mip ``level`` [M] reads: on the CPU up to the one above
+        the largest sampled; elsewhere all of them (finding the largest would wait for the device)."""
+        if level.device.type != "cpu":
+            return self.levels
+        if level.numel() == 0:
+            return 1
+        top = float(level.detach().max())
+        if not math.isfinite(top):
+            return self.levels
+        low = min(max(math.floor(top), 0), self.levels - 1)
+        return min(low + 1, self.levels - 1) + 1
+
+    def lookup_reference(self, table: Tensor, u: Tensor, v: Tensor, level: Tensor) -> Tensor:
+        """The trilinear lookup [M,C] of :meth:`forward` at (``u``, ``v``) and mip ``level`` [M] in torch's ops:
+        with autograd one gather of the eight taps from ``table`` (and one scatter into it backward), without it
+        the weighed taps written one by one."""
         lo = level.floor().clamp(0, self.levels - 1)
         frac = level - lo
         lo_i = lo.long()
         has_hi = lo_i + 1 < self.levels  # at the last level there is no next one: its taps weigh 0
         hi_i = torch.where(has_hi, lo_i + 1, lo_i)
-        # on the CPU only the levels some sample reads are built (the pyramid is rebuilt every call);
-        # elsewhere finding the highest one would wait for the device, so all are built
-        if table is None:
-            if u.device.type == "cpu":
-                count = int(hi_i.max()) + 1 if hi_i.numel() else 1
-            else:
-                count = self.levels
-            table = self._lookup_table(count)
         info = self.level_layout.to(u.device)  # [levels, 3]: first row, H, W
         stacked = torch.is_grad_enabled()
         rows, weights = [], []
@@ -154,11 +178,11 @@ class EnvironmentMap(nn.Module):
             taps = table.new_empty(u.shape[0], len(rows), table.shape[1])
             for k, (r, w) in enumerate(zip(rows, weights, strict=True)):
                 torch.mul(table.index_select(0, r), w.to(table.dtype)[:, None], out=taps[:, k])
-            return taps.sum(1).to(directions.dtype)
+            return taps.sum(1)
         rows = torch.cat(rows, 1)  # [M, 8]
         weights = torch.cat(weights, 1).to(table.dtype)
         taps = table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, table.shape[1])  # [M, 8, C]
-        return (taps * weights[:, :, None]).sum(1).to(directions.dtype)
+        return (taps * weights[:, :, None]).sum(1)
 
     def _lookup_table(self, count: int) -> Tensor:
         """:meth:`texel_table` of ``count`` levels; without autograd it is kept and reused until the map
@@ -223,6 +247,67 @@ class MipTable(torch.autograd.Function):
                                                             [0, 0], True, True, None)
                 fine.add_(spread[0].permute(1, 2, 0))
         return level_grads[0].permute(2, 0, 1)[None], None
+
+
+class TrilinearLookup(torch.autograd.Function):
+    """The environment map's trilinear lookup on the CPU: ``table`` [T,C] (the texel table of
+    :meth:`EnvironmentMap.texel_table`), samples at (``u``, ``v``) and mip ``level`` [M], ``layout`` [levels, 3]
+    (first row, H, W of every level) -> [M,C] in the table's type, by the numba kernels of
+    :mod:`rtsplat.model.envmap_kernels`. The values and gradients (of the table, u, v and the level) are those of
+    :meth:`EnvironmentMap.lookup_reference` up to rounding (float64 arithmetic here), in about half its time
+    forward and backward (docs/performance.md, "The environment lookup in numba"). A sample with a non-finite
+    coordinate gives NaN and reads no texel."""
+
+    @staticmethod
+    def applies(table: Tensor, u: Tensor, v: Tensor, level: Tensor) -> bool:
+        """Whether the kernels take this lookup: CPU tensors, a float32 or float64 table, numba installed."""
+        if any(t.device.type != "cpu" for t in (table, u, v, level)):
+            return False
+        if table.dtype not in (torch.float32, torch.float64) or table.dim() != 2:
+            return False
+        return load_numba_module("rtsplat.model.envmap_kernels") is not None
+
+    @staticmethod
+    def forward(ctx, table: Tensor, u: Tensor, v: Tensor, level: Tensor, layout: Tensor) -> Tensor:
+        kernels = load_numba_module("rtsplat.model.envmap_kernels")
+        m = u.shape[0]
+        taps = kernels.TAPS
+        rows = np.empty((m, taps), dtype=np.int64)
+        weights, d_u, d_v, d_level = (np.empty((m, taps), dtype=np.float64) for _ in range(4))
+        out = torch.empty(m, table.shape[1], dtype=table.dtype)
+        data = table.detach().contiguous()
+        with numba_threads(SURFEL_CHUNK):
+            kernels.lookup_forward_kernel(data.numpy(), layout.to("cpu", torch.int64).numpy(), _samples(u),
+                                          _samples(v), _samples(level), rows, weights, d_u, d_v, d_level,
+                                          out.numpy())
+        ctx.save_for_backward(data)
+        ctx.taps = (rows, weights, d_u, d_v, d_level)
+        ctx.sample_dtypes = (u.dtype, v.dtype, level.dtype)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        kernels = load_numba_module("rtsplat.model.envmap_kernels")
+        (table,) = ctx.saved_tensors
+        rows, weights, d_u, d_v, d_level = ctx.taps
+        g = grad.to(table.dtype).contiguous().numpy()
+        g_table = g_u = g_v = g_level = None
+        if ctx.needs_input_grad[0]:
+            g_table = torch.zeros_like(table)
+            kernels.lookup_table_grad_kernel(g, rows, weights, g_table.numpy())
+        if any(ctx.needs_input_grad[1:4]):
+            sample = np.empty((3, rows.shape[0]), dtype=np.float64)
+            with numba_threads(SURFEL_CHUNK):
+                kernels.lookup_sample_grad_kernel(table.numpy(), g, rows, d_u, d_v, d_level, *sample)
+            g_u, g_v, g_level = (torch.from_numpy(s).to(dtype) for s, dtype in zip(sample, ctx.sample_dtypes,
+                                                                                  strict=True))
+        return g_table, g_u, g_v, g_level, None
+
+
+def _samples(t: Tensor) -> np.ndarray:
+    """A sample coordinate [M] as a contiguous numpy array of its own float type."""
+    return t.detach().contiguous().numpy()
 
 
 def level_layout(height: int, width: int, levels: int) -> list[tuple[int, int, int]]:
