@@ -254,9 +254,9 @@ class TrilinearLookup(torch.autograd.Function):
     :meth:`EnvironmentMap.texel_table`), samples at (``u``, ``v``) and mip ``level`` [M], ``layout`` [levels, 3]
     (first row, H, W of every level) -> [M,C] in the table's type, by the numba kernels of
     :mod:`rtsplat.model.envmap_kernels`. The values and gradients (of the table, u, v and the level) are those of
-    :meth:`EnvironmentMap.lookup_reference` up to rounding (float64 arithmetic here), in about half its time
-    forward and backward (docs/performance.md, "The environment lookup in numba"). A sample with a non-finite
-    coordinate gives NaN and reads no texel."""
+    :meth:`EnvironmentMap.lookup_reference` up to rounding (float64 arithmetic here), in a half to two thirds of
+    its time forward and backward (docs/performance.md, "The environment lookup in numba"). A sample with a
+    non-finite coordinate gives NaN and reads no texel."""
 
     @staticmethod
     def applies(table: Tensor, u: Tensor, v: Tensor, level: Tensor) -> bool:
