@@ -135,13 +135,17 @@ class Schedule:
         None, help="the share of the shaded pixels of a training render through which the specular network's "
         "gradient flows, drawn afresh each iteration; the others get the same colour without autograd, and the "
         "sampled pixels' gradient is scaled by 1/share, so that its expected value is the full gradient. The "
-        "rendered images and the loss are unchanged. On the CPU this saves the backward of the network and of the "
-        "environment lookup for the others: an iteration of the family's car-0 took 0.85x the time at 0.25, "
+        "rendered images and the loss are unchanged. On a CPU without AMX (an AMD EPYC) this saves the backward of "
+        "the network and of the environment lookup for the others: an iteration of the family's car-0 took 0.85x "
+        "the time at 0.25, "
         "which a time budget turns into more iterations (ahead by 0.21 dB median in the transparent region on "
         "the tuning scenes, two seeds), while at a fixed iteration count the noisier gradient lost about 0.2 dB "
         "(docs/benchmarks.md). On a GPU every pixel is evaluated with autograd and the others' gradient is masked, "
-        "which saves nothing. null: 0.25 for a training on the CPU with a time budget (seconds), else 1 (every "
-        "pixel, the exact gradient)", exclusiveMinimum=0.0, maximum=1.0
+        "which saves nothing. On a CPU with AMX tiles the network's bfloat16 products are cheap and the sampled "
+        "render cost more than it saved (a time-budgeted run made about 10% fewer iterations at 0.25, and every "
+        "pixel gained 0.19 / 0.14 dB at equal time on the seed-0 tuning scenes; docs/benchmarks.md, \"The specular "
+        "gradient's share on a CPU with AMX\"). null: 0.25 for a training on a CPU without AMX tiles with a time "
+        "budget (seconds), else 1 (every pixel, the exact gradient)", exclusiveMinimum=0.0, maximum=1.0
     )
     log_every: int = setting(10, help="a train_log.jsonl line every N iterations (a logging rate, not scaled by "
                              "budget)", minimum=1)
@@ -163,12 +167,13 @@ class Schedule:
         """The last iteration of the background-only phase (joint optimization off)."""
         return self._or_half_run(self.separate_background_until)
 
-    def resolved_specular_gradient_share(self, on_cpu: bool) -> float:
-        """The specular gradient's share of every training render (:attr:`specular_gradient_share`, or
-        its default: 0.25 for a training on the CPU (``on_cpu``) with a time budget, else 1)."""
+    def resolved_specular_gradient_share(self, sampling_saves_time: bool) -> float:
+        """The specular gradient's share of every training render (:attr:`specular_gradient_share`, or its
+        default: 0.25 for a training with a time budget where sampling saves time (``sampling_saves_time``: the
+        trainer's device is a CPU without AMX tiles), else 1)."""
         if self.specular_gradient_share is not None:
             return self.specular_gradient_share
-        return BUDGETED_SPECULAR_GRADIENT_SHARE if on_cpu and self.seconds is not None else 1.0
+        return BUDGETED_SPECULAR_GRADIENT_SHARE if sampling_saves_time and self.seconds is not None else 1.0
 
     def specular_weight_at(self, iteration: int) -> float:
         """The specular branch's weight at the plan's ``iteration`` (:attr:`specular_fade`): 0 up to

@@ -24,6 +24,7 @@ from rtsplat.model.appearance import apply_appearance
 from rtsplat.model.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
 from rtsplat.model.mirror import empty_planes, is_bent
 from rtsplat.model.rtmodel import RenderResult, RTModel
+from rtsplat.model.specular import cpu_has_amx_tiles
 from rtsplat.model.surfels import (
     PARAMETERS,
     SurfelParameters,
@@ -116,7 +117,8 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.rng = torch.Generator().manual_seed(cfg.seed)
         # the share of the shaded pixels through which the specular network's gradient flows in training renders
-        self.specular_gradient_share = cfg.schedule.resolved_specular_gradient_share(self.device.type == "cpu")
+        self.specular_gradient_share = cfg.schedule.resolved_specular_gradient_share(
+            self.device.type == "cpu" and not cpu_has_amx_tiles())
         self.train_views = load_views(scene, "train", self.device, cfg.train_downsample)
         # the progressive resolution's coarser copies of the training views, by factor (1: train_views)
         self.train_levels = {factor: self._coarse_views(factor) for factor in cfg.schedule.downsample_levels()}
