@@ -1,11 +1,11 @@
 """Numba kernel of the learned background's lookup without autograd (:meth:`rtsplat.model.background.
 BackgroundMap.forward` on CPU tensors under ``torch.no_grad``/``inference_mode``).
 
-Imported lazily (through :func:`rtsplat.raster.numba_runtime.load_numba_module`), never by ``import rtsplat``.
-One sample per parallel iteration; every operation is the one the torch lookup does, in the arrays'
-float type and in the same order (no fused multiply-add: ``fastmath`` off), so the logits are the same
-bits: per level the bilinear taps of :meth:`rtsplat.model.envmap.EnvironmentMap._bilinear_taps`
-(x = u W - 0.5, y = v H - 0.5, floor, fractions, columns wrapped, rows clamped, weights (1 - fx)(1 - fy),
+Imported lazily (through :func:`rtsplat.raster.numba_runtime.load_numba_module`), never by ``import rtsplat``. One
+sample per parallel iteration; every operation is the one the torch lookup does, in the arrays' float type and in the
+same order (no fused multiply-add: ``fastmath`` off), so the logits are the same bits: per level the bilinear taps of
+:meth:`rtsplat.model.envmap.EnvironmentMap._bilinear_taps` (:func:`rtsplat.model.bilinear_kernels.bilinear_cell`:
+x = u W - 0.5, y = v H - 0.5, floor, fractions, columns wrapped, rows clamped; weights (1 - fx)(1 - fy),
 fx (1 - fy), (1 - fx) fy, fx fy), the four weighed taps added in turn
 (:meth:`~rtsplat.model.envmap.EnvironmentMap.sample_level`), and the levels added in turn onto 0.
 """
@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
+
+from rtsplat.model.bilinear_kernels import bilinear_cell
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 
@@ -39,29 +41,14 @@ def background_logits_kernel(table, first, sizes, u, v, consts, out):
         a1 = zero
         a2 = zero
         for lev in range(n_levels):
-            H = sizes[lev, 0]
-            W = sizes[lev, 1]
-            Hi = np.int64(H)
-            Wi = np.int64(W)
-            x = um * W - half
-            y = vm * H - half
-            x0 = np.floor(x)
-            y0 = np.floor(y)
-            fx = x - x0
-            fy = y - y0
-            xi = np.int64(x0)
-            yi = np.int64(y0)
-            ya = min(max(yi, 0), Hi - 1) * Wi
-            yb = min(max(yi + 1, 0), Hi - 1) * Wi
-            xa = xi % Wi
-            xb = (xi + 1) % Wi
             base = first[lev]
-            r0 = base + ya + xa
-            r1 = base + ya + xb
-            r2 = base + yb + xa
-            r3 = base + yb + xb
-            gx = one - fx
-            gy = one - fy
+            o0, o1, o2, o3, fx, fy, gx, gy = bilinear_cell(
+                um, vm, sizes[lev, 0], sizes[lev, 1], np.int64(sizes[lev, 0]), np.int64(sizes[lev, 1]), half, one
+            )
+            r0 = base + o0
+            r1 = base + o1
+            r2 = base + o2
+            r3 = base + o3
             w0 = gx * gy
             w1 = fx * gy
             w2 = gx * fy

@@ -1,11 +1,12 @@
 """Numba kernels of the environment map's trilinear lookup on the CPU (:class:`rtsplat.model.envmap.TrilinearLookup`).
 
-Imported lazily (through :func:`rtsplat.raster.numba_runtime.load_numba_module`), never by ``import rtsplat``.
-The lookup is :meth:`rtsplat.model.envmap.EnvironmentMap.lookup_reference`'s, sample by sample: the mip level
-``l`` (roughness x (levels - 1)) picks levels ``lo = floor(l)`` (clamped to the last) and ``lo + 1`` (weight 0
-past the last), blended by ``l - lo``; in each level the bilinear taps of
-:meth:`~rtsplat.model.envmap.EnvironmentMap._bilinear_taps` (x = u W - 0.5, y = v H - 0.5, columns wrapped,
-rows clamped). The arithmetic is float64 (the inputs read exactly), the output in the table's type.
+Imported lazily (through :func:`rtsplat.raster.numba_runtime.load_numba_module`), never by ``import rtsplat``. The
+lookup is :meth:`rtsplat.model.envmap.EnvironmentMap.lookup_reference`'s, sample by sample: the mip level ``l``
+(roughness x (levels - 1)) picks levels ``lo = floor(l)`` (clamped to the last) and ``lo + 1`` (weight 0 past the
+last), blended by ``l - lo``; in each level the bilinear taps of
+:meth:`~rtsplat.model.envmap.EnvironmentMap._bilinear_taps` (:func:`rtsplat.model.bilinear_kernels.bilinear_cell`:
+x = u W - 0.5, y = v H - 0.5, columns wrapped, rows clamped). The arithmetic is float64 (the inputs read exactly),
+the output in the table's type.
 
 Per sample the forward keeps the eight taps' table rows, weights and the weights' derivatives with respect to
 u, v and l, from which the backward gives the gradients of the samples (one sample per parallel iteration)
@@ -19,6 +20,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from rtsplat.model.bilinear_kernels import bilinear_cell
+
 _JIT = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 TAPS = 8  # four bilinear taps in each of two levels
 
@@ -30,24 +33,11 @@ def _level_taps(layout, index, u, v, blend, dblend, m, slot, rows, weights, d_u,
     first = layout[index, 0]
     h = layout[index, 1]
     w = layout[index, 2]
-    x = u * w - 0.5
-    y = v * h - 0.5
-    x0 = math.floor(x)
-    y0 = math.floor(y)
-    fx = x - x0
-    fy = y - y0
-    xi = np.int64(x0)
-    yi = np.int64(y0)
-    ya = min(max(yi, 0), h - 1) * w
-    yb = min(max(yi + 1, 0), h - 1) * w
-    xa = xi % w
-    xb = (xi + 1) % w
-    gx = 1.0 - fx
-    gy = 1.0 - fy
-    rows[m, slot] = first + ya + xa
-    rows[m, slot + 1] = first + ya + xb
-    rows[m, slot + 2] = first + yb + xa
-    rows[m, slot + 3] = first + yb + xb
+    o0, o1, o2, o3, fx, fy, gx, gy = bilinear_cell(u, v, np.float64(h), np.float64(w), h, w, 0.5, 1.0)
+    rows[m, slot] = first + o0
+    rows[m, slot + 1] = first + o1
+    rows[m, slot + 2] = first + o2
+    rows[m, slot + 3] = first + o3
     bil0 = gx * gy
     bil1 = fx * gy
     bil2 = gx * fy
