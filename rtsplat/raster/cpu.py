@@ -24,12 +24,14 @@ The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
   only those pixels get the exact geometry (two divisions) and composite it, so the outputs are
   those of the exact test alone, bit for bit;
 * backward: hand written, no autograd graph over pixel x surfel pairs. It replays each pixel's
-  traversal front to back (again block by block) and uses the forward totals to get the suffix
+  traversal front to back (again tile by tile, the tile's entries packed and listed per block as in the
+  forward, and block by block; the pixel's image gradient and totals copied into the block's scratch
+  once) and uses the forward totals to get the suffix
   sums (dL/da_i = q_i T_i - (Q - prefix_i) / (1 - a_i)); the gradient of one entry is summed over
   the block's pixels, then added to one per-surfel buffer per thread (threads never race), and the
   buffers are summed over threads at the end;
-* all kernels run in parallel (numba ``prange``: the forward over tiles in chunks of
-  ``TILE_CHUNK``, the backward over 4x4 pixel blocks in chunks of ``CHUNK``, over surfels in chunks
+* all kernels run in parallel (numba ``prange``: the forward and the backward over tiles in chunks of
+  ``TILE_CHUNK``, the tiles' entry lists in chunks of ``CHUNK`` tiles, over surfels in chunks
   of ``SURFEL_CHUNK``, all in :mod:`rtsplat.raster.numba_runtime`,
   with the compile cache and the kernel-module import: with chunks of 4, scheduling cost the
   per-surfel kernels more than their work), with as many threads as ``torch.get_num_threads()``; all arithmetic is
@@ -37,7 +39,7 @@ The compositing is one ``torch.autograd.Function`` (:class:`_Composite`):
   float32 or float64 as it comes; outputs and gradients are returned in the input dtype).
   numba's ``workqueue`` threading layer (the one :mod:`rtsplat.raster.numba_runtime` picks) does not
   hand out chunks on demand: it splits a loop's chunks into one contiguous run per thread. So the
-  forward visits the tiles in a spread order (:func:`~rtsplat.raster.cpu_kernels.spread_order`:
+  forward and the backward visit the tiles in a spread order (:func:`~rtsplat.raster.cpu_kernels.spread_order`:
   with 2 threads one takes the even tiles, the other the odd ones) instead of row by row, where the
   thread with the lower half of the dome's 320x240 frame had 60-64% of the work; each tile writes only
   its own pixels, so the outputs do not depend on the order;
@@ -192,7 +194,7 @@ class _Composite(torch.autograd.Function):
         if grad_image is None or not any(ctx.needs_input_grad[:6]):
             return (None,) * 8
         grad = _np_float(grad_image.reshape(width * height, fc + 9))
-        with numba_threads() as threads:
+        with numba_threads(TILE_CHUNK) as threads:
             acc = np.zeros((threads, n, 16 + fc), dtype=np.float64)
             _kernels.backward_kernel(*arrays, *scalars, *lists, out, stats, n_done, median_k, grad, acc)
         if threads > 1:

@@ -16,8 +16,8 @@ inputs (projected by :mod:`rtsplat.raster.projection`):
   :func:`tile_entries_kernel` keeps per tile the entries whose box meets it (``keep``/``n_keep``),
   then each 4x4 pixel block of the tile the entries whose box meets the block (``n_done`` counts
   positions in that block list), and each pixel skips entries whose box it is outside of. The
-  parallel work unit of the forward is one tile (its blocks one after the other, so that the tile's
-  packed entries stay in cache), that of the backward one 4x4 block.
+  parallel work unit of the forward and of the backward is one tile (its blocks one after the other, so
+  that the tile's packed entries stay in cache).
 
 Per pixel output row (``out`` [H*W, Fc+9]), the layout of the reference backend:
 ``feats (Fc) | alpha | depth_sum | depth_median | distortion | color (3) | volume_alpha | volume_depth_sum``.
@@ -209,26 +209,6 @@ def tile_entries_kernel(ids, boxes, tile_start, tile_count, tiles_x, tile_size, 
 BLOCK = 4  # pixels per side of the sub-tile blocks whose entry lists each pixel scans
 
 
-@njit(inline="always", **_JIT)
-def _block_list(ids, boxes, start, keep, nk, tx0, ty0, tile_size, bx, by):
-    """The tile entries (list positions relative to ``start``, depth order kept) whose box meets pixel
-    block (bx, by) of the tile, and their count. A pixel scans only its block's list, so the long lists of
-    small tiles full of small surfels are not walked once per pixel."""
-    lo_y = ty0 + by * BLOCK + 0.5
-    hi_y = ty0 + min((by + 1) * BLOCK, tile_size) - 0.5
-    lo_x = tx0 + bx * BLOCK + 0.5
-    hi_x = tx0 + min((bx + 1) * BLOCK, tile_size) - 0.5
-    lst = np.empty(max(nk, 1), dtype=np.int64)
-    n = 0
-    for j in range(nk):
-        k = keep[start + j]
-        i = ids[start + k]
-        if boxes[i, 1] >= lo_x and boxes[i, 0] <= hi_x and boxes[i, 3] >= lo_y and boxes[i, 2] <= hi_y:
-            lst[n] = k
-            n += 1
-    return lst, n
-
-
 NPIX = BLOCK * BLOCK
 
 
@@ -257,70 +237,12 @@ def _block_pixels(tx0, ty0, tile_size, bx, by, width, height):
 
 
 @njit(inline="always", **_JIT)
-def _unit_block(unit, nbx, tiles_x, tile_size, width, height, tile_start, n_keep, keep, ids, boxes):
-    """Work unit ``unit`` (tile-major, nbx x nbx blocks per tile): the tile's first pair, its block's
-    pixels (coordinates, flat indices, count; 0 for an empty tile or block) and entry list."""
-    nb2 = nbx * nbx
-    t = unit // nb2
-    start = tile_start[t]
-    tx0 = (t % tiles_x) * tile_size
-    ty0 = (t // tiles_x) * tile_size
-    by = (unit - t * nb2) // nbx
-    bx = (unit - t * nb2) - by * nbx
-    pxs, pys, pixs, npx = _block_pixels(tx0, ty0, tile_size, bx, by, width, height)
-    nk = n_keep[t]
-    if nk == 0:
-        npx = 0
-    lst, n_scan = _block_list(ids, boxes, start, keep, nk if npx > 0 else 0, tx0, ty0, tile_size, bx, by)
-    return start, pxs, pys, pixs, npx, lst, n_scan
-
-
-@njit(inline="always", **_JIT)
 def _geometry_buffers():
-    """Per-pixel scratch of one block for :func:`_entry_geometry`: rho, z, u, v, p2 (float64) and
+    """Per-pixel scratch of one block for :func:`_packed_entry_geometry`: rho, z, u, v, p2 (float64) and
     contributes, use-plane, plane-defined (bool)."""
     return (np.empty(NPIX, dtype=np.float64), np.empty(NPIX, dtype=np.float64), np.empty(NPIX, dtype=np.float64),
             np.empty(NPIX, dtype=np.float64), np.empty(NPIX, dtype=np.float64), np.empty(NPIX, dtype=np.bool_),
             np.empty(NPIX, dtype=np.bool_), np.empty(NPIX, dtype=np.bool_))
-
-
-@njit(inline="always", **_JIT)
-def _entry_geometry(M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
-                    rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b):
-    """The ray-splat geometry of surfel ``i`` at the block's ``npx`` pixels, in one branch-free loop
-    (:func:`_eval_pair`), into the per-pixel buffers; ``ok_b``: inside its box, rho within its cut-off
-    and in front of ``near``. Returns the surfel's ray transform (m0..m8)."""
-    b0 = boxes[i, 0]
-    b1 = boxes[i, 1]
-    b2 = boxes[i, 2]
-    b3 = boxes[i, 3]
-    cut = rho_cut[i]
-    m0 = M[i, 0]
-    m1 = M[i, 1]
-    m2 = M[i, 2]
-    m3 = M[i, 3]
-    m4 = M[i, 4]
-    m5 = M[i, 5]
-    m6 = M[i, 6]
-    m7 = M[i, 7]
-    m8 = M[i, 8]
-    cx = centers[i, 0]
-    cy = centers[i, 1]
-    for p in range(npx):
-        px = pxs[p]
-        py = pys[p]
-        z, rho, use_plane, plane_ok, u, v, p2 = _eval_pair(
-            m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
-        )
-        rho_b[p] = rho
-        z_b[p] = z
-        u_b[p] = u
-        v_b[p] = v
-        p2_b[p] = p2
-        plane_b[p] = use_plane
-        plane_ok_b[p] = plane_ok
-        ok_b[p] = not ((px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near)))
-    return m0, m1, m2, m3, m4, m5, m6, m7, m8
 
 
 # Packed entry row of the forward (one per kept entry of a tile, in depth order, read sequentially by
@@ -348,8 +270,7 @@ def _pack_tile(M, centers, occ, opa, ids, boxes, rho_cut, keep, start, nk, pk):
 @njit(inline="always", **_JIT)
 def _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts):
     """Per block b of the tile, ``lists[b, :counts[b]]``: the kept entries (rows of ``pk``, depth order
-    kept) whose box meets the block, in one pass over the tile's entries; the same lists (same box test)
-    as :func:`_block_list` builds block by block."""
+    kept) whose box meets the block, in one pass over the tile's entries."""
     for b in range(nbx * nbx):
         counts[b] = 0
     for j in range(nk):
@@ -377,6 +298,83 @@ def _packed_geometry(pk, j):
     return (pk[j, P_BOX], pk[j, P_BOX + 1], pk[j, P_BOX + 2], pk[j, P_BOX + 3], pk[j, P_M], pk[j, P_M + 1],
             pk[j, P_M + 2], pk[j, P_M + 3], pk[j, P_M + 4], pk[j, P_M + 5], pk[j, P_M + 6], pk[j, P_M + 7],
             pk[j, P_M + 8], pk[j, P_CENTER], pk[j, P_CENTER + 1], pk[j, P_CUT])
+
+
+@njit(inline="always", **_JIT)
+def _packed_entry_geometry(pk, j, pxs, pys, npx, near, lowpass, edge_on_ratio,
+                           rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b):
+    """The ray-splat geometry of packed entry ``j`` at the block's ``npx`` pixels, in one branch-free loop
+    (:func:`_eval_pair`), into the per-pixel buffers; ``ok_b``: inside its box, rho within its cut-off
+    and in front of ``near``. Returns the entry's ray transform (m0..m8)."""
+    b0, b1, b2, b3, m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, cut = _packed_geometry(pk, j)
+    for p in range(npx):
+        px = pxs[p]
+        py = pys[p]
+        z, rho, use_plane, plane_ok, u, v, p2 = _eval_pair(
+            m0, m1, m2, m3, m4, m5, m6, m7, m8, cx, cy, px, py, lowpass, edge_on_ratio
+        )
+        rho_b[p] = rho
+        z_b[p] = z
+        u_b[p] = u
+        v_b[p] = v
+        p2_b[p] = p2
+        plane_b[p] = use_plane
+        plane_ok_b[p] = plane_ok
+        ok_b[p] = not ((px < b0) | (px > b1) | (py < b2) | (py > b3) | (rho > cut) | (not (z >= near)))
+    return m0, m1, m2, m3, m4, m5, m6, m7, m8
+
+
+# Rows of the backward's per-pixel terms (:func:`_block_gradient_terms`): the image gradient of the alpha,
+# depth sum, median depth, distortion, colour (3), volume alpha and volume depth sum, and the forward totals
+# A, S1, S2 that the distortion's gradient reads.
+T_ALPHA, T_DSUM, T_MEDIAN, T_DIST, T_C0, T_C1, T_C2, T_VALPHA, T_VDSUM, T_A, T_S1, T_S2, N_TERMS = range(13)
+
+
+@njit(inline="always", **_JIT)
+def _block_gradient_terms(out, stats, n_done, median_k, grad_out, fc, pixs, npx, st, live, limit, terms, g_feat,
+                          median_b):
+    """Set up the backward of one block: per pixel ``p`` the sums Q_s, Q_v of q_k w_k of both weight sets
+    from the forward totals (``st[0:2]``), the prefix sums (``st[2:4]``) and transmittances (``st[4:6]``)
+    reset, both sets live, the walk's length ``limit``, and the pixel's image gradient and totals copied
+    into ``terms`` (rows ``T_*``), ``g_feat`` [NPIX, fc] and ``median_b``, where the entry loop reads them.
+    Returns the longest walk of the block."""
+    n_run = 0
+    for p in range(npx):
+        pix = pixs[p]
+        A = out[pix, fc]
+        S1 = stats[pix, 0]
+        S2 = stats[pix, 1]
+        Q_s = (
+            grad_out[pix, fc] * A
+            + grad_out[pix, fc + 1] * out[pix, fc + 1]
+            + grad_out[pix, fc + 3] * 2.0 * (A * S2 - S1 * S1)
+        )
+        for c in range(fc):
+            Q_s += grad_out[pix, c] * out[pix, c]
+            g_feat[p, c] = grad_out[pix, c]
+        st[0, p] = Q_s
+        st[1, p] = (
+            grad_out[pix, fc + 4] * out[pix, fc + 4]
+            + grad_out[pix, fc + 5] * out[pix, fc + 5]
+            + grad_out[pix, fc + 6] * out[pix, fc + 6]
+            + grad_out[pix, fc + 7] * out[pix, fc + 7]
+            + grad_out[pix, fc + 8] * out[pix, fc + 8]
+        )
+        st[2, p] = 0.0
+        st[3, p] = 0.0
+        st[4, p] = 1.0
+        st[5, p] = 1.0
+        live[0, p] = True
+        live[1, p] = True
+        for r in range(T_A):  # the image gradient's rows, in the output row's order
+            terms[r, p] = grad_out[pix, fc + r]
+        terms[T_A, p] = A
+        terms[T_S1, p] = S1
+        terms[T_S2, p] = S2
+        median_b[p] = median_k[pix]
+        limit[p] = n_done[pix]
+        n_run = max(n_run, limit[p])
+    return n_run
 
 
 REACH_MARGIN = 1e-12  # relative margin of :func:`_entry_reach`'s test over the exact rho test's rounding
@@ -649,7 +647,9 @@ def backward_kernel(
     grad_out,
     acc,
 ):
-    """Accumulate dL/d(per-surfel inputs), replaying the forward front to back per 4x4 block.
+    """Accumulate dL/d(per-surfel inputs), replaying the forward front to back per 4x4 block. One tile per
+    work unit, as in the forward: its kept entries packed (:func:`_pack_tile`) and listed per block
+    (:func:`_tile_block_lists`), the lists the forward walked.
 
     For one weight set with weights w_k = a_k T_k and a per-pixel loss whose partial derivative
     with respect to w_k is q_k, dL/da_i = q_i T_i - (sum_{k>i} q_k w_k) / (1 - a_i); the suffix sum
@@ -662,175 +662,172 @@ def backward_kernel(
     ndc_scale = far / (far - near)
     nbx = (tile_size + BLOCK - 1) // BLOCK
     nb2 = nbx * nbx
-    for unit in prange(n_tiles * nb2):
-        start, pxs, pys, pixs, npx, lst, n_scan = _unit_block(
-            unit, nbx, tiles_x, tile_size, width, height, tile_start, n_keep, keep, ids, boxes
-        )
-        if npx == 0:
+    order = spread_order(n_tiles)  # as in the forward: each thread's contiguous run from all over the image
+    for u in prange(n_tiles):
+        t = order[u]
+        nk = n_keep[t]
+        if nk == 0:
             continue
+        start = tile_start[t]
+        tx0 = (t % tiles_x) * tile_size
+        ty0 = (t // tiles_x) * tile_size
+        pk = np.empty((nk, PACK), dtype=np.float64)
+        _pack_tile(M, centers, occ, opa, ids, boxes, rho_cut, keep, start, nk, pk)
+        lists = np.empty((nb2, nk), dtype=np.int32)  # positions in the tile's kept entries
+        counts = np.empty(nb2, dtype=np.int64)
+        _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts)
         tid = get_thread_id()
         rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b = _geometry_buffers()
-        # per pixel: Q_s Q_v P_s P_v T_s T_v
-        st = np.zeros((6, NPIX), dtype=np.float64)
-        live = np.ones((2, NPIX), dtype=np.bool_)
-        limit = np.zeros(NPIX, dtype=np.int64)
+        st = np.empty((6, NPIX), dtype=np.float64)  # per pixel: Q_s Q_v P_s P_v T_s T_v
+        live = np.empty((2, NPIX), dtype=np.bool_)
+        limit = np.empty(NPIX, dtype=np.int64)
+        terms = np.empty((N_TERMS, NPIX), dtype=np.float64)
+        g_feat = np.empty((NPIX, max(fc, 1)), dtype=np.float64)
+        median_b = np.empty(NPIX, dtype=np.int64)
         eg = np.zeros(n_grad, dtype=np.float64)
-        n_run = 0
-        for p in range(npx):
-            pix = pixs[p]
-            A = out[pix, fc]
-            S1 = stats[pix, 0]
-            S2 = stats[pix, 1]
-            Q_s = (
-                grad_out[pix, fc] * A
-                + grad_out[pix, fc + 1] * out[pix, fc + 1]
-                + grad_out[pix, fc + 3] * 2.0 * (A * S2 - S1 * S1)
-            )
-            for c in range(fc):
-                Q_s += grad_out[pix, c] * out[pix, c]
-            st[0, p] = Q_s
-            st[1, p] = (
-                grad_out[pix, fc + 4] * out[pix, fc + 4]
-                + grad_out[pix, fc + 5] * out[pix, fc + 5]
-                + grad_out[pix, fc + 6] * out[pix, fc + 6]
-                + grad_out[pix, fc + 7] * out[pix, fc + 7]
-                + grad_out[pix, fc + 8] * out[pix, fc + 8]
-            )
-            st[4, p] = 1.0
-            st[5, p] = 1.0
-            limit[p] = n_done[pix]
-            n_run = max(n_run, limit[p])
-        for j in range(n_run):
-            k = lst[j]
-            i = ids[start + k]
-            m0, m1, m2, m3, m4, m5, m6, m7, m8 = _entry_geometry(
-                M, centers, boxes, rho_cut, i, pxs, pys, npx, near, lowpass, edge_on_ratio,
-                rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b,
-            )
-            o = occ[i]
-            op = opa[i]
-            oo = o * op
-            any_touched = False
-            for p in range(npx):
-                if not ok_b[p] or j >= limit[p]:
-                    continue
-                pix = pixs[p]
-                z = z_b[p]
-                gauss = math.exp(-0.5 * rho_b[p])
-                raw_s = o * gauss
-                a_s = raw_s
-                if a_s > alpha_max:
-                    a_s = alpha_max
-                raw_v = oo * gauss
-                a_v = raw_v
-                if a_v > alpha_max:
-                    a_v = alpha_max
-                g_z = 0.0
-                g_gauss = 0.0
-                touched = False
-                if live[0, p] and a_s >= alpha_min:
-                    T_s = st[4, p]
-                    t_next = T_s * (1.0 - a_s)
-                    if t_next < t_min:
-                        live[0, p] = False
-                    else:
-                        touched = True
-                        w = a_s * T_s
-                        g_dsum = grad_out[pix, fc + 1]
-                        g_dist = grad_out[pix, fc + 3]
-                        A = out[pix, fc]
-                        S1 = stats[pix, 0]
-                        m = ndc_scale * (1.0 - near / z)
-                        q = grad_out[pix, fc] + g_dsum * z + g_dist * (m * m * A - 2.0 * m * S1 + stats[pix, 1])
-                        for c in range(fc):
-                            q += grad_out[pix, c] * feats[i, c]
-                            eg[G_FEAT + c] += grad_out[pix, c] * w
-                        P_s = st[2, p] + q * w
-                        st[2, p] = P_s
-                        g_a = q * T_s - (st[0, p] - P_s) / (1.0 - a_s)
-                        g_z += g_dsum * w + g_dist * 2.0 * w * (m * A - S1) * (ndc_scale * near / (z * z))
-                        if k == median_k[pix]:
-                            g_z += grad_out[pix, fc + 2]
-                        if raw_s <= alpha_max:
-                            eg[G_OCC] += g_a * gauss
-                            g_gauss += g_a * o
-                        st[4, p] = t_next
-                if live[1, p] and a_v >= alpha_min:
-                    T_v = st[5, p]
-                    t_next = T_v * (1.0 - a_v)
-                    if t_next < t_min:
-                        live[1, p] = False
-                    else:
-                        touched = True
-                        w = a_v * T_v
-                        g_c0 = grad_out[pix, fc + 4]
-                        g_c1 = grad_out[pix, fc + 5]
-                        g_c2 = grad_out[pix, fc + 6]
-                        g_dv = grad_out[pix, fc + 8]
-                        q = (
-                            grad_out[pix, fc + 7]
-                            + g_dv * z
-                            + g_c0 * colors[i, 0]
-                            + g_c1 * colors[i, 1]
-                            + g_c2 * colors[i, 2]
-                        )
-                        eg[G_COLOR] += g_c0 * w
-                        eg[G_COLOR + 1] += g_c1 * w
-                        eg[G_COLOR + 2] += g_c2 * w
-                        P_v = st[3, p] + q * w
-                        st[3, p] = P_v
-                        g_a = q * T_v - (st[1, p] - P_v) / (1.0 - a_v)
-                        g_z += g_dv * w
-                        if raw_v <= alpha_max:
-                            g_oo = g_a * gauss
-                            eg[G_OCC] += g_oo * op
-                            eg[G_OPA] += g_oo * o
-                            g_gauss += g_a * oo
-                        st[5, p] = t_next
-                if not touched:
-                    continue
-                any_touched = True
-                g_rho = -0.5 * gauss * g_gauss
-                px = pxs[p]
-                py = pys[p]
-                if plane_b[p]:
-                    if plane_ok_b[p]:
-                        u = u_b[p]
-                        v = v_b[p]
-                        p2 = p2_b[p]
-                        hx0, hx1, hx2, hy0, hy1, hy2 = _pixel_rows(m0, m1, m2, m3, m4, m5, m6, m7, m8, px, py)
-                        # z = u m6 + v m7 + m8 ; rho = u^2 + v^2
-                        eg[G_M + 6] += g_z * u
-                        eg[G_M + 7] += g_z * v
-                        eg[G_M + 8] += g_z
-                        g_u = g_z * m6 + 2.0 * u * g_rho
-                        g_v = g_z * m7 + 2.0 * v * g_rho
-                        inv_p2 = 1.0 / p2
-                        gp0 = g_u * inv_p2
-                        gp1 = g_v * inv_p2
-                        gp2 = -(g_u * u + g_v * v) * inv_p2
-                        # p = hx x hy: dL/dhx = hy x gp, dL/dhy = gp x hx
-                        ghx0, ghx1, ghx2 = _cross(hy0, hy1, hy2, gp0, gp1, gp2)
-                        ghy0, ghy1, ghy2 = _cross(gp0, gp1, gp2, hx0, hx1, hx2)
-                        eg[G_M + 0] += ghx0
-                        eg[G_M + 1] += ghx1
-                        eg[G_M + 2] += ghx2
-                        eg[G_M + 3] += ghy0
-                        eg[G_M + 4] += ghy1
-                        eg[G_M + 5] += ghy2
-                        eg[G_M + 6] -= px * ghx0 + py * ghy0
-                        eg[G_M + 7] -= px * ghx1 + py * ghy1
-                        eg[G_M + 8] -= px * ghx2 + py * ghy2
+        for b in range(nb2):
+            by = b // nbx
+            bx = b - by * nbx
+            pxs, pys, pixs, npx = _block_pixels(tx0, ty0, tile_size, bx, by, width, height)
+            if npx == 0:
+                continue
+            n_run = _block_gradient_terms(out, stats, n_done, median_k, grad_out, fc, pixs, npx,
+                                          st, live, limit, terms, g_feat, median_b)
+            for j in range(n_run):
+                jp = lists[b, j]
+                k = keep[start + jp]
+                i = ids[start + k]
+                m0, m1, m2, m3, m4, m5, m6, m7, m8 = _packed_entry_geometry(
+                    pk, jp, pxs, pys, npx, near, lowpass, edge_on_ratio,
+                    rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b,
+                )
+                o = occ[i]
+                op = opa[i]
+                oo = o * op
+                fi = feats[i]
+                ci0 = colors[i, 0]
+                ci1 = colors[i, 1]
+                ci2 = colors[i, 2]
+                any_touched = False
+                for p in range(npx):
+                    if not ok_b[p] or j >= limit[p]:
+                        continue
+                    z = z_b[p]
+                    gauss = math.exp(-0.5 * rho_b[p])
+                    raw_s = o * gauss
+                    a_s = raw_s
+                    if a_s > alpha_max:
+                        a_s = alpha_max
+                    raw_v = oo * gauss
+                    a_v = raw_v
+                    if a_v > alpha_max:
+                        a_v = alpha_max
+                    g_z = 0.0
+                    g_gauss = 0.0
+                    touched = False
+                    if live[0, p] and a_s >= alpha_min:
+                        T_s = st[4, p]
+                        t_next = T_s * (1.0 - a_s)
+                        if t_next < t_min:
+                            live[0, p] = False
+                        else:
+                            touched = True
+                            w = a_s * T_s
+                            g_dsum = terms[T_DSUM, p]
+                            g_dist = terms[T_DIST, p]
+                            A = terms[T_A, p]
+                            S1 = terms[T_S1, p]
+                            m = ndc_scale * (1.0 - near / z)
+                            q = terms[T_ALPHA, p] + g_dsum * z + g_dist * (m * m * A - 2.0 * m * S1 + terms[T_S2, p])
+                            for c in range(fc):
+                                q += g_feat[p, c] * fi[c]
+                                eg[G_FEAT + c] += g_feat[p, c] * w
+                            P_s = st[2, p] + q * w
+                            st[2, p] = P_s
+                            g_a = q * T_s - (st[0, p] - P_s) / (1.0 - a_s)
+                            g_z += g_dsum * w + g_dist * 2.0 * w * (m * A - S1) * (ndc_scale * near / (z * z))
+                            if k == median_b[p]:
+                                g_z += terms[T_MEDIAN, p]
+                            if raw_s <= alpha_max:
+                                eg[G_OCC] += g_a * gauss
+                                g_gauss += g_a * o
+                            st[4, p] = t_next
+                    if live[1, p] and a_v >= alpha_min:
+                        T_v = st[5, p]
+                        t_next = T_v * (1.0 - a_v)
+                        if t_next < t_min:
+                            live[1, p] = False
+                        else:
+                            touched = True
+                            w = a_v * T_v
+                            g_c0 = terms[T_C0, p]
+                            g_c1 = terms[T_C1, p]
+                            g_c2 = terms[T_C2, p]
+                            g_dv = terms[T_VDSUM, p]
+                            q = (
+                                terms[T_VALPHA, p]
+                                + g_dv * z
+                                + g_c0 * ci0
+                                + g_c1 * ci1
+                                + g_c2 * ci2
+                            )
+                            eg[G_COLOR] += g_c0 * w
+                            eg[G_COLOR + 1] += g_c1 * w
+                            eg[G_COLOR + 2] += g_c2 * w
+                            P_v = st[3, p] + q * w
+                            st[3, p] = P_v
+                            g_a = q * T_v - (st[1, p] - P_v) / (1.0 - a_v)
+                            g_z += g_dv * w
+                            if raw_v <= alpha_max:
+                                g_oo = g_a * gauss
+                                eg[G_OCC] += g_oo * op
+                                eg[G_OPA] += g_oo * o
+                                g_gauss += g_a * oo
+                            st[5, p] = t_next
+                    if not touched:
+                        continue
+                    any_touched = True
+                    g_rho = -0.5 * gauss * g_gauss
+                    px = pxs[p]
+                    py = pys[p]
+                    if plane_b[p]:
+                        if plane_ok_b[p]:
+                            u = u_b[p]
+                            v = v_b[p]
+                            p2 = p2_b[p]
+                            hx0, hx1, hx2, hy0, hy1, hy2 = _pixel_rows(m0, m1, m2, m3, m4, m5, m6, m7, m8, px, py)
+                            # z = u m6 + v m7 + m8 ; rho = u^2 + v^2
+                            eg[G_M + 6] += g_z * u
+                            eg[G_M + 7] += g_z * v
+                            eg[G_M + 8] += g_z
+                            g_u = g_z * m6 + 2.0 * u * g_rho
+                            g_v = g_z * m7 + 2.0 * v * g_rho
+                            inv_p2 = 1.0 / p2
+                            gp0 = g_u * inv_p2
+                            gp1 = g_v * inv_p2
+                            gp2 = -(g_u * u + g_v * v) * inv_p2
+                            # p = hx x hy: dL/dhx = hy x gp, dL/dhy = gp x hx
+                            ghx0, ghx1, ghx2 = _cross(hy0, hy1, hy2, gp0, gp1, gp2)
+                            ghy0, ghy1, ghy2 = _cross(gp0, gp1, gp2, hx0, hx1, hx2)
+                            eg[G_M + 0] += ghx0
+                            eg[G_M + 1] += ghx1
+                            eg[G_M + 2] += ghx2
+                            eg[G_M + 3] += ghy0
+                            eg[G_M + 4] += ghy1
+                            eg[G_M + 5] += ghy2
+                            eg[G_M + 6] -= px * ghx0 + py * ghy0
+                            eg[G_M + 7] -= px * ghx1 + py * ghy1
+                            eg[G_M + 8] -= px * ghx2 + py * ghy2
+                        else:
+                            eg[G_M + 8] += g_z
                     else:
                         eg[G_M + 8] += g_z
-                else:
-                    eg[G_M + 8] += g_z
-                    eg[G_CENTER] += g_rho * lowpass * 2.0 * (centers[i, 0] - px)
-                    eg[G_CENTER + 1] += g_rho * lowpass * 2.0 * (centers[i, 1] - py)
-            if any_touched:
-                for c in range(n_grad):
-                    acc[tid, i, c] += eg[c]
-                    eg[c] = 0.0
+                        eg[G_CENTER] += g_rho * lowpass * 2.0 * (centers[i, 0] - px)
+                        eg[G_CENTER + 1] += g_rho * lowpass * 2.0 * (centers[i, 1] - py)
+                if any_touched:
+                    for c in range(n_grad):
+                        acc[tid, i, c] += eg[c]
+                        eg[c] = 0.0
 
 
 @njit(parallel=True, **_JIT)

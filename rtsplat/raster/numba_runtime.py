@@ -75,9 +75,9 @@ def load_numba_module(name: str):
 # iterations per chunk of a parallel loop (numba's ``set_parallel_chunksize``). The chunks are dealt out
 # on demand by the tbb threading layer, but split into one contiguous run per thread by the
 # workqueue layer, which :func:`load_numba_module` picks: a kernel with uneven work spreads it itself
-# (the forward compositing kernel visits its tiles in :func:`rtsplat.raster.cpu_kernels.spread_order`).
-CHUNK = 4  # 4x4 pixel blocks per chunk of the parallel compositing kernels (uneven work)
-TILE_CHUNK = 1  # tiles per chunk of the forward compositing kernel (uneven work, ~1 ms a tile)
+# (the compositing kernels visit their tiles in :func:`rtsplat.raster.cpu_kernels.spread_order`).
+CHUNK = 4  # tiles per chunk of the tile entry lists (``tile_entries_kernel``), the default
+TILE_CHUNK = 1  # tiles per chunk of the compositing kernels, forward and backward (uneven work, ~1 ms a tile)
 SURFEL_CHUNK = 256  # surfels per chunk of the per-surfel kernels (even, cheap work: ~1 us per chunk saved)
 
 
