@@ -190,9 +190,10 @@ def test_environment_lookup_without_autograd_gives_the_values_of_the_autograd_lo
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_background_lookup_without_autograd_gives_the_values_of_the_autograd_lookup(dtype):
-    """Without autograd the learned background's levels are sampled by a numba kernel (rtsplat render, the
-    viewer): the same bits as the torch lookup, at the poles and the longitude seam too, and after a
-    fused Adam step changed the levels (which leaves their version counters where they were)."""
+    """Without autograd (rtsplat render, the viewer) the learned background's levels are sampled by the same
+    numba kernel as with it (training): the same bits, at the poles and the longitude seam too, and after a
+    fused Adam step changed the levels (which leaves their version counters where they were). The torch
+    reference is tests/test_background_lookup.py's."""
     background = BackgroundMap(16, 32, 3).to(dtype)
     g = torch.Generator().manual_seed(5)
     with torch.no_grad():

@@ -15,6 +15,7 @@ pixels see with the average colour around them while the finest level holds the 
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -34,40 +35,107 @@ class BackgroundMap(nn.Module):
         self.maps = nn.ParameterList([nn.Parameter(torch.zeros(1, 3, h, w)) for h, w in sizes])
 
     def forward(self, directions: Tensor) -> Tensor:
-        """RGB [..., 3] in (0, 1) at unit ``directions`` [..., 3]. Without autograd, on CPU tensors of one
-        float type, the levels are sampled and summed by one numba kernel
-        (:mod:`rtsplat.model.background_kernels`: the same operations, so the same bits, in a fraction
-        of the time of the torch ops' passes over every sample); elsewhere, or without numba, by torch."""
+        """RGB [..., 3] in (0, 1) at unit ``directions`` [..., 3]. On CPU tensors of one float type the levels
+        are sampled and summed by numba kernels (:mod:`rtsplat.model.background_kernels`, through
+        :class:`BackgroundLookup` with autograd): the operations of :meth:`logits_reference`, in its order,
+        so the same logits, in a fraction of the time of the torch ops' passes over every sample; elsewhere,
+        or without numba, by :meth:`logits_reference`."""
         flat = directions.reshape(-1, 3)
         u, v = EnvironmentMap.direction_to_uv(flat)
-        logits = None if torch.is_grad_enabled() else self._logits_by_kernel(u, v)
+        logits = self._logits_by_kernel(u, v)
         if logits is None:
-            logits = sum(EnvironmentMap.sample_level(level, u, v) for level in self.maps)
+            logits = self.logits_reference(u, v)
         return torch.sigmoid(logits).reshape(*directions.shape[:-1], 3)
 
+    def logits_reference(self, u: Tensor, v: Tensor) -> Tensor:
+        """The summed logits [M, 3] at (u, v) [M] in torch: each level's bilinear sample
+        (:meth:`EnvironmentMap.sample_level`), the levels added in turn. The kernels' oracle."""
+        return sum(EnvironmentMap.sample_level(level, u, v) for level in self.maps)
+
     def _logits_by_kernel(self, u: Tensor, v: Tensor) -> Tensor | None:
-        """The summed logits [M, 3] at (u, v) from the numba kernel; None where it does not apply."""
+        """The summed logits [M, 3] at (u, v) from the numba kernels; None where they do not apply."""
         dtype = self.maps[0].dtype
-        if (u.device.type != "cpu" or u.dtype != dtype or dtype not in (torch.float32, torch.float64)
+        if (u.device.type != "cpu" or u.dtype != dtype or v.dtype != dtype
+                or dtype not in (torch.float32, torch.float64)
                 or any(level.dtype != dtype or level.device.type != "cpu" for level in self.maps)):
             return None
-        kernels = load_numba_module("rtsplat.model.background_kernels")
-        if kernels is None:
+        if load_numba_module("rtsplat.model.background_kernels") is None:
             return None
-        table, first, sizes = self._texel_table()
+        first, sizes = self._layout()
+        if torch.is_grad_enabled() and (u.requires_grad or v.requires_grad
+                                        or any(level.requires_grad for level in self.maps)):
+            table = torch.cat([level[0].reshape(3, -1) for level in self.maps], 1)
+            return BackgroundLookup.apply(table, u, v, first, sizes)
+        with torch.no_grad():
+            return BackgroundLookup.logits(self._texel_table(), u, v, first, sizes)
+
+    def _texel_table(self) -> Tensor:
+        """Every level's texels [3, T] (channel-major, level after level). Built on every call (~2 MB for the
+        default levels, well under a millisecond): a kept table could not tell when the maps change, since the
+        trainer's fused Adam step updates them without moving their version counters."""
+        return torch.cat([level.detach()[0].reshape(3, -1) for level in self.maps], 1).contiguous()
+
+    def _layout(self) -> tuple[Tensor, Tensor]:
+        """Each level's first column in the texel table [L] and its (H, W) [L, 2] in the maps' float type."""
+        counts = [level.shape[-2] * level.shape[-1] for level in self.maps]
+        first = torch.tensor([0] + counts[:-1], dtype=torch.int64).cumsum(0)
+        sizes = torch.tensor([list(level.shape[-2:]) for level in self.maps], dtype=self.maps[0].dtype)
+        return first, sizes
+
+
+class BackgroundLookup(torch.autograd.Function):
+    """The learned background's summed logits [M, 3] on the CPU: ``table`` [3, T] (every level's texels,
+    channel-major, level after level), samples at (``u``, ``v``) [M], ``first`` [L] and ``sizes`` [L, 2] as
+    :meth:`BackgroundMap._layout` gives them. The values are those of :meth:`BackgroundMap.logits_reference`,
+    bit for bit; the gradients of the table, u and v are its gradients up to rounding (summed in float64 here).
+    A sample with a non-finite coordinate gives NaN, a NaN gradient of its u and v, and reads no texel."""
+
+    @staticmethod
+    def logits(table: Tensor, u: Tensor, v: Tensor, first: Tensor, sizes: Tensor,
+               taps: np.ndarray | None = None, fractions: np.ndarray | None = None) -> Tensor:
+        """The forward kernel's logits; ``taps`` and ``fractions`` (when given) receive what the backward reads."""
+        kernels = load_numba_module("rtsplat.model.background_kernels")
+        dtype = table.dtype
         out = torch.empty(u.shape[0], 3, dtype=dtype)
         consts = torch.tensor([0.0, 0.5, 1.0], dtype=dtype)
+        if taps is None:
+            taps = np.empty((0, 0, 4), dtype=np.int64)
+            fractions = np.empty((0, 0, 2), dtype=np.float64)
         with numba_threads(SURFEL_CHUNK):
-            kernels.background_logits_kernel(table.numpy(), first.numpy(), sizes.numpy(), u.contiguous().numpy(),
-                                             v.contiguous().numpy(), consts.numpy(), out.numpy())
+            kernels.background_logits_kernel(table.detach().contiguous().numpy(), first.numpy(), sizes.numpy(),
+                                             u.detach().contiguous().numpy(), v.detach().contiguous().numpy(),
+                                             consts.numpy(), out.numpy(), taps, fractions)
         return out
 
-    def _texel_table(self) -> tuple[Tensor, Tensor, Tensor]:
-        """Every level's texels [3, T] (channel-major, level after level), each level's first column [L] and
-        its (H, W) [L, 2]. Built on every call (~2 MB for the default levels, well under a millisecond):
-        a kept table could not tell when the maps change, since the trainer's fused Adam step updates them
-        without moving their version counters."""
-        columns = [level.detach()[0].reshape(3, -1) for level in self.maps]
-        starts = torch.tensor([0] + [c.shape[1] for c in columns[:-1]], dtype=torch.int64).cumsum(0)
-        sizes = torch.tensor([list(level.shape[-2:]) for level in self.maps], dtype=self.maps[0].dtype)
-        return torch.cat(columns, 1).contiguous(), starts, sizes
+    @staticmethod
+    def forward(ctx, table: Tensor, u: Tensor, v: Tensor, first: Tensor, sizes: Tensor) -> Tensor:
+        m, n_levels = u.shape[0], first.shape[0]
+        taps = np.empty((m, n_levels, 4), dtype=np.int64)
+        fractions = np.empty((m, n_levels, 2), dtype=np.float64)
+        data = table.detach().contiguous()
+        out = BackgroundLookup.logits(data, u, v, first, sizes, taps, fractions)
+        ctx.save_for_backward(data, sizes)
+        ctx.taps = (taps, fractions)
+        ctx.sample_dtypes = (u.dtype, v.dtype)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        kernels = load_numba_module("rtsplat.model.background_kernels")
+        table, sizes = ctx.saved_tensors
+        taps, fractions = ctx.taps
+        g = grad.contiguous().numpy()
+        g_table = g_u = g_v = None
+        with numba_threads(SURFEL_CHUNK):
+            if ctx.needs_input_grad[0]:
+                summed = np.zeros(table.shape, dtype=np.float64)
+                kernels.background_table_grad_kernel(taps, fractions, g, summed)
+                g_table = torch.from_numpy(summed).to(table.dtype)
+            if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
+                su = np.empty(taps.shape[0], dtype=np.float64)
+                sv = np.empty(taps.shape[0], dtype=np.float64)
+                kernels.background_sample_grad_kernel(table.numpy(), sizes.numpy(), taps, fractions, g, su, sv)
+                g_u = torch.from_numpy(su).to(ctx.sample_dtypes[0])
+                g_v = torch.from_numpy(sv).to(ctx.sample_dtypes[1])
+        return g_table, g_u, g_v, None, None
