@@ -64,6 +64,27 @@ def test_sh_kernels_give_the_torch_references_colours_and_gradients(degree, dtyp
     assert not fast_grads[0][:, k:].any()  # no gradient for the coefficients beyond the degree
 
 
+def test_sh_colour_of_the_parts_is_the_colour_of_the_joined_coefficients():
+    """The surfels keep the DC and the higher coefficients apart; the kernels read them so, and give the joined
+    tensor's colour and gradients bit for bit."""
+    from rtsplat.model.sh import eval_sh_parts
+
+    generator = torch.Generator().manual_seed(7)
+    dc = torch.randn(300, 1, 3, generator=generator).requires_grad_(True)
+    rest = (torch.randn(300, 15, 3, generator=generator) * 0.3).requires_grad_(True)
+    directions = torch.nn.functional.normalize(torch.randn(300, 3, generator=generator), dim=-1).requires_grad_(True)
+    grad_colour = torch.randn(300, 3, generator=generator)
+    parts = eval_sh_parts(dc, rest, directions, 3)
+    assert type(parts.grad_fn).__name__.startswith("_ShColour")
+    parts_grads = torch.autograd.grad(parts, [dc, rest, directions], grad_colour)
+    joined_input = torch.cat([dc, rest], 1)
+    joined = eval_sh(joined_input, directions, 3)
+    joined_grads = torch.autograd.grad(joined, [joined_input, directions], grad_colour)
+    assert torch.equal(parts, joined)
+    assert torch.equal(torch.cat(parts_grads[:2], 1), joined_grads[0])
+    assert torch.equal(parts_grads[2], joined_grads[1]) and parts_grads[2].abs().max() > 0
+
+
 def test_environment_map_wraps_around_in_longitude():
     env = EnvironmentMap(channels=2, height=8, width=16, levels=3)
     with torch.no_grad():

@@ -56,7 +56,7 @@ from rtsplat.model.mirror import (
     with_bend,
 )
 from rtsplat.model.settings import SEE_THROUGH_OPACITY, Ablations, Gating, ModelSettings
-from rtsplat.model.sh import eval_sh
+from rtsplat.model.sh import eval_sh_parts
 from rtsplat.model.specular import SpecularNetwork
 from rtsplat.model.surfels import SurfelParameters
 from rtsplat.raster import RasterOutput, RasterSettings, Surfels, rasterize
@@ -198,16 +198,16 @@ class RTModel(nn.Module):
         channels = self.gbuffer_channels() if channels is None else channels
         p = self.surfels
         take = (lambda t: t) if index is None else (lambda t: t.index_select(0, index))  # noqa: E731
-        means, sh = take(p.means), take(p.sh)
+        means, sh_dc, sh_rest = take(p.means), take(p.sh_dc), take(p.sh_rest)
         directions = F.normalize(means - camera.center, dim=-1)
-        colors = eval_sh(sh, directions, p.sh_degree if sh_degree is None else sh_degree)
+        colors = eval_sh_parts(sh_dc, sh_rest, directions, p.sh_degree if sh_degree is None else sh_degree)
         occupancy = take(p.occupancy)
         opacity = take(p.opacity) if self.uses_opacity else torch.ones_like(occupancy)
         view_independent = self.effects.specular and self.settings.view_independent_roi
         inside = (((means - self.roi_center).norm(dim=-1) <= self.roi_radius).to(means.dtype)
                   if view_independent or "roi" in channels else None)
         if view_independent:
-            colors = torch.where(inside[:, None] > 0, eval_sh(sh, directions, 0), colors)
+            colors = torch.where(inside[:, None] > 0, eval_sh_parts(sh_dc, sh_rest, directions, 0), colors)
         columns = {
             "scatter": lambda: take(p.scatter), "tau": lambda: take(p.transmissivity)[:, None],
             "roughness": lambda: take(p.roughness)[:, None], "material": lambda: take(p.material),
@@ -402,7 +402,7 @@ class RTModel(nn.Module):
                 means = p.means[keep]
                 # the view-independent (degree 0) colour, which no direction changes: a reflection sees the
                 # surfels from directions that no view may have seen them from, where higher degrees extrapolate
-                colors = eval_sh(p.sh[keep], F.normalize(means - center, dim=-1), 0)
+                colors = eval_sh_parts(p.sh_dc[keep], p.sh_rest[keep], F.normalize(means - center, dim=-1), 0)
                 quats, scales = p.quats[keep], p.scales[keep]
                 occupancy = p.occupancy[keep]
                 opacity = p.opacity[keep] if self.uses_opacity else torch.ones_like(occupancy)

@@ -57,13 +57,21 @@ def eval_sh(coefficients: Tensor, directions: Tensor, degree: int) -> Tensor:
     On CPU tensors of float32 or float64 the numba kernels of :mod:`rtsplat.model.sh_kernels` compute it
     (one pass per surfel, forward and backward; :func:`eval_sh_reference` is their oracle), elsewhere
     :func:`eval_sh_reference`."""
+    return eval_sh_parts(coefficients[:, :1], coefficients[:, 1:], directions, degree)
+
+
+def eval_sh_parts(dc: Tensor, rest: Tensor, directions: Tensor, degree: int) -> Tensor:
+    """:func:`eval_sh` of the coefficients ``dc`` [N, 1, 3] followed by ``rest`` [N, K - 1, 3], without joining
+    them into one tensor (the surfels keep them apart; at a million surfels the join would copy some 200 MB
+    forward and again backward)."""
     check_degree(degree)  # here too: the kernels do not call sh_basis
-    if (coefficients.device.type == "cpu" and directions.device.type == "cpu"
-            and coefficients.dtype in (torch.float32, torch.float64) and directions.dtype == coefficients.dtype
-            and coefficients.dim() == 3 and coefficients.shape[1:] == (num_coefficients(MAX_DEGREE), 3)
+    if (dc.device.type == "cpu" and rest.device.type == "cpu" and directions.device.type == "cpu"
+            and dc.dtype in (torch.float32, torch.float64) and rest.dtype == dc.dtype and directions.dtype == dc.dtype
+            and dc.dim() == 3 and dc.shape[1:] == (1, 3)
+            and rest.dim() == 3 and rest.shape[1:] == (num_coefficients(MAX_DEGREE) - 1, 3)
             and _kernels() is not None):
-        return _ShColour.apply(coefficients, directions, degree)
-    return eval_sh_reference(coefficients, directions, degree)
+        return _ShColour.apply(dc, rest, directions, degree)
+    return eval_sh_reference(torch.cat([dc, rest], 1), directions, degree)
 
 
 def eval_sh_reference(coefficients: Tensor, directions: Tensor, degree: int) -> Tensor:
@@ -82,29 +90,35 @@ class _ShColour(torch.autograd.Function):
     """:func:`eval_sh_reference`'s values and gradients from the numba kernels."""
 
     @staticmethod
-    def forward(ctx, coefficients, directions, degree):
-        sh = coefficients.detach().contiguous()
+    def forward(ctx, dc, rest, directions, degree):
+        dc_ = dc.detach().contiguous()
+        rest_ = rest.detach().contiguous()
         dirs = directions.detach().contiguous()
-        rgb = torch.empty(sh.shape[0], 3, dtype=sh.dtype)
-        basis = torch.empty(sh.shape[0], num_coefficients(MAX_DEGREE), dtype=torch.float64)
+        rgb = torch.empty(dc_.shape[0], 3, dtype=dc_.dtype)
+        basis = torch.empty(dc_.shape[0], num_coefficients(MAX_DEGREE), dtype=torch.float64)
         with numba_threads(SURFEL_CHUNK):
-            _kernels().sh_forward_kernel(sh.numpy(), dirs.numpy(), int(degree), rgb.numpy(), basis.numpy())
-        ctx.save_for_backward(sh, dirs, rgb, basis)
+            _kernels().sh_forward_kernel(dc_.numpy(), rest_.numpy(), dirs.numpy(), int(degree), rgb.numpy(),
+                                         basis.numpy())
+        ctx.save_for_backward(dc_, rest_, dirs, rgb, basis)
         ctx.degree = int(degree)
         return rgb
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_rgb):
-        sh, dirs, rgb, basis = ctx.saved_tensors
-        grad = grad_rgb.detach().to(sh.dtype).contiguous()
-        grad_sh = torch.empty_like(sh)
+        dc, rest, dirs, rgb, basis = ctx.saved_tensors
+        grad = grad_rgb.detach().to(dc.dtype).contiguous()
+        grad_dc = torch.empty_like(dc)
+        grad_rest = torch.empty_like(rest)
         grad_dirs = torch.empty_like(dirs)
         scratch = torch.empty_like(basis)
         with numba_threads(SURFEL_CHUNK):
-            _kernels().sh_backward_kernel(sh.numpy(), dirs.numpy(), ctx.degree, rgb.numpy(), basis.numpy(),
-                                          grad.numpy(), grad_sh.numpy(), grad_dirs.numpy(), scratch.numpy())
-        return (grad_sh if ctx.needs_input_grad[0] else None, grad_dirs if ctx.needs_input_grad[1] else None, None)
+            _kernels().sh_backward_kernel(dc.numpy(), rest.numpy(), dirs.numpy(), ctx.degree, rgb.numpy(),
+                                          basis.numpy(), grad.numpy(), grad_dc.numpy(), grad_rest.numpy(),
+                                          grad_dirs.numpy(), scratch.numpy())
+        needs = ctx.needs_input_grad
+        return (grad_dc if needs[0] else None, grad_rest if needs[1] else None, grad_dirs if needs[2] else None,
+                None)
 
 
 def rgb_to_sh_dc(rgb: Tensor) -> Tensor:

@@ -93,30 +93,31 @@ def _basis_gradient(x, y, z, degree, s):
 
 
 @njit(parallel=True, **_JIT)
-def sh_forward_kernel(coefficients, directions, degree, rgb, basis):
-    """``rgb[n]`` = max(basis(directions[n]) . coefficients[n, :k] + 0.5, 0), k = (degree + 1)^2; the
-    basis values into ``basis[n, :k]`` (float64 [N, 16], kept for the backward)."""
+def sh_forward_kernel(dc, rest, directions, degree, rgb, basis):
+    """``rgb[n]`` = max(basis(directions[n]) . coefficients[n, :k] + 0.5, 0), k = (degree + 1)^2, the
+    coefficients being ``dc[n]`` [1, 3] then ``rest[n]`` [15, 3]; the basis values into ``basis[n, :k]``
+    (float64 [N, 16], kept for the backward)."""
     k = (degree + 1) * (degree + 1)
-    for n in prange(coefficients.shape[0]):
+    for n in prange(dc.shape[0]):
         b = basis[n]
         _basis(np.float64(directions[n, 0]), np.float64(directions[n, 1]), np.float64(directions[n, 2]), degree, b)
         for c in range(3):
-            acc = 0.0
-            for j in range(k):
-                acc += b[j] * coefficients[n, j, c]
+            acc = 0.0 + b[0] * dc[n, 0, c]
+            for j in range(1, k):
+                acc += b[j] * rest[n, j - 1, c]
             value = acc + 0.5
             rgb[n, c] = value if value > 0.0 else 0.0
 
 
 @njit(parallel=True, **_JIT)
-def sh_backward_kernel(coefficients, directions, degree, rgb, basis, grad_rgb, grad_coefficients, grad_directions,
+def sh_backward_kernel(dc, rest, directions, degree, rgb, basis, grad_rgb, grad_dc, grad_rest, grad_directions,
                        scratch):
-    """Gradients of the colour with respect to the coefficients (zero beyond the degree's k) and to the
-    direction components; ``rgb`` and ``basis`` are the forward's (the clamp passes the gradient where
-    the sum is >= 0, so where the output is > 0 or the sum is exactly 0: recomputed here); ``scratch``:
-    float64 [N, 16]."""
+    """Gradients of the colour with respect to the coefficients (``grad_dc``, ``grad_rest``; zero beyond the
+    degree's k) and to the direction components; ``rgb`` and ``basis`` are the forward's (the clamp passes the
+    gradient where the sum is >= 0, so where the output is > 0 or the sum is exactly 0: recomputed here);
+    ``scratch``: float64 [N, 16]."""
     k = (degree + 1) * (degree + 1)
-    for n in prange(coefficients.shape[0]):
+    for n in prange(dc.shape[0]):
         b = basis[n]
         s = scratch[n]
         for j in range(k):
@@ -124,16 +125,18 @@ def sh_backward_kernel(coefficients, directions, degree, rgb, basis, grad_rgb, g
         for c in range(3):
             gc = np.float64(grad_rgb[n, c])
             if rgb[n, c] <= 0.0:
-                acc = 0.0
-                for j in range(k):
-                    acc += b[j] * coefficients[n, j, c]
+                acc = 0.0 + b[0] * dc[n, 0, c]
+                for j in range(1, k):
+                    acc += b[j] * rest[n, j - 1, c]
                 if acc + 0.5 < 0.0:
                     gc = 0.0
-            for j in range(k):
-                grad_coefficients[n, j, c] = b[j] * gc
-                s[j] += gc * coefficients[n, j, c]
-            for j in range(k, coefficients.shape[1]):
-                grad_coefficients[n, j, c] = 0.0
+            grad_dc[n, 0, c] = b[0] * gc
+            s[0] += gc * dc[n, 0, c]
+            for j in range(1, k):
+                grad_rest[n, j - 1, c] = b[j] * gc
+                s[j] += gc * rest[n, j - 1, c]
+            for j in range(max(k, 1) - 1, rest.shape[1]):
+                grad_rest[n, j, c] = 0.0
         gx, gy, gz = _basis_gradient(
             np.float64(directions[n, 0]), np.float64(directions[n, 1]), np.float64(directions[n, 2]), degree, s
         )
