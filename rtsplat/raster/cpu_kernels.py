@@ -293,6 +293,23 @@ def _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts):
 
 
 @njit(inline="always", **_JIT)
+def _packed_tile(t, M, centers, occ, opa, ids, boxes, rho_cut, keep, n_keep, tile_start, tiles_x, tile_size, nbx):
+    """Tile ``t`` made ready for a compositing kernel: its first pair, its top-left pixel, its kept entries
+    packed (:func:`_pack_tile`) and listed per 4x4 block (:func:`_tile_block_lists`: ``lists[b, :counts[b]]``,
+    positions in the tile's kept entries)."""
+    nk = n_keep[t]
+    start = tile_start[t]
+    tx0 = (t % tiles_x) * tile_size
+    ty0 = (t // tiles_x) * tile_size
+    pk = np.empty((nk, PACK), dtype=np.float64)
+    _pack_tile(M, centers, occ, opa, ids, boxes, rho_cut, keep, start, nk, pk)
+    lists = np.empty((nbx * nbx, nk), dtype=np.int32)
+    counts = np.empty(nbx * nbx, dtype=np.int64)
+    _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts)
+    return start, tx0, ty0, pk, lists, counts
+
+
+@njit(inline="always", **_JIT)
 def _packed_geometry(pk, j):
     """Packed entry ``j``'s box (4), ray transform (9), projected centre (2) and rho cut-off."""
     return (pk[j, P_BOX], pk[j, P_BOX + 1], pk[j, P_BOX + 2], pk[j, P_BOX + 3], pk[j, P_M], pk[j, P_M + 1],
@@ -487,17 +504,11 @@ def forward_kernel(
     order = spread_order(n_tiles)
     for u in prange(n_tiles):
         t = order[u]
-        nk = n_keep[t]
-        if nk == 0:
+        if n_keep[t] == 0:
             continue
-        start = tile_start[t]
-        tx0 = (t % tiles_x) * tile_size
-        ty0 = (t // tiles_x) * tile_size
-        pk = np.empty((nk, PACK), dtype=np.float64)
-        _pack_tile(M, centers, occ, opa, ids, boxes, rho_cut, keep, start, nk, pk)
-        lists = np.empty((nb2, nk), dtype=np.int32)  # positions in the tile's kept entries
-        counts = np.empty(nb2, dtype=np.int64)
-        _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts)
+        start, tx0, ty0, pk, lists, counts = _packed_tile(
+            t, M, centers, occ, opa, ids, boxes, rho_cut, keep, n_keep, tile_start, tiles_x, tile_size, nbx
+        )
         # per pixel: T_s T_v A dsum med dist S1 S2 c0 c1 c2 Av dvsum
         st = np.empty((13, NPIX), dtype=np.float64)
         medk_b = np.empty(NPIX, dtype=np.int64)
@@ -665,17 +676,11 @@ def backward_kernel(
     order = spread_order(n_tiles)  # as in the forward: each thread's contiguous run from all over the image
     for u in prange(n_tiles):
         t = order[u]
-        nk = n_keep[t]
-        if nk == 0:
+        if n_keep[t] == 0:
             continue
-        start = tile_start[t]
-        tx0 = (t % tiles_x) * tile_size
-        ty0 = (t // tiles_x) * tile_size
-        pk = np.empty((nk, PACK), dtype=np.float64)
-        _pack_tile(M, centers, occ, opa, ids, boxes, rho_cut, keep, start, nk, pk)
-        lists = np.empty((nb2, nk), dtype=np.int32)  # positions in the tile's kept entries
-        counts = np.empty(nb2, dtype=np.int64)
-        _tile_block_lists(pk, nk, tx0, ty0, tile_size, nbx, lists, counts)
+        start, tx0, ty0, pk, lists, counts = _packed_tile(
+            t, M, centers, occ, opa, ids, boxes, rho_cut, keep, n_keep, tile_start, tiles_x, tile_size, nbx
+        )
         tid = get_thread_id()
         rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b = _geometry_buffers()
         st = np.empty((6, NPIX), dtype=np.float64)  # per pixel: Q_s Q_v P_s P_v T_s T_v
@@ -701,9 +706,9 @@ def backward_kernel(
                     pk, jp, pxs, pys, npx, near, lowpass, edge_on_ratio,
                     rho_b, z_b, u_b, v_b, p2_b, ok_b, plane_b, plane_ok_b,
                 )
-                o = occ[i]
+                o = pk[jp, P_OCC]
+                oo = pk[jp, P_OCC_OPA]
                 op = opa[i]
-                oo = o * op
                 fi = feats[i]
                 ci0 = colors[i, 0]
                 ci1 = colors[i, 1]
