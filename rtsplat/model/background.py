@@ -62,18 +62,17 @@ class BackgroundMap(nn.Module):
         if load_numba_module("rtsplat.model.background_kernels") is None:
             return None
         first, sizes = self._layout()
-        if torch.is_grad_enabled() and (u.requires_grad or v.requires_grad
-                                        or any(level.requires_grad for level in self.maps)):
-            table = torch.cat([level[0].reshape(3, -1) for level in self.maps], 1)
+        table = self._texel_table()
+        if table.requires_grad or u.requires_grad or v.requires_grad:
             return BackgroundLookup.apply(table, u, v, first, sizes)
-        with torch.no_grad():
-            return BackgroundLookup.logits(self._texel_table(), u, v, first, sizes)
+        return BackgroundLookup.logits(table, u, v, first, sizes)
 
     def _texel_table(self) -> Tensor:
-        """Every level's texels [3, T] (channel-major, level after level). Built on every call (~2 MB for the
-        default levels, well under a millisecond): a kept table could not tell when the maps change, since the
-        trainer's fused Adam step updates them without moving their version counters."""
-        return torch.cat([level.detach()[0].reshape(3, -1) for level in self.maps], 1).contiguous()
+        """Every level's texels [3, T] (channel-major, level after level), differentiable where autograd is on.
+        Built on every call (~2 MB for the default levels, well under a millisecond): a kept table could not tell
+        when the maps change, since the trainer's fused Adam step updates them without moving their version
+        counters."""
+        return torch.cat([level[0].reshape(3, -1) for level in self.maps], 1)
 
     def _layout(self) -> tuple[Tensor, Tensor]:
         """Each level's first column in the texel table [L] and its (H, W) [L, 2] in the maps' float type."""
@@ -127,11 +126,12 @@ class BackgroundLookup(torch.autograd.Function):
         taps, fractions = ctx.taps
         g = grad.contiguous().numpy()
         g_table = g_u = g_v = None
-        with numba_threads(SURFEL_CHUNK):
-            if ctx.needs_input_grad[0]:
-                summed = np.zeros(table.shape, dtype=np.float64)
+        if ctx.needs_input_grad[0]:
+            summed = np.zeros(table.shape, dtype=np.float64)
+            with numba_threads(1):  # one channel per chunk, so that the three spread over the threads
                 kernels.background_table_grad_kernel(taps, fractions, g, summed)
-                g_table = torch.from_numpy(summed).to(table.dtype)
+            g_table = torch.from_numpy(summed).to(table.dtype)
+        with numba_threads(SURFEL_CHUNK):
             if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
                 su = np.empty(taps.shape[0], dtype=np.float64)
                 sv = np.empty(taps.shape[0], dtype=np.float64)

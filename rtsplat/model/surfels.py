@@ -74,10 +74,6 @@ class SurfelParameters(nn.Module):
     def reflectance(self) -> Tensor:
         return torch.sigmoid(self.reflectance_logit)
 
-    @property
-    def sh(self) -> Tensor:
-        return torch.cat([self.sh_dc, self.sh_rest], 1)
-
     def tensors(self) -> dict[str, Tensor]:
         return {name: getattr(self, name) for name in PARAMETERS}
 
