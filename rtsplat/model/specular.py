@@ -5,8 +5,11 @@ from __future__ import annotations
 import functools
 import math
 
+import numpy as np
 import torch
 from torch import Tensor, nn
+
+from rtsplat.raster.numba_runtime import SURFEL_CHUNK, load_numba_module, numba_threads
 
 LOG_HALF = math.log(0.5)
 NEAR_WEIGHT_START_LOGIT = 2.0  # sigmoid(2) = 0.88
@@ -120,17 +123,7 @@ class SpecularNetwork(nn.Module):
             raise ValueError("a network with mirror needs the mirror radiance, one without takes none")
         if self.attenuation_head is not None and cos_incidence is None:
             raise ValueError("a network with attenuation='material' needs cos_incidence")
-        outer = (env_features[:, :, None] * material[:, None, :]).flatten(1)
-        x = torch.cat([outer, env_features], -1)
-        if self.uses_bfloat16(x.device):
-            rows = x.shape[0]
-            if x.device.type == "cpu":  # zero rows up to a bucket (bucketed_rows); their outputs are dropped
-                x = nn.functional.pad(x, (0, 0, 0, bucketed_rows(rows) - rows))
-            with torch.autocast(x.device.type, dtype=torch.bfloat16):
-                out = self._run_mlp(x)
-            out = out[:rows].to(x.dtype)
-        else:
-            out = self._run_mlp(x)
+        out = self.mlp_outputs(env_features, material)
         specular = torch.exp((out[:, :3] + LOG_HALF).clamp_max(MAX_LOG_SPECULAR))
         if mirror is not None:
             weight = torch.sigmoid(out[:, self.mirror_column:self.mirror_column + 1])
@@ -145,6 +138,35 @@ class SpecularNetwork(nn.Module):
             head_input = torch.cat([material, cos_incidence.to(material.dtype)], -1)
             beta = torch.sigmoid(self.attenuation_head(head_input)).to(specular.dtype)
         return specular, beta
+
+    def mlp_outputs(self, env_features: Tensor, material: Tensor) -> Tensor:
+        """The MLP's outputs [M, outputs] for the environment [M, C] and material [M, 4] features. With autograd
+        on, bfloat16 products on a CPU and float32 features, :class:`BFloat16Network` computes them (numba
+        kernels for the input rows and the ReLUs); elsewhere :meth:`mlp_outputs_reference`. Both give the same
+        values and weight gradients; the features' gradients differ in rounding only."""
+        if (torch.is_grad_enabled() and env_features.device.type == "cpu" and self.uses_bfloat16(env_features.device)
+                and env_features.dtype == material.dtype == torch.float32
+                and all(p.dtype == torch.float32 for p in self.mlp.parameters())
+                and load_numba_module("rtsplat.model.specular_kernels") is not None):
+            first, _, hidden, _, last = self.mlp
+            return BFloat16Network.apply(env_features, material, first.weight, first.bias, hidden.weight,
+                                         hidden.bias, last.weight, last.bias)
+        return self.mlp_outputs_reference(env_features, material)
+
+    def mlp_outputs_reference(self, env_features: Tensor, material: Tensor) -> Tensor:
+        """:meth:`mlp_outputs` in torch ops: the input rows (the outer product of the features, flattened,
+        then the environment feature) through the MLP, under bfloat16 autocast where :meth:`uses_bfloat16`
+        (on a CPU, on zero-padded rows: :func:`bucketed_rows`). :class:`BFloat16Network`'s oracle."""
+        outer = (env_features[:, :, None] * material[:, None, :]).flatten(1)
+        x = torch.cat([outer, env_features], -1)
+        if not self.uses_bfloat16(x.device):
+            return self._run_mlp(x)
+        rows = x.shape[0]
+        if x.device.type == "cpu":  # zero rows up to a bucket (bucketed_rows); their outputs are dropped
+            x = nn.functional.pad(x, (0, 0, 0, bucketed_rows(rows) - rows))
+        with torch.autocast(x.device.type, dtype=torch.bfloat16):
+            out = self._run_mlp(x)
+        return out[:rows].to(x.dtype)
 
     def _run_mlp(self, x: Tensor) -> Tensor:
         return self.mlp(x) if torch.is_grad_enabled() else self._mlp_inference(x)
@@ -174,3 +196,70 @@ class SpecularNetwork(nn.Module):
                 h = hidden(h).relu_()
                 result.copy_(last(h))
         return out
+
+
+def _bits(t: Tensor) -> np.ndarray:
+    """A contiguous bfloat16 tensor's 16-bit patterns as a numpy int16 array (shared memory)."""
+    return t.view(torch.int16).numpy()
+
+
+class BFloat16Network(torch.autograd.Function):
+    """The specular network's MLP (``Linear, ReLU, Linear, ReLU, Linear``) on a CPU with bfloat16 products:
+    ``apply(env [M, C], material [M, K], w1, b1, w2, b2, w3, b3)`` -> outputs [M, outputs], float32.
+
+    The operations of :meth:`SpecularNetwork.mlp_outputs_reference` under autocast, in its order: weights and
+    biases rounded to bfloat16, the input rows padded to :func:`bucketed_rows`, ``addmm`` products, the
+    outputs rounded back to float32; the backward is autocast's (``AddmmBackward0``'s products and bias sums in
+    bfloat16, the weights' gradients rounded to float32). Numba kernels (:mod:`rtsplat.model.specular_kernels`)
+    replace the torch ops that cost more than the products: building the input rows (outer product, cat, pad
+    and rounding, one pass), the ReLUs and their gradients (torch's bfloat16 element-wise ops convert every
+    value to float32 and back), and the features' gradient from the input rows' (summed in float64 instead of
+    torch's broadcast float32 sums). So the outputs and the weights' gradients are the reference's bit for bit,
+    and the features' gradients equal it up to rounding."""
+
+    @staticmethod
+    def forward(ctx, env: Tensor, material: Tensor, w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor,
+                w3: Tensor, b3: Tensor) -> Tensor:
+        kernels = load_numba_module("rtsplat.model.specular_kernels")
+        env, material = env.detach().contiguous(), material.detach().contiguous()
+        m = env.shape[0]
+        rows = bucketed_rows(m)
+        x = torch.empty(rows, w1.shape[1], dtype=torch.bfloat16)
+        weights = [w.detach().to(torch.bfloat16) for w in (w1, w2, w3)]
+        biases = [b.detach().to(torch.bfloat16) for b in (b1, b2, b3)]
+        with numba_threads(SURFEL_CHUNK):
+            kernels.network_input_kernel(env.numpy(), material.numpy(), rows, _bits(x).view(np.uint16))
+            h1 = torch.addmm(biases[0], x, weights[0].t())
+            kernels.relu_kernel(_bits(h1))
+            h2 = torch.addmm(biases[1], h1, weights[1].t())
+            kernels.relu_kernel(_bits(h2))
+        out = torch.addmm(biases[2], h2, weights[2].t())
+        ctx.save_for_backward(env, material, x, h1, h2, *weights)
+        return out[:m].float()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        kernels = load_numba_module("rtsplat.model.specular_kernels")
+        env, material, x, h1, h2, w1, w2, w3 = ctx.saved_tensors
+        g3 = grad.new_zeros(x.shape[0], grad.shape[1], dtype=torch.bfloat16)
+        g3[: grad.shape[0]] = grad
+        grads = [None] * 8
+        with numba_threads(SURFEL_CHUNK):
+            g2 = g3.mm(w3)
+            kernels.relu_grad_kernel(_bits(g2), _bits(h2))
+            g1 = g2.mm(w2)
+            kernels.relu_grad_kernel(_bits(g1), _bits(h1))
+            for slot, (g, inputs) in zip((2, 4, 6), ((g1, x), (g2, h1), (g3, h2)), strict=True):
+                if ctx.needs_input_grad[slot]:
+                    grads[slot] = g.t().mm(inputs).float()
+                if ctx.needs_input_grad[slot + 1]:
+                    grads[slot + 1] = g.sum(0).float()
+            if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+                gx = g1.mm(w1).float()
+                g_env = torch.empty_like(env)
+                g_material = torch.empty_like(material)
+                kernels.network_input_grad_kernel(gx.numpy(), env.numpy(), material.numpy(), g_env.numpy(),
+                                                  g_material.numpy())
+                grads[0], grads[1] = g_env, g_material
+        return tuple(grads)
