@@ -7,6 +7,12 @@ every step), ``changing`` (a new count every step, as the shaded pixels of a tra
 network does in bfloat16 on a CPU). oneDNN compiles a bfloat16 kernel per new shape, so ``changing``
 shows what that costs and ``bucketed`` what padding saves. The kinds run interleaved over ``--rounds``;
 the median ms per step is printed. Ratios are comparable on a loaded machine, absolute times are not.
+
+A second table times the bfloat16 network from its features (environment [M, 16], material [M, 4]) with the
+changing counts, as a training runs it: the autocast reference
+(:meth:`~rtsplat.model.specular.SpecularNetwork.mlp_outputs_reference`: outer product, concatenation, padding,
+autocast MLP) against :class:`~rtsplat.model.specular.BFloat16Network` (the same products, numba kernels for the
+input rows, the ReLUs and the features' gradient), interleaved, with the median of the per-round ratios.
 """
 
 from __future__ import annotations
@@ -52,6 +58,33 @@ def measure(rows: int, spread: int, steps: int, rounds: int, width: int, seed: i
     return {key: statistics.median(values) for key, values in times.items()}
 
 
+def feature_step_ms(net: SpecularNetwork, rows: int, reference: bool, generator: torch.Generator) -> float:
+    """One forward and backward of ``net``'s MLP from ``rows`` random features, in ms."""
+    env = torch.randn(rows, 16, generator=generator, requires_grad=True)
+    material = torch.nn.functional.normalize(torch.randn(rows, 4, generator=generator), dim=-1).requires_grad_()
+    start = time.perf_counter()
+    out = (net.mlp_outputs_reference if reference else net.mlp_outputs)(env, material)
+    out.square().sum().backward()
+    return 1000.0 * (time.perf_counter() - start)
+
+
+def measure_kernels(rows: int, spread: int, steps: int, rounds: int, width: int,
+                    seed: int = 0) -> dict[str, list[float]]:
+    """Median ms per step of each round for the autocast reference and the kernel pass, interleaved."""
+    torch.manual_seed(seed)
+    net = SpecularNetwork(env_channels=16, material_channels=4, width=width, precision="bfloat16",
+                          attenuation="network")
+    draws = torch.Generator().manual_seed(seed)
+    times: dict[str, list[float]] = {"reference": [], "kernels": []}
+    for _ in range(rounds):
+        for name in times:
+            counts = [rows - spread + int(torch.randint(0, 2 * spread + 1, (1,), generator=draws))
+                      for _ in range(steps)]
+            times[name].append(statistics.median(feature_step_ms(net, n, name == "reference", draws)
+                                                 for n in counts))
+    return times
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rows", type=int, default=7000, help="rows per step (shaded pixels; 100x75 is 7500)")
@@ -68,11 +101,18 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     try:
         result = measure(args.rows, args.spread, args.steps, args.rounds, args.width)
+        kernels = measure_kernels(args.rows, args.spread, args.steps, args.rounds, args.width)
     finally:  # the caller's thread count back (the tests call main in their own process)
         torch.set_num_threads(threads)
     print(f"{'precision':<10}" + "".join(f"{kind:>10}" for kind in KINDS))
     for precision in ("float32", "bfloat16"):
         print(f"{precision:<10}" + "".join(f"{result[(precision, kind)]:>10.2f}" for kind in KINDS))
+    print("\nthe bfloat16 MLP from its features, changing counts (the reference pads them to buckets, as the kernels "
+          "do)")
+    for name, values in kernels.items():
+        print(f"{name:<10}{statistics.median(values):>10.2f}")
+    ratios = [a / b for a, b in zip(kernels["reference"], kernels["kernels"], strict=True)]
+    print(f"median of the per-round ratios reference / kernels: {statistics.median(ratios):.2f}")
     return 0
 
 
