@@ -2,13 +2,13 @@
 
 Imported lazily (through :func:`rtsplat.raster.numba_runtime.load_numba_module`), never by ``import rtsplat``.
 bfloat16 tensors reach the kernels as their 16-bit patterns (``tensor.view(torch.int16).numpy()``): the sign
-bit on top, then the float32 exponent and the top 7 bits of its mantissa. A chunk of rows per parallel
-iteration.
+bit on top, then the float32 exponent and the top 7 bits of its mantissa. The input kernels take :data:`ROWS`
+rows per parallel iteration, the ReLU kernels one row.
 
 * :func:`network_input_kernel`: the network's input row, the outer product of the environment feature and the
   material feature (flattened, environment-major) followed by the environment feature, rounded to bfloat16 as
-  ``Tensor.to(torch.bfloat16)`` rounds (to nearest, ties to even; NaN to 0x7FC0), and zero rows after the last
-  sample (the bucket's padding).
+  ``Tensor.to(torch.bfloat16)`` rounds (to nearest, ties to even; a NaN stays a NaN, 0x7FC0, where torch's
+  vector path may keep its sign and payload), and zero rows after the last sample (the bucket's padding).
 * :func:`network_input_grad_kernel`: the gradient of the environment and material features from the input
   rows' gradient (summed in float64).
 * :func:`relu_kernel`, :func:`relu_grad_kernel`: ``relu`` and its gradient in place, bit for bit those of
