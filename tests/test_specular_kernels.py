@@ -52,7 +52,8 @@ def test_the_kernel_pass_gives_the_reference_outputs_and_weight_gradients_bit_fo
         assert torch.isfinite(a).all()
 
 
-def test_the_input_rows_are_the_outer_product_and_the_features_rounded_as_torch_rounds():
+@pytest.mark.parametrize("suffix", ["", "_serial"])
+def test_the_input_rows_are_the_outer_product_and_the_features_rounded_as_torch_rounds(suffix):
     env, material = features(700, seed=3)
     env, material = env.detach().clone(), material.detach().clone()
     # ties between two bfloat16 values (both ways), the largest float32, infinities and NaN
@@ -60,7 +61,8 @@ def test_the_input_rows_are_the_outer_product_and_the_features_rounded_as_torch_
     material[1] = torch.tensor([float("-inf"), 0.0, -0.0, 1e-40])
     rows = bucketed_rows(700)
     x = torch.empty(rows, 100, dtype=torch.bfloat16)
-    kernels.network_input_kernel(env.numpy(), material.numpy(), rows, x.view(torch.int16).numpy().view(np.uint16))
+    getattr(kernels, "network_input_kernel" + suffix)(env.numpy(), material.numpy(), rows,
+                                                      x.view(torch.int16).numpy().view(np.uint16))
     expected = torch.cat([(env[:, :, None] * material[:, None, :]).flatten(1), env], -1).to(torch.bfloat16)
     nan = expected.isnan()
     assert torch.equal(x[:700].isnan(), nan) and nan.sum() == 5  # a NaN's payload may differ: torch's vector
@@ -68,18 +70,36 @@ def test_the_input_rows_are_the_outer_product_and_the_features_rounded_as_torch_
     assert torch.equal(x[700:].view(torch.int16), torch.zeros(rows - 700, 100, dtype=torch.int16))
 
 
-def test_the_relu_kernels_match_torch_on_every_bfloat16_pattern():
+@pytest.mark.parametrize("suffix", ["", "_serial"])
+def test_the_relu_kernels_match_torch_on_every_bfloat16_pattern(suffix):
     h = EVERY_PATTERN.clone().reshape(256, 256)
-    kernels.relu_kernel(h.numpy())
+    getattr(kernels, "relu_kernel" + suffix)(h.numpy())
     expected = torch.relu(EVERY_PATTERN.view(torch.bfloat16)).reshape(256, 256)
     mine = h.view(torch.bfloat16)
     assert torch.equal(mine.isnan(), expected.isnan())
     assert torch.equal(mine.nan_to_num(), expected.nan_to_num())
     grad = torch.randn(256, 256).to(torch.bfloat16)
     kept = grad.clone()
-    kernels.relu_grad_kernel(kept.view(torch.int16).numpy(), EVERY_PATTERN.reshape(256, 256).numpy())
+    getattr(kernels, "relu_grad_kernel" + suffix)(kept.view(torch.int16).numpy(),
+                                                  EVERY_PATTERN.reshape(256, 256).numpy())
     reference = torch.ops.aten.threshold_backward(grad, EVERY_PATTERN.view(torch.bfloat16).reshape(256, 256), 0)
     assert torch.equal(kept.view(torch.int16), reference.view(torch.int16))
+
+
+def test_the_parallel_and_the_serial_kernels_give_the_same_bits(monkeypatch):
+    net = SpecularNetwork(20, 4, 64, "bfloat16")
+    env, material = features(3000, seed=7)
+    serial = outputs_and_gradients(net, net.mlp_outputs, env, material)
+    threads = torch.get_num_threads()
+    monkeypatch.setattr(specular, "PARALLEL_ROWS", 1)
+    torch.set_num_threads(2)
+    try:
+        parallel = outputs_and_gradients(net, net.mlp_outputs, env, material)
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(a, b) for a, b in zip(serial, parallel, strict=True))
+    assert specular._specular_kernels(2, 1).relu_kernel is kernels.relu_kernel
+    assert specular._specular_kernels(1, 10**6).relu_kernel is kernels.relu_kernel_serial
 
 
 def test_a_non_finite_feature_spoils_the_rows_the_reference_spoils_and_no_others():
