@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from rtsplat.raster.numba_runtime import SURFEL_CHUNK, load_numba_module, numba_threads
+from rtsplat.raster.numba_runtime import load_numba_module, numba_threads
 
 LOG_HALF = math.log(0.5)
 NEAR_WEIGHT_START_LOGIT = 2.0  # sigmoid(2) = 0.88
@@ -199,6 +199,7 @@ class SpecularNetwork(nn.Module):
 
 
 PARALLEL_ROWS = 16384  # fewer network rows than this: the kernels run on the calling thread
+PARALLEL_CHUNK = 64  # parallel iterations per chunk: 64 rows of the ReLU kernels, 64 x ROWS of the input kernels
 
 
 class _KernelSet:
@@ -245,7 +246,7 @@ class BFloat16Network(torch.autograd.Function):
         x = torch.empty(rows, w1.shape[1], dtype=torch.bfloat16)
         weights = [w.detach().to(torch.bfloat16) for w in (w1, w2, w3)]
         biases = [b.detach().to(torch.bfloat16) for b in (b1, b2, b3)]
-        with numba_threads(SURFEL_CHUNK) as threads:
+        with numba_threads(PARALLEL_CHUNK) as threads:
             kernels = _specular_kernels(threads, rows)
             kernels.network_input_kernel(env.numpy(), material.numpy(), rows, _bits(x).view(np.uint16))
             h1 = torch.addmm(biases[0], x, weights[0].t())
@@ -263,7 +264,7 @@ class BFloat16Network(torch.autograd.Function):
         g3 = grad.new_zeros(x.shape[0], grad.shape[1], dtype=torch.bfloat16)
         g3[: grad.shape[0]] = grad
         grads = [None] * 8
-        with numba_threads(SURFEL_CHUNK) as threads:
+        with numba_threads(PARALLEL_CHUNK) as threads:
             kernels = _specular_kernels(threads, x.shape[0])
             g2 = g3.mm(w3)
             kernels.relu_grad_kernel(_bits(g2), _bits(h2))

@@ -2,10 +2,10 @@
 
 Imported lazily (through :func:`rtsplat.raster.numba_runtime.load_numba_module`), never by ``import rtsplat``.
 bfloat16 tensors reach the kernels as their 16-bit patterns (``tensor.view(torch.int16).numpy()``): the sign
-bit on top, then the float32 exponent and the top 7 bits of its mantissa. Every kernel comes twice: parallel (the
-input kernels take :data:`ROWS` rows per parallel iteration, the ReLU kernels one row) and ``*_serial``, on the
-calling thread, for one thread or few rows, where starting numba's parallel loop (some 0.06 ms a call here) costs
-more than the work.
+bit on top, then the float32 exponent and the top 7 bits of its mantissa. Every kernel comes twice: parallel
+(the input kernels take :data:`ROWS` rows per parallel iteration, the ReLU kernels one row) and ``*_serial``, on
+the calling thread, for one thread or few rows, where starting numba's parallel loop (some 0.06 ms a call here)
+costs more than the work.
 
 * :func:`network_input_kernel`: the network's input row, the outer product of the environment feature and the
   material feature (flattened, environment-major) followed by the environment feature, rounded to bfloat16 as
@@ -37,7 +37,7 @@ def _rounded_bfloat16(bits):
     return (bits + 0x7FFF + ((bits >> 16) & 1)) >> 16
 
 
-ROWS = 64  # rows per parallel iteration of the parallel kernels: one scratch row per iteration, not per row
+ROWS = 64  # rows per parallel iteration of the parallel input kernels: one scratch row per iteration, not per row
 
 
 @njit(inline="always", **_JIT)
