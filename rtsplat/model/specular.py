@@ -213,8 +213,8 @@ class _KernelSet:
 
 def _specular_kernels(threads: int, rows: int) -> _KernelSet:
     """The kernels for ``rows`` network rows on ``threads`` numba threads: parallel only with more than one
-    thread and at least :data:`PARALLEL_ROWS` rows; a parallel call costs some 0.06 ms before any work, as much
-    as the whole ReLU of 2048 rows of 256 on one thread."""
+    thread and at least :data:`PARALLEL_ROWS` rows; a parallel call costs some 0.06 ms before any work, more than
+    the whole serial ReLU of 4096 rows of 256 (0.04 ms, docs/performance.md)."""
     return _KernelSet(load_numba_module("rtsplat.model.specular_kernels"), threads > 1 and rows >= PARALLEL_ROWS)
 
 
