@@ -39,6 +39,11 @@ def step_ms(mlp: nn.Module, rows: int, padded: int, bfloat16: bool) -> float:
     return 1000.0 * (time.perf_counter() - start)
 
 
+def changing_count(rows: int, spread: int, draws: torch.Generator) -> int:
+    """A row count of the ``changing`` kind: ``rows`` +- ``spread``, drawn from ``draws``."""
+    return rows - spread + int(torch.randint(0, 2 * spread + 1, (1,), generator=draws))
+
+
 def measure(rows: int, spread: int, steps: int, rounds: int, width: int, seed: int = 0) -> dict[tuple[str, str], float]:
     """Median ms per step of every (precision, kind), the kinds interleaved round by round."""
     torch.manual_seed(seed)
@@ -50,8 +55,7 @@ def measure(rows: int, spread: int, steps: int, rounds: int, width: int, seed: i
             for kind in KINDS:
                 per_step = []
                 for _ in range(steps):
-                    n = rows if kind == "fixed" else rows - spread + int(torch.randint(0, 2 * spread + 1, (1,),
-                                                                                      generator=draws))
+                    n = rows if kind == "fixed" else changing_count(rows, spread, draws)
                     padded = bucketed_rows(n) if kind == "bucketed" else n
                     per_step.append(step_ms(mlp, n, padded, precision == "bfloat16"))
                 times.setdefault((precision, kind), []).append(statistics.median(per_step))
@@ -78,8 +82,7 @@ def measure_kernels(rows: int, spread: int, steps: int, rounds: int, width: int,
     times: dict[str, list[float]] = {"reference": [], "kernels": []}
     for _ in range(rounds):
         for name in times:
-            counts = [rows - spread + int(torch.randint(0, 2 * spread + 1, (1,), generator=draws))
-                      for _ in range(steps)]
+            counts = [changing_count(rows, spread, draws) for _ in range(steps)]
             times[name].append(statistics.median(feature_step_ms(net, n, name == "reference", draws)
                                                  for n in counts))
     return times
