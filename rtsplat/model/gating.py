@@ -9,7 +9,9 @@ Two measures of complexity, per colour channel:
 * ``variance``: the paper's equation, plain variance of C_spec over the 3x3 window;
 * ``weighted_std``: what the authors' code does, the weighted standard deviation over a
   reflect-padded 3x3 window with weights (1 - surface alpha), detached.
-g itself is never differentiated.
+g itself is never differentiated. On CPU tensors (float32 or float64, numba installed) :func:`gate_factor` runs the
+numba kernel of :mod:`rtsplat.model.gating_kernels`; :func:`gate_factor_reference` is the torch version it is tested
+against, used on other devices.
 """
 
 from __future__ import annotations
@@ -17,6 +19,10 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from rtsplat.raster.numba_runtime import load_numba_module, numba_threads
+
+MODES = ("weighted_std", "variance")
 
 
 def _windows(image_chw: Tensor) -> Tensor:
@@ -42,7 +48,37 @@ def specular_complexity(specular: Tensor, surface_alpha: Tensor, mode: str = "we
 
 
 def gate_factor(specular: Tensor, surface_alpha: Tensor, k: float = 4.0, mode: str = "weighted_std") -> Tensor:
+    """g = exp(-k s) [H,W,3] (detached) for ``specular`` [H,W,3] and ``surface_alpha`` [H,W,1]: on the CPU the numba
+    kernel (the same values to float32 rounding, in a tenth of the time at 100x75), else
+    :func:`gate_factor_reference`."""
+    if mode not in MODES:
+        raise ValueError(f"unknown gating mode {mode!r}")
+    if not _kernel_applies(specular, surface_alpha):
+        return gate_factor_reference(specular, surface_alpha, k, mode)
+    spec = specular.detach().contiguous()
+    alpha = surface_alpha.detach().to(spec.dtype).reshape(spec.shape[:2]).contiguous()
+    out = torch.empty_like(spec)
+    with numba_threads():
+        load_numba_module("rtsplat.model.gating_kernels").gate_factor_kernel(
+            spec.numpy(), alpha.numpy(), float(k), mode == "weighted_std", out.numpy())
+    return out
+
+
+def gate_factor_reference(specular: Tensor, surface_alpha: Tensor, k: float = 4.0,
+                          mode: str = "weighted_std") -> Tensor:
+    """:func:`gate_factor` in torch's ops, on any device."""
     return torch.exp(-k * specular_complexity(specular, surface_alpha, mode))
+
+
+def _kernel_applies(specular: Tensor, surface_alpha: Tensor) -> bool:
+    """CPU float32/float64 images of at least 2x2 pixels (reflect padding) and numba installed."""
+    if specular.device.type != "cpu" or surface_alpha.device.type != "cpu":
+        return False
+    if specular.dtype not in (torch.float32, torch.float64) or specular.dim() != 3:
+        return False
+    if specular.shape[0] < 2 or specular.shape[1] < 2:
+        return False
+    return load_numba_module("rtsplat.model.gating_kernels") is not None
 
 
 def gate_gradient(value: Tensor, g: Tensor) -> Tensor:
