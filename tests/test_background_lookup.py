@@ -70,7 +70,7 @@ def test_gradcheck_of_the_lookup_kernel_in_float64():
     directions = _directions(40, torch.float64, seed=3)
     u, v = EnvironmentMap.direction_to_uv(directions[5:])  # away from the poles, where v is clamped
     first, sizes = background._layout()
-    table = background._texel_table().detach().clone().requires_grad_()
+    table = background.texel_table().detach().clone().requires_grad_()
     assert torch.autograd.gradcheck(lambda t, a, b: BackgroundLookup.apply(t, a, b, first, sizes),
                                     (table, u.clone().requires_grad_(), v.clone().requires_grad_()))
 

@@ -1202,3 +1202,32 @@ def test_view_independent_roi_gives_surfels_inside_the_region_their_degree_0_col
         assert p.sh_rest.grad[inside].abs().max() == 0 and p.sh_dc.grad[inside].abs().max() > 0
     else:
         assert moved[inside].max() > 0.05
+
+
+@pytest.mark.parametrize("downsample", [1, 2])
+def test_a_render_builds_the_background_texel_table_once_and_renders_as_with_one_per_lookup(monkeypatch, downsample):
+    """The learned background is looked up at the pixels' rays (with autograd) and at the reflected directions
+    (without): both read one texel table per render, with the values and gradients of a table per lookup."""
+    model = _model_with(specular_view_angle=False, specular_background=True)
+    with torch.no_grad():
+        for level in model.background_map.maps:
+            level.normal_(generator=torch.Generator().manual_seed(5))
+    camera = small_camera(24, 18, torch.float32)
+
+    def render_and_gradients():
+        model.zero_grad()
+        result = model.render(camera, stage="full", backend="reference", specular_downsample=downsample)
+        result.color.square().sum().backward()
+        return [result.color.detach()] + [level.grad.clone() for level in model.background_map.maps]
+
+    built = []
+    table = type(model.background_map).texel_table
+    monkeypatch.setattr(type(model.background_map), "texel_table", lambda self: built.append(1) or table(self))
+    shared = render_and_gradients()
+    assert len(built) == 1
+    monkeypatch.setattr(type(model.background_map), "shared_table", lambda self, directions: None)
+    apart = render_and_gradients()
+    assert len(built) == 3  # the pixels' rays, then the reflected directions
+    for a, b in zip(shared, apart, strict=True):
+        assert torch.equal(a, b)
+    assert shared[1].abs().sum() > 0

@@ -34,15 +34,17 @@ class BackgroundMap(nn.Module):
         # logit 0 everywhere: mid grey until the training views say otherwise
         self.maps = nn.ParameterList([nn.Parameter(torch.zeros(1, 3, h, w)) for h, w in sizes])
 
-    def forward(self, directions: Tensor) -> Tensor:
+    def forward(self, directions: Tensor, table: Tensor | None = None) -> Tensor:
         """RGB [..., 3] in (0, 1) at unit ``directions`` [..., 3]. On CPU tensors of one float type the levels
         are sampled and summed by numba kernels (:mod:`rtsplat.model.background_kernels`, through
         :class:`BackgroundLookup` with autograd): the operations of :meth:`logits_reference`, in its order,
         so the same logits, in a fraction of the time of the torch ops' passes over every sample; elsewhere,
-        or without numba, by :meth:`logits_reference`."""
+        or without numba, by :meth:`logits_reference`. ``table``: the kernels' :meth:`texel_table` when the
+        caller shares one between lookups of the same maps (a render's own rays and its reflected directions);
+        its gradient, if any, is the caller's."""
         flat = directions.reshape(-1, 3)
         u, v = EnvironmentMap.direction_to_uv(flat)
-        logits = self._logits_by_kernel(u, v)
+        logits = self._logits_by_kernel(u, v, table)
         if logits is None:
             logits = self.logits_reference(u, v)
         return torch.sigmoid(logits).reshape(*directions.shape[:-1], 3)
@@ -52,26 +54,36 @@ class BackgroundMap(nn.Module):
         (:meth:`EnvironmentMap.sample_level`), the levels added in turn. The kernels' oracle."""
         return sum(EnvironmentMap.sample_level(level, u, v) for level in self.maps)
 
-    def _logits_by_kernel(self, u: Tensor, v: Tensor) -> Tensor | None:
-        """The summed logits [M, 3] at (u, v) from the numba kernels; None where they do not apply."""
-        dtype = self.maps[0].dtype
-        if (u.device.type != "cpu" or u.dtype != dtype or v.dtype != dtype
-                or dtype not in (torch.float32, torch.float64)
-                or any(level.dtype != dtype or level.device.type != "cpu" for level in self.maps)):
-            return None
-        if load_numba_module("rtsplat.model.background_kernels") is None:
+    def _logits_by_kernel(self, u: Tensor, v: Tensor, table: Tensor | None = None) -> Tensor | None:
+        """The summed logits [M, 3] at (u, v) from the numba kernels (from ``table``, or a texel table built
+        here); None where they do not apply."""
+        if v.dtype != u.dtype or not self._kernels_apply(u):
             return None
         first, sizes = self._layout()
-        table = self._texel_table()
+        table = self.texel_table() if table is None else table
         if table.requires_grad or u.requires_grad or v.requires_grad:
             return BackgroundLookup.apply(table, u, v, first, sizes)
         return BackgroundLookup.logits(table, u, v, first, sizes)
 
-    def _texel_table(self) -> Tensor:
-        """Every level's texels [3, T] (channel-major, level after level), differentiable where autograd is on.
-        Built on every call (~2 MB for the default levels, well under a millisecond): a kept table could not tell
-        when the maps change, since the trainer's fused Adam step updates them without moving their version
-        counters."""
+    def shared_table(self, directions: Tensor) -> Tensor | None:
+        """The :meth:`texel_table` that lookups at ``directions`` (their device and float type) would read, for a
+        caller to hand to several of them; None where the kernels do not apply (the lookups read the maps)."""
+        return self.texel_table() if self._kernels_apply(directions) else None
+
+    def _kernels_apply(self, samples: Tensor) -> bool:
+        """Whether the numba kernels look up samples like ``samples``: CPU tensors of the maps' float type, float32
+        or float64, numba installed."""
+        dtype = self.maps[0].dtype
+        if (samples.device.type != "cpu" or samples.dtype != dtype or dtype not in (torch.float32, torch.float64)
+                or any(level.dtype != dtype or level.device.type != "cpu" for level in self.maps)):
+            return False
+        return load_numba_module("rtsplat.model.background_kernels") is not None
+
+    def texel_table(self) -> Tensor:
+        """Every level's texels [3, T] (channel-major, level after level), differentiable where autograd is on:
+        what the kernels read. Built on every lookup that is not handed one (~2 MB for the default levels, a few
+        tenths of a millisecond): a kept table could not tell when the maps change, since the trainer's fused
+        Adam step updates them without moving their version counters."""
         return torch.cat([level[0].reshape(3, -1) for level in self.maps], 1)
 
     def _layout(self) -> tuple[Tensor, Tensor]:
