@@ -1011,7 +1011,8 @@ def test_specular_background_sees_the_background_at_the_reflected_direction_with
         for level in model.background_map.maps:
             level.normal_()
     after, features, _, _ = _inputs_of_the_specular_network(model, monkeypatch)
-    torch.testing.assert_close(features[:, -3:], model.background_map(reflected), rtol=0, atol=1e-5)
+    # the render's reflected direction equals this one to float32 rounding, which the random map magnifies
+    torch.testing.assert_close(features[:, -3:], model.background_map(reflected), rtol=0, atol=1e-4)
     assert (after.layers["spec"] - before.layers["spec"]).abs().max() > 1e-3  # C_spec follows B(w_r)
     after.layers["spec"].sum().backward()
     assert all(level.grad is None for level in model.background_map.maps)
@@ -1036,7 +1037,8 @@ def test_specular_mirror_blends_the_background_at_the_reflected_direction_into_c
         spec[name] = result.layers["spec"][(result.layers["shade"] > 0)[..., 0] & (result.layers["roi"] > 0)[..., 0]]
     rays, n = _rays_and_normals_of_the_shaded_region(result)
     reflected = torch.nn.functional.normalize(rays - 2 * (rays * n).sum(-1, keepdim=True) * n, dim=-1)
-    torch.testing.assert_close(mirror, model.background_map(reflected).detach(), rtol=0, atol=1e-5)
+    # the render's reflected direction equals this one to float32 rounding, which the random map magnifies
+    torch.testing.assert_close(mirror, model.background_map(reflected).detach(), rtol=0, atol=1e-4)
     # m = 1: a mirror of the background, scaled by the reflectance; m = 0: the network's colour alone
     torch.testing.assert_close(spec["mirror"], reflectance * mirror, rtol=1e-5, atol=1e-6)
     plain = _model_with(specular_view_angle=False, specular_background=False, specular_mirror=False)

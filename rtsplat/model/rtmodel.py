@@ -58,6 +58,7 @@ from rtsplat.model.mirror import (
 from rtsplat.model.settings import SEE_THROUGH_OPACITY, Ablations, Gating, ModelSettings
 from rtsplat.model.sh import eval_sh_parts
 from rtsplat.model.specular import SpecularNetwork
+from rtsplat.model.specular_inputs import specular_inputs
 from rtsplat.model.surfels import SurfelParameters
 from rtsplat.raster import RasterOutput, RasterSettings, Surfels, rasterize
 
@@ -527,15 +528,9 @@ class RTModel(nn.Module):
         (None: every pixel), from the G-buffer ``g`` and the blended ``normal``; ``env_table``: the
         environment map's texel table, when the caller shares one (:meth:`EnvironmentMap.forward`);
         ``background_table``: the learned background's (:meth:`BackgroundMap.texel_table`), likewise."""
-        rows = (lambda t: t) if idx is None else (lambda t: t[idx])  # noqa: E731
-        incident = rows((image_ray_directions(camera) if rays is None else rays).reshape(-1, 3))
-        n = rows(normal.reshape(-1, 3))
-        incidence = (incident * n).sum(-1, keepdim=True)  # cosine of the angle of incidence (signed)
-        cos_incidence = incidence.abs().clamp(0, 1)
-        reflected = F.normalize(incident - 2.0 * incidence * n, dim=-1)
-        rough = rows((g["roughness"] / alpha_safe).reshape(-1)).clamp(0, 1)
-        material = F.normalize(rows(g["material"].reshape(-1, 4)), dim=-1)
-        reflectance = rows((g["reflectance"] / alpha_safe).reshape(-1, 1)).clamp(0, 1)
+        reflected, cos_incidence, rough, material, reflectance = specular_inputs(
+            image_ray_directions(camera) if rays is None else rays, normal, g["roughness"], g["material"],
+            g["reflectance"], alpha_safe, idx)
         if self.settings.specular_fresnel:
             reflectance = schlick_fresnel(reflectance, cos_incidence)
         env = self.env(reflected, rough, env_table)
@@ -551,6 +546,7 @@ class RTModel(nn.Module):
             extra.append(reflected_background)
         if extra:
             env = torch.cat([env, *extra], -1)
+        rows = (lambda t: t) if idx is None else (lambda t: t[idx])  # noqa: E731
         near_rows = None if near is None else (rows(near[0].reshape(-1, 3)), rows(near[1].reshape(-1, 1)))
         s, b = self.specular_net(env, material, reflectance, reflected_background if self.uses_mirror else None,
                                  near=near_rows, cos_incidence=cos_incidence)
