@@ -451,12 +451,20 @@ class RTModel(nn.Module):
         ``normal_sum``: the rasterizer's blended normal, before normalisation. The gradient reaches every pixel of
         a block through the means, and ``gradient_share`` samples the blocks as :meth:`_specular` samples pixels."""
         H, W = alpha.shape[:2]
-        coarse_alpha = block_mean(alpha, factor)
-        coarse_g = {name: block_mean(g[name], factor) for name in SPECULAR_INPUT_CHANNELS}
-        normal = F.normalize(block_mean(normal_sum, factor), dim=-1)
-        coarse_rays = F.normalize(block_mean(rays, factor), dim=-1)
-        shaded = block_mean(wanted.to(alpha.dtype), factor) > 0
-        coarse_near = None if near is None else (block_mean(near[0], factor), block_mean(near[1], factor))
+        # the images averaged in two passes, one over those with a gradient and one over those without: the
+        # channels of each side by side, so that each pass is one pooling (a mean is taken channel by channel,
+        # so the same values as one pooling per image)
+        tracked = [alpha, normal_sum, *(g[name] for name in SPECULAR_INPUT_CHANNELS), *(near or ())]
+        coarse_alpha, normal, *coarse_channels = block_mean(torch.cat(tracked, -1), factor).split(
+            [t.shape[-1] for t in tracked], -1)
+        coarse_g = dict(zip(SPECULAR_INPUT_CHANNELS, coarse_channels, strict=False))
+        coarse_near = None if near is None else tuple(coarse_channels[len(SPECULAR_INPUT_CHANNELS):])
+        normal = F.normalize(normal.contiguous(), dim=-1)  # a norm over a strided last dim may sum in another order
+        with torch.no_grad():
+            coarse_rays, shaded = block_mean(torch.cat([rays.to(alpha.dtype), wanted.to(alpha.dtype)], -1),
+                                             factor).split([3, 1], -1)
+        coarse_rays = F.normalize(coarse_rays.contiguous(), dim=-1)
+        shaded = shaded > 0
         spec, beta = self._specular(camera, normal, coarse_g, coarse_alpha.clamp_min(1e-6), shaded,
                                     near=coarse_near, rays=coarse_rays, gradient_share=gradient_share,
                                     generator=generator, background_table=background_table)
@@ -554,9 +562,10 @@ class RTModel(nn.Module):
 
 
 def block_mean(t: Tensor, factor: int) -> Tensor:
-    """``t`` [H,W,C] -> [ceil(H / factor), ceil(W / factor), C]: the mean over each ``factor`` x ``factor`` block
-    of pixels; a block cut by the right or bottom edge averages the pixels it holds."""
-    return F.avg_pool2d(t.permute(2, 0, 1)[None], factor, ceil_mode=True)[0].permute(1, 2, 0)
+    """``t`` [H,W,C] -> [ceil(H / factor), ceil(W / factor), C] (contiguous): the mean over each ``factor`` x
+    ``factor`` block of pixels; a block cut by the right or bottom edge averages the pixels it holds."""
+    # channel-major input: each channel is pooled on its own, whatever the channels beside it
+    return F.avg_pool2d(t.permute(2, 0, 1).contiguous()[None], factor, ceil_mode=True)[0].permute(1, 2, 0).contiguous()
 
 
 def upsampled_from_blocks(values: Tensor, weight: Tensor, factor: int, size: tuple[int, int]) -> Tensor:
