@@ -459,7 +459,7 @@ class RTModel(nn.Module):
             [t.shape[-1] for t in tracked], -1)
         coarse_g = dict(zip(SPECULAR_INPUT_CHANNELS, coarse_channels, strict=False))
         coarse_near = None if near is None else tuple(coarse_channels[len(SPECULAR_INPUT_CHANNELS):])
-        normal = F.normalize(normal.contiguous(), dim=-1)  # a norm over a strided last dim may sum in another order
+        normal = F.normalize(normal.contiguous(), dim=-1)  # contiguous: a norm over a strided last dim is slower
         with torch.no_grad():
             coarse_rays, shaded = block_mean(torch.cat([rays.to(alpha.dtype), wanted.to(alpha.dtype)], -1),
                                              factor).split([3, 1], -1)
