@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from rtsplat.model.envmap import EnvironmentMap, TrilinearLookup
+from rtsplat.model.envmap import EnvironmentMap, MipLookup, TrilinearLookup
 
 pytest.importorskip("numba")
 
@@ -66,12 +66,48 @@ def test_a_map_forward_on_the_cpu_runs_the_kernels_with_and_without_autograd(mon
     env = _map(4, 8, 16, 3, torch.float32)
     directions, roughness = _samples(3, 50, torch.float32)
     calls = []
-    original = TrilinearLookup.forward
-    monkeypatch.setattr(TrilinearLookup, "forward", staticmethod(lambda *a: calls.append(1) or original(*a)))
+    for cls in (TrilinearLookup, MipLookup):
+        original = cls.forward
+        monkeypatch.setattr(cls, "forward", staticmethod(
+            lambda *a, cls=cls, original=original: calls.append(cls.__name__) or original(*a)))
     with_grad = env(directions, roughness)
     with torch.no_grad():
         without = env(directions, roughness)
-    assert len(calls) == 2 and torch.equal(with_grad.detach(), without)
+    assert calls == ["MipLookup", "TrilinearLookup"] and torch.equal(with_grad.detach(), without)
+
+
+def _by_table_and_from_the_map(env, directions, roughness):
+    """Values and gradients (features, directions, roughness) of one weighted sum of the lookup, through the texel
+    table (MipTable then TrilinearLookup) and straight from the map (MipLookup)."""
+    results = []
+    for table in (True, False):
+        env.features.grad = None
+        d = directions.clone().requires_grad_()
+        r = roughness.clone().requires_grad_()
+        out = env(d, r, env.texel_table()[0] if table else None)
+        weights = torch.linspace(-1, 1, out.numel(), dtype=out.dtype).reshape(out.shape)
+        (out * weights).sum().backward()
+        results.append((out.detach(), env.features.grad.clone(), d.grad, r.grad))
+    return results
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("channels,height,width,levels,top", [
+    (3, 16, 32, 5, 1.0), (16, 9, 22, 4, 1.0), (1, 4, 8, 5, 1.0),  # odd sizes; levels below 2x4 repeat the last
+    (16, 32, 64, 7, 0.15), (4, 8, 16, 3, 0.0),  # only the first levels read (the first alone at roughness 0)
+])
+@pytest.mark.parametrize("channels_last", [True, False])
+def test_the_lookup_from_the_map_is_the_lookup_through_the_table_bit_for_bit(dtype, channels, height, width,
+                                                                             levels, top, channels_last):
+    env = _map(channels, height, width, levels, dtype)
+    if not channels_last:
+        env.features = torch.nn.Parameter(env.features.detach().contiguous())
+    directions, roughness = _samples(levels, 300, dtype)
+    roughness = roughness * top
+    by_table, from_map = _by_table_and_from_the_map(env, directions, roughness)
+    for name, a, b in zip(("values", "features", "directions", "roughness"), from_map, by_table, strict=True):
+        assert torch.equal(a, b), name
+    assert from_map[1].abs().sum() > 0
 
 
 def test_hard_samples_stay_finite_and_a_bad_one_spoils_only_itself():

@@ -5,7 +5,8 @@ linear between them; the mip level is ``roughness * (levels - 1)``. Longitude wr
 columns' indices wrap); latitude is clamped at the poles. The mip levels are rows of one texel
 table (:class:`MipTable`); a lookup gathers its eight taps from it, in torch's ops
 (:meth:`EnvironmentMap.lookup_reference`, any device) or on the CPU in numba kernels with a
-hand-written backward (:class:`TrilinearLookup`), instead of nvdiffrast.
+hand-written backward (:class:`TrilinearLookup`), instead of nvdiffrast. With autograd on the CPU a lookup
+reads the map itself (:class:`MipLookup`: the same kernels, the table's first level a view of the map).
 
 Direction convention: world z is up; longitude phi = atan2(y, x) maps to the map's columns,
 colatitude theta = acos(z) to its rows (row 0 = +z).
@@ -124,11 +125,15 @@ class EnvironmentMap(nn.Module):
         table; levels above the largest one sampled are not built. ``table``: the texel table of every
         level (:meth:`texel_table`) when the caller shares one between lookups of the same map (a render's
         tracked and untracked pixels); its gradient, if any, is the caller's. On the CPU (float32 or float64,
-        numba installed) the lookup and its backward are numba kernels (:class:`TrilinearLookup`), with and
-        without autograd alike; elsewhere torch's ops (:meth:`lookup_reference`), which the kernels are tested
-        against."""
+        numba installed) the lookup and its backward are numba kernels (:class:`TrilinearLookup`, or
+        :class:`MipLookup` with autograd and no ``table``), with and without autograd alike; elsewhere torch's
+        ops (:meth:`lookup_reference`), which the kernels are tested against."""
         u, v = self.direction_to_uv(directions)
         level = (roughness.clamp(0, 1) * (self.levels - 1)).reshape(-1)
+        if table is None and torch.is_grad_enabled() and TrilinearLookup.applies(self.features[0, 0], u, v, level):
+            self._table_cache = None  # see _lookup_table: a lookup with autograd drops the kept table
+            return MipLookup.apply(self.features, u, v, level, self.level_layout,
+                                   self._levels_read(level)).to(directions.dtype)
         if table is None:
             table = self._lookup_table(self._levels_read(level))
         if TrilinearLookup.applies(table, u, v, level):
@@ -234,19 +239,29 @@ class MipTable(torch.autograd.Function):
         channels = grad.shape[1]
         grad = grad.contiguous().clone()  # the levels' gradients accumulate in place, coarsest first
         level_grads = [grad[first:first + h * w].view(h, w, channels) for first, h, w in ctx.layout]
-        for i in range(len(ctx.layout) - 1, 0, -1):
-            coarse, fine = level_grads[i], level_grads[i - 1]
-            (_, h, w), (_, fh, fw) = ctx.layout[i], ctx.layout[i - 1]
-            if (fh, fw) == (h, w):  # the same level again
-                fine.add_(coarse)
-            elif (fh, fw) == (2 * h, 2 * w):
-                fine.view(h, 2, w, 2, channels).add_(coarse.view(h, 1, w, 1, channels), alpha=0.25)
-            else:
-                shape = torch.empty(1, channels, fh, fw, dtype=grad.dtype, device=grad.device)
-                spread = torch.ops.aten.avg_pool2d_backward(coarse.permute(2, 0, 1)[None], shape, [2, 2], [2, 2],
-                                                            [0, 0], True, True, None)
-                fine.add_(spread[0].permute(1, 2, 0))
+        spread_to_first_level(level_grads, ctx.layout)
         return level_grads[0].permute(2, 0, 1)[None], None
+
+
+def spread_to_first_level(level_grads: list[Tensor], layout: list[tuple[int, int, int]]) -> None:
+    """Add the gradients of the mip levels ``level_grads`` ([H_l, W_l, C] each, ``layout``'s levels) down to the
+    first, in place, coarsest first: a quarter of each texel's gradient to the four texels it averages (on
+    contiguous rows: no [1,C,H,W] gradient per level, no transposes), the same sums as autograd's through
+    ``avg_pool2d``; a level of odd size goes through ``avg_pool2d``'s own backward, whose partial windows average
+    fewer texels, and a level that repeats the one before (below 2x4) passes its gradient on whole."""
+    for i in range(len(layout) - 1, 0, -1):
+        coarse, fine = level_grads[i], level_grads[i - 1]
+        (_, h, w), (_, fh, fw) = layout[i], layout[i - 1]
+        channels = coarse.shape[-1]
+        if (fh, fw) == (h, w):  # the same level again
+            fine.add_(coarse)
+        elif (fh, fw) == (2 * h, 2 * w):
+            fine.view(h, 2, w, 2, channels).add_(coarse.view(h, 1, w, 1, channels), alpha=0.25)
+        else:
+            shape = torch.empty(1, channels, fh, fw, dtype=coarse.dtype, device=coarse.device)
+            spread = torch.ops.aten.avg_pool2d_backward(coarse.permute(2, 0, 1)[None], shape, [2, 2], [2, 2],
+                                                        [0, 0], True, True, None)
+            fine.add_(spread[0].permute(1, 2, 0))
 
 
 class TrilinearLookup(torch.autograd.Function):
@@ -269,40 +284,100 @@ class TrilinearLookup(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, table: Tensor, u: Tensor, v: Tensor, level: Tensor, layout: Tensor) -> Tensor:
-        kernels = load_numba_module("rtsplat.model.envmap_kernels")
-        m = u.shape[0]
-        taps = kernels.TAPS
-        rows = np.empty((m, taps), dtype=np.int64)
-        weights, d_u, d_v, d_level = (np.empty((m, taps), dtype=np.float64) for _ in range(4))
-        out = torch.empty(m, table.shape[1], dtype=table.dtype)
         data = table.detach().contiguous()
-        with numba_threads(SURFEL_CHUNK):
-            kernels.lookup_forward_kernel(data.numpy(), layout.to("cpu", torch.int64).numpy(), _samples(u),
-                                          _samples(v), _samples(level), rows, weights, d_u, d_v, d_level,
-                                          out.numpy())
+        out, ctx.taps = _lookup(data, data[:0], data.shape[0], layout, u, v, level)
         ctx.save_for_backward(data)
-        ctx.taps = (rows, weights, d_u, d_v, d_level)
         ctx.sample_dtypes = (u.dtype, v.dtype, level.dtype)
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor):
-        kernels = load_numba_module("rtsplat.model.envmap_kernels")
         (table,) = ctx.saved_tensors
-        rows, weights, d_u, d_v, d_level = ctx.taps
-        g = grad.to(table.dtype).contiguous().numpy()
-        g_table = g_u = g_v = g_level = None
-        if ctx.needs_input_grad[0]:
-            g_table = torch.zeros_like(table)
-            kernels.lookup_table_grad_kernel(g, rows, weights, g_table.numpy())
-        if any(ctx.needs_input_grad[1:4]):
-            sample = np.empty((3, rows.shape[0]), dtype=np.float64)
-            with numba_threads(SURFEL_CHUNK):
-                kernels.lookup_sample_grad_kernel(table.numpy(), g, rows, d_u, d_v, d_level, *sample)
-            g_u, g_v, g_level = (torch.from_numpy(s).to(dtype) for s, dtype in zip(sample, ctx.sample_dtypes,
-                                                                                  strict=True))
-        return g_table, g_u, g_v, g_level, None
+        g_table, _, *g_samples = _lookup_gradients(table, table[:0], table.shape[0], ctx.taps, grad,
+                                                   ctx.needs_input_grad[0], any(ctx.needs_input_grad[1:4]),
+                                                   ctx.sample_dtypes)
+        return g_table, *g_samples, None
+
+
+class MipLookup(torch.autograd.Function):
+    """The trilinear lookup of :class:`TrilinearLookup` straight from the map: ``apply(features [1,C,H,W], u, v,
+    level [M], layout [levels, 3], count)`` -> [M,C], the values of ``TrilinearLookup.apply(MipTable.apply(features,
+    count), ...)`` and the same gradients, bit for bit, without the texel table's copy of the first level.
+
+    The kernels read the texel table in two parts: the first level, a view of a channels-last map, and the ``count
+    - 1`` coarser levels (:func:`mip_levels`), concatenated. The backward adds the first level's gradient into a
+    buffer laid out as the map, which becomes the map's gradient, and the coarser levels' into one of their own,
+    spread down to the first (:func:`spread_to_first_level`): no copy of the table's gradient, and none for the map's
+    when its gradient is laid out as it is."""
+
+    @staticmethod
+    def forward(ctx, features: Tensor, u: Tensor, v: Tensor, level: Tensor, layout: Tensor, count: int) -> Tensor:
+        _, channels, height, width = features.shape
+        features = features.detach()
+        fine = features[0].permute(1, 2, 0).reshape(height * width, channels).contiguous()
+        coarser = [lv[0].permute(1, 2, 0).reshape(-1, channels) for lv in mip_levels(features, count)[1:]]
+        coarse = torch.cat(coarser) if coarser else fine[:0]
+        out, ctx.taps = _lookup(fine, coarse, fine.shape[0], layout, u, v, level)
+        ctx.save_for_backward(fine, coarse)
+        ctx.layout = level_layout(height, width, count)
+        ctx.sample_dtypes = (u.dtype, v.dtype, level.dtype)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        fine, coarse = ctx.saved_tensors
+        g_fine, g_coarse, *g_samples = _lookup_gradients(fine, coarse, fine.shape[0], ctx.taps, grad,
+                                                         ctx.needs_input_grad[0], any(ctx.needs_input_grad[1:4]),
+                                                         ctx.sample_dtypes)
+        g_features = None
+        if g_fine is not None:
+            first_rows = ctx.layout[0][0] + fine.shape[0]
+            level_grads = [g_fine.view(ctx.layout[0][1], ctx.layout[0][2], -1)] + [
+                g_coarse[first - first_rows:first - first_rows + h * w].view(h, w, -1)
+                for first, h, w in ctx.layout[1:]]
+            spread_to_first_level(level_grads, ctx.layout)
+            g_features = level_grads[0].permute(2, 0, 1)[None]
+        return g_features, *g_samples, None, None
+
+
+def _lookup(fine: Tensor, coarse: Tensor, split: int, layout: Tensor, u: Tensor, v: Tensor,
+            level: Tensor) -> tuple[Tensor, tuple]:
+    """The forward kernel on the texel table in two parts (rows below ``split`` in ``fine``, the rest in
+    ``coarse``): the lookup [M,C] in the table's type, and what the backward reads (each sample's taps' rows,
+    weights and the weights' derivatives)."""
+    kernels = load_numba_module("rtsplat.model.envmap_kernels")
+    m = u.shape[0]
+    rows = np.empty((m, kernels.TAPS), dtype=np.int64)
+    weights, d_u, d_v, d_level = (np.empty((m, kernels.TAPS), dtype=np.float64) for _ in range(4))
+    out = torch.empty(m, fine.shape[1], dtype=fine.dtype)
+    with numba_threads(SURFEL_CHUNK):
+        kernels.lookup_forward_kernel(fine.numpy(), coarse.numpy(), split, layout.to("cpu", torch.int64).numpy(),
+                                      _samples(u), _samples(v), _samples(level), rows, weights, d_u, d_v, d_level,
+                                      out.numpy())
+    return out, (rows, weights, d_u, d_v, d_level)
+
+
+def _lookup_gradients(fine: Tensor, coarse: Tensor, split: int, taps: tuple, grad: Tensor, table_grad: bool,
+                      sample_grad: bool, sample_dtypes: tuple) -> tuple:
+    """The gradients of the table's two parts (``table_grad``; else None, None) and of the samples' u, v and level
+    (``sample_grad``; else three None) from the lookup's gradient ``grad`` [M,C]."""
+    kernels = load_numba_module("rtsplat.model.envmap_kernels")
+    rows, weights, d_u, d_v, d_level = taps
+    g = grad.to(fine.dtype).contiguous().numpy()
+    g_fine = g_coarse = None
+    samples = (None, None, None)
+    if table_grad:
+        g_fine, g_coarse = torch.zeros_like(fine), torch.zeros_like(coarse)
+        kernels.lookup_table_grad_kernel(g, rows, weights, g_fine.numpy(), g_coarse.numpy(), split)
+    if sample_grad:
+        sample = np.empty((3, rows.shape[0]), dtype=np.float64)
+        with numba_threads(SURFEL_CHUNK):
+            kernels.lookup_sample_grad_kernel(fine.numpy(), coarse.numpy(), split, g, rows, d_u, d_v, d_level,
+                                              *sample)
+        samples = tuple(torch.from_numpy(s).to(dtype) for s, dtype in zip(sample, sample_dtypes, strict=True))
+    return g_fine, g_coarse, *samples
 
 
 def _samples(t: Tensor) -> np.ndarray:

@@ -10,7 +10,9 @@ the output in the table's type.
 
 Per sample the forward keeps the eight taps' table rows, weights and the weights' derivatives with respect to
 u, v and l, from which the backward gives the gradients of the samples (one sample per parallel iteration)
-and of the table (one pass over the samples: the taps of different samples share table rows).
+and of the table (one pass over the samples: the taps of different samples share table rows). The texel table
+comes in two parts, its first level and the coarser ones, so that the first level can be a view of the map
+(:class:`rtsplat.model.envmap.MipLookup`) and its gradient the map's.
 """
 
 from __future__ import annotations
@@ -62,14 +64,23 @@ def _level_taps(layout, index, u, v, blend, dblend, m, slot, rows, weights, d_u,
     d_level[m, slot + 3] = bil3 * dblend
 
 
+@njit(inline="always", **_JIT)
+def _texel(fine, coarse, split, r, c):
+    """Channel ``c`` of row ``r`` of the texel table held in two parts: rows below ``split`` in ``fine``, the others
+    in ``coarse`` (from its row 0)."""
+    return fine[r, c] if r < split else coarse[r - split, c]
+
+
 @njit(parallel=True, **_JIT)
-def lookup_forward_kernel(table, layout, u, v, level, rows, weights, d_u, d_v, d_level, out):
-    """``out`` [M, C] = sum over the eight taps of ``table`` [T, C] rows times weights, at (``u``, ``v``,
-    ``level``) [M] (``layout`` [L, 3]: first row, H, W of each level). Keeps each tap's row, weight and the
-    weight's derivatives in ``rows``, ``weights``, ``d_u``, ``d_v``, ``d_level`` [M, 8]. A sample with a
-    non-finite coordinate reads no texel: NaN, and taps of weight 0 on row 0."""
+def lookup_forward_kernel(fine, coarse, split, layout, u, v, level, rows, weights, d_u, d_v, d_level, out):
+    """``out`` [M, C] = sum over the eight taps of the texel table's rows times weights, at (``u``, ``v``,
+    ``level``) [M] (``layout`` [L, 3]: first row, H, W of each level). The table [T, C] is held in two parts,
+    ``fine`` (its first ``split`` rows) and ``coarse`` (the rest; a caller with one table passes it whole and an
+    empty second part). Keeps each tap's row, weight and the weight's derivatives in ``rows``, ``weights``,
+    ``d_u``, ``d_v``, ``d_level`` [M, 8]. A sample with a non-finite coordinate reads no texel: NaN, and taps of
+    weight 0 on row 0."""
     n_levels = layout.shape[0]
-    channels = table.shape[1]
+    channels = fine.shape[1]
     for m in prange(u.shape[0]):
         um = np.float64(u[m])
         vm = np.float64(v[m])
@@ -100,15 +111,16 @@ def lookup_forward_kernel(table, layout, u, v, level, rows, weights, d_u, d_v, d
         for c in range(channels):
             total = 0.0
             for k in range(TAPS):
-                total += np.float64(table[rows[m, k], c]) * weights[m, k]
+                total += np.float64(_texel(fine, coarse, split, rows[m, k], c)) * weights[m, k]
             out[m, c] = total
 
 
 @njit(parallel=True, **_JIT)
-def lookup_sample_grad_kernel(table, grad, rows, d_u, d_v, d_level, g_u, g_v, g_level):
+def lookup_sample_grad_kernel(fine, coarse, split, grad, rows, d_u, d_v, d_level, g_u, g_v, g_level):
     """Per sample, the gradients ``g_u``, ``g_v``, ``g_level`` [M] of the loss whose gradient in the lookup
-    is ``grad`` [M, C]: each tap's texel dotted with ``grad``, times the weight's derivatives."""
-    channels = table.shape[1]
+    is ``grad`` [M, C]: each tap's texel (the table in two parts, as :func:`lookup_forward_kernel` reads it)
+    dotted with ``grad``, times the weight's derivatives."""
+    channels = fine.shape[1]
     for m in prange(grad.shape[0]):
         su = 0.0
         sv = 0.0
@@ -117,7 +129,7 @@ def lookup_sample_grad_kernel(table, grad, rows, d_u, d_v, d_level, g_u, g_v, g_
             r = rows[m, k]
             dot = 0.0
             for c in range(channels):
-                dot += np.float64(grad[m, c]) * np.float64(table[r, c])
+                dot += np.float64(grad[m, c]) * np.float64(_texel(fine, coarse, split, r, c))
             su += dot * d_u[m, k]
             sv += dot * d_v[m, k]
             sl += dot * d_level[m, k]
@@ -127,10 +139,11 @@ def lookup_sample_grad_kernel(table, grad, rows, d_u, d_v, d_level, g_u, g_v, g_
 
 
 @njit(**_JIT)
-def lookup_table_grad_kernel(grad, rows, weights, g_table):
-    """``g_table`` [T, C] (the table's type) += each sample's ``grad`` [M, C] times its taps' weights, on their
-    rows, in one pass (samples share rows). Taps of weight 0 (the level past the last, a level blended at 0) add
-    nothing, whatever the gradient."""
+def lookup_table_grad_kernel(grad, rows, weights, g_fine, g_coarse, split):
+    """The table's gradient (the table's type, in two parts as :func:`lookup_forward_kernel` reads it: rows below
+    ``split`` in ``g_fine``, the others in ``g_coarse``) += each sample's ``grad`` [M, C] times its taps' weights,
+    on their rows, in one pass (samples share rows). Taps of weight 0 (the level past the last, a level blended at
+    0) add nothing, whatever the gradient."""
     channels = grad.shape[1]
     for m in range(grad.shape[0]):
         for k in range(TAPS):
@@ -138,5 +151,9 @@ def lookup_table_grad_kernel(grad, rows, weights, g_table):
             if w == 0.0:
                 continue
             r = rows[m, k]
-            for c in range(channels):
-                g_table[r, c] += np.float64(grad[m, c]) * w
+            if r < split:
+                for c in range(channels):
+                    g_fine[r, c] += np.float64(grad[m, c]) * w
+            else:
+                for c in range(channels):
+                    g_coarse[r - split, c] += np.float64(grad[m, c]) * w
