@@ -42,6 +42,7 @@ from rtsplat.model.composite import (
 )
 from rtsplat.model.envmap import EnvironmentMap
 from rtsplat.model.gating import gate_factor, gate_gradient
+from rtsplat.model.gbuffer import surface_values
 from rtsplat.model.mirror import (
     PLANE_COLUMNS,
     bent_lookup,
@@ -302,11 +303,14 @@ class RTModel(nn.Module):
             return RenderResult(c_trans, out, layers, index, g)
 
         shade = alpha > self.settings.shade_alpha_threshold  # [H,W,1]
-        roi = (g["roi"] / alpha_safe).clamp(0, 1)
+        # the values of the surface a pixel shows: its region membership, optical opacity and subsurface terms
+        names = ("roi",) + ("opacity",) * self.uses_opacity + ("tau", "scatter") * self.uses_scatter
+        surface = surface_values(out.features, alpha_safe, gbuffer_layout(channels), names,
+                                 clamped=frozenset({"roi", "tau", "scatter"}))
+        roi = surface["roi"]
         if self.settings.shade_coverage:  # the part of the pixel the surface does not cover shows C_trans
             roi = roi * alpha.clamp(0, 1)
-        # the optical opacity of the surface a pixel shows
-        surface_opacity = g["opacity"] / alpha_safe if self.uses_opacity else torch.ones_like(alpha)
+        surface_opacity = surface["opacity"] if self.uses_opacity else torch.ones_like(alpha)
         if self.settings.specular_surfaces == "see_through" and self.uses_opacity:
             roi = roi * see_through_weight(surface_opacity)
         specular_on = stage == "full" and self.effects.specular
@@ -346,8 +350,7 @@ class RTModel(nn.Module):
         else:
             spec, beta, c_trans_in = torch.zeros_like(c_trans), torch.ones_like(alpha), c_trans
         if self.uses_scatter:
-            tau = (g["tau"] / alpha_safe).clamp(0, 1)
-            scatter = (g["scatter"] / alpha_safe).clamp(0, 1)
+            tau, scatter = surface["tau"], surface["scatter"]
             sub = subsurface_color(c_trans_in, tau, scatter)
             direct = tau * c_trans
             layers.update(tau=tau, scatter=scatter)
