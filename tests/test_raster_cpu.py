@@ -412,6 +412,19 @@ def test_import_does_not_load_numba_and_without_numba_cpu_falls_back_to_referenc
     assert third == "True"  # the SH colours fall back to the torch reference too
 
 
+def test_kernels_take_cpu_tensors_of_one_float32_or_float64_type():
+    from rtsplat.raster.numba_runtime import kernels_take
+
+    module = "rtsplat.model.gbuffer_kernels"
+    f32, f64 = torch.zeros(3), torch.zeros(3, dtype=torch.float64)
+    assert kernels_take(module, f32, f32) and kernels_take(module, f64)
+    assert not kernels_take(module, f32, f64)  # two float types
+    assert not kernels_take(module, f32.bfloat16()) and not kernels_take(module, f32.half())
+    assert not kernels_take(module, torch.zeros(3, dtype=torch.int64))
+    assert not kernels_take(module, f32, torch.zeros(3, device="meta"))  # not all on the CPU
+    assert not kernels_take(module)  # nothing to take
+
+
 def test_compile_cache_goes_to_the_user_cache(monkeypatch, tmp_path):
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))

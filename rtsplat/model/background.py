@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from rtsplat.model.envmap import EnvironmentMap
-from rtsplat.raster.numba_runtime import SURFEL_CHUNK, load_numba_module, numba_threads
+from rtsplat.raster.numba_runtime import SURFEL_CHUNK, kernels_take, load_numba_module, numba_threads
 
 BACKGROUND_MODES = ("learned", "black", "white", "random")
 
@@ -73,11 +73,7 @@ class BackgroundMap(nn.Module):
     def _kernels_apply(self, samples: Tensor) -> bool:
         """Whether the numba kernels look up samples like ``samples``: CPU tensors of the maps' float type, float32
         or float64, numba installed."""
-        dtype = self.maps[0].dtype
-        if (samples.device.type != "cpu" or samples.dtype != dtype or dtype not in (torch.float32, torch.float64)
-                or any(level.dtype != dtype or level.device.type != "cpu" for level in self.maps)):
-            return False
-        return load_numba_module("rtsplat.model.background_kernels") is not None
+        return kernels_take("rtsplat.model.background_kernels", samples, *self.maps)
 
     def texel_table(self) -> Tensor:
         """Every level's texels [3, T] (channel-major, level after level), differentiable where autograd is on:

@@ -333,10 +333,9 @@ class MipLookup(torch.autograd.Function):
                                                          ctx.sample_dtypes)
         g_features = None
         if g_fine is not None:
-            first_rows = ctx.layout[0][0] + fine.shape[0]
+            split = fine.shape[0]  # the table row where the coarser levels start, their row 0 in g_coarse
             level_grads = [g_fine.view(ctx.layout[0][1], ctx.layout[0][2], -1)] + [
-                g_coarse[first - first_rows:first - first_rows + h * w].view(h, w, -1)
-                for first, h, w in ctx.layout[1:]]
+                g_coarse[first - split:first - split + h * w].view(h, w, -1) for first, h, w in ctx.layout[1:]]
             spread_to_first_level(level_grads, ctx.layout)
             g_features = level_grads[0].permute(2, 0, 1)[None]
         return g_features, *g_samples, None, None

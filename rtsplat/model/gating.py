@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from rtsplat.raster.numba_runtime import load_numba_module
+from rtsplat.raster.numba_runtime import kernels_take, load_numba_module
 
 MODES = ("weighted_std", "variance")
 
@@ -70,14 +70,11 @@ def gate_factor_reference(specular: Tensor, surface_alpha: Tensor, k: float = 4.
 
 
 def _kernel_applies(specular: Tensor, surface_alpha: Tensor) -> bool:
-    """CPU float32/float64 images of at least 2x2 pixels (reflect padding) and numba installed."""
-    if specular.device.type != "cpu" or surface_alpha.device.type != "cpu":
+    """CPU float32/float64 images of at least 2x2 pixels (reflect padding; the alpha in any float type, read in the
+    specular's) and numba installed."""
+    if surface_alpha.device.type != "cpu" or specular.dim() != 3 or specular.shape[0] < 2 or specular.shape[1] < 2:
         return False
-    if specular.dtype not in (torch.float32, torch.float64) or specular.dim() != 3:
-        return False
-    if specular.shape[0] < 2 or specular.shape[1] < 2:
-        return False
-    return load_numba_module("rtsplat.model.gating_kernels") is not None
+    return kernels_take("rtsplat.model.gating_kernels", specular)
 
 
 def gate_gradient(value: Tensor, g: Tensor) -> Tensor:

@@ -14,21 +14,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from rtsplat.raster.numba_runtime import load_numba_module
+from rtsplat.raster.numba_runtime import kernels_take, load_numba_module
 
 
 def surface_values(features: Tensor, alpha: Tensor, layout: dict[str, slice], names: tuple[str, ...],
                    clamped: frozenset[str] | set[str]) -> dict[str, Tensor]:
     """``{name: features[..., layout[name]] / alpha}`` [H,W,width] for each of ``names``, clamped to [0, 1] for those
     in ``clamped``: ``features`` [H,W,F] the blended channels, ``alpha`` [H,W,1] the surface alpha (at least 1e-6)."""
-    if (features.device.type == "cpu" and alpha.device.type == "cpu" and features.dtype == alpha.dtype
-            and features.dtype in (torch.float32, torch.float64) and names
-            and load_numba_module("rtsplat.model.gbuffer_kernels") is not None):
-        columns = [c for name in names for c in range(features.shape[-1])[layout[name]]]
-        flags = [name in clamped for name in names for _ in range(features.shape[-1])[layout[name]]]
-        values = SurfaceValues.apply(features, alpha, tuple(columns), tuple(flags))
-        widths = [len(range(features.shape[-1])[layout[name]]) for name in names]
-        return dict(zip(names, values.split(widths, -1), strict=True))
+    if names and kernels_take("rtsplat.model.gbuffer_kernels", features, alpha):
+        spans = [range(features.shape[-1])[layout[name]] for name in names]  # each value's feature columns
+        columns = tuple(c for span in spans for c in span)
+        flags = tuple(name in clamped for name, span in zip(names, spans, strict=True) for _ in span)
+        values = SurfaceValues.apply(features, alpha, columns, flags)
+        return dict(zip(names, values.split([len(span) for span in spans], -1), strict=True))
     return surface_values_reference(features, alpha, layout, names, clamped)
 
 

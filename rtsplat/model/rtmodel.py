@@ -293,7 +293,8 @@ class RTModel(nn.Module):
         c_trans = out.color + (1.0 - out.volume_alpha) * far
         alpha = out.alpha
         alpha_safe = alpha.clamp_min(1e-6)
-        g = {name: out.features[..., sl] for name, sl in gbuffer_layout(channels).items()}
+        layout = gbuffer_layout(channels)
+        g = {name: out.features[..., sl] for name, sl in layout.items()}
         normal = F.normalize(out.normal, dim=-1)
         layers = {
             "trans": c_trans, "normal": normal, "depth": out.depth, "alpha": alpha,
@@ -305,7 +306,7 @@ class RTModel(nn.Module):
         shade = alpha > self.settings.shade_alpha_threshold  # [H,W,1]
         # the values of the surface a pixel shows: its region membership, optical opacity and subsurface terms
         names = ("roi",) + ("opacity",) * self.uses_opacity + ("tau", "scatter") * self.uses_scatter
-        surface = surface_values(out.features, alpha_safe, gbuffer_layout(channels), names,
+        surface = surface_values(out.features, alpha_safe, layout, names,
                                  clamped=frozenset({"roi", "tau", "scatter"}))
         roi = surface["roi"]
         if self.settings.shade_coverage:  # the part of the pixel the surface does not cover shows C_trans

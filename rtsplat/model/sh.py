@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from rtsplat.raster.numba_runtime import SURFEL_CHUNK, load_numba_module, numba_threads
+from rtsplat.raster.numba_runtime import SURFEL_CHUNK, kernels_take, load_numba_module, numba_threads
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
@@ -65,11 +65,9 @@ def eval_sh_parts(dc: Tensor, rest: Tensor, directions: Tensor, degree: int) -> 
     them into one tensor (the surfels keep them apart; at a million surfels the join would copy some 200 MB
     forward and again backward)."""
     check_degree(degree)  # here too: the kernels do not call sh_basis
-    if (dc.device.type == "cpu" and rest.device.type == "cpu" and directions.device.type == "cpu"
-            and dc.dtype in (torch.float32, torch.float64) and rest.dtype == dc.dtype and directions.dtype == dc.dtype
-            and dc.dim() == 3 and dc.shape[1:] == (1, 3)
+    if (dc.dim() == 3 and dc.shape[1:] == (1, 3)
             and rest.dim() == 3 and rest.shape[1:] == (num_coefficients(MAX_DEGREE) - 1, 3)
-            and _kernels() is not None):
+            and kernels_take("rtsplat.model.sh_kernels", dc, rest, directions)):
         return _ShColour.apply(dc, rest, directions, degree)
     return eval_sh_reference(torch.cat([dc, rest], 1), directions, degree)
 

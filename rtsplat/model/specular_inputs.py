@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from rtsplat.raster.numba_runtime import load_numba_module
+from rtsplat.raster.numba_runtime import kernels_take, load_numba_module
 
 
 class ShadingInputs(NamedTuple):
@@ -41,10 +41,8 @@ def specular_inputs(rays: Tensor, normal: Tensor, roughness: Tensor, material: T
     * ``material``: the channel normalised.
 
     On CPU float32/float64 tensors with numba, :class:`SpecularInputs`; else :func:`specular_inputs_reference`."""
-    tensors = (rays, normal, roughness, material, reflectance, alpha)
-    if (any(t.device.type != "cpu" or t.dtype not in (torch.float32, torch.float64) for t in tensors)
-            or len({t.dtype for t in tensors}) > 1
-            or load_numba_module("rtsplat.model.specular_inputs_kernels") is None):
+    if not kernels_take("rtsplat.model.specular_inputs_kernels", rays, normal, roughness, material, reflectance,
+                        alpha):
         return specular_inputs_reference(rays, normal, roughness, material, reflectance, alpha, idx)
     if idx is None:
         idx = torch.arange(alpha.numel(), device=alpha.device)

@@ -17,7 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["CHUNK", "SURFEL_CHUNK", "TILE_CHUNK", "cache_dir", "load_numba_module", "numba_threads", "to_float64_array"]
+__all__ = ["CHUNK", "SURFEL_CHUNK", "TILE_CHUNK", "cache_dir", "kernels_take", "load_numba_module", "numba_threads",
+           "to_float64_array"]
 
 _lock = threading.Lock()
 _modules: dict[str, object] = {}
@@ -70,6 +71,17 @@ def load_numba_module(name: str):
             return None
         _modules[name] = module
         return module
+
+
+def kernels_take(name: str, *tensors: Tensor) -> bool:
+    """Whether the numba kernel module ``name`` takes ``tensors``: all on the CPU, of one float type, float32 or
+    float64, and numba installed (:func:`load_numba_module`). Callers fall back to their torch version otherwise."""
+    dtypes = {t.dtype for t in tensors}
+    if len(dtypes) != 1 or dtypes.pop() not in (torch.float32, torch.float64):
+        return False
+    if any(t.device.type != "cpu" for t in tensors):
+        return False
+    return load_numba_module(name) is not None
 
 
 # iterations per chunk of a parallel loop (numba's ``set_parallel_chunksize``). The chunks are dealt out
