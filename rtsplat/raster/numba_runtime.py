@@ -1,8 +1,8 @@
 """The numba runtime shared by the CPU kernels (the ``cpu`` rasterizer, its projection and binning,
-the SH colours): where compiled kernels are cached, how kernel modules are imported (without numba:
-one warning and ``None``, so callers fall back to torch), the thread count and parallel chunking of a
-kernel call, and the tensor -> float64 array conversion the kernels read. Importing this module
-does not import numba.
+the model's kernels): where compiled kernels are cached, how kernel modules are imported (without numba:
+one warning and ``None``, so callers fall back to torch), whether a kernel module takes some tensors,
+the thread count and parallel chunking of a kernel call, and the tensor -> float64 array conversion the
+kernels read. Importing this module does not import numba.
 """
 
 from __future__ import annotations
