@@ -69,10 +69,9 @@ def test_gradcheck_of_the_lookup_kernel_in_float64():
     background = _background(6, 10, 2, torch.float64)
     directions = _directions(40, torch.float64, seed=3)
     u, v = EnvironmentMap.direction_to_uv(directions[5:])  # away from the poles, where v is clamped
-    first, sizes = background._layout()
-    table = background.texel_table().detach().clone().requires_grad_()
-    assert torch.autograd.gradcheck(lambda t, a, b: BackgroundLookup.apply(t, a, b, first, sizes),
-                                    (table, u.clone().requires_grad_(), v.clone().requires_grad_()))
+    levels = [level.detach().clone().requires_grad_() for level in background.maps]
+    assert torch.autograd.gradcheck(BackgroundLookup.apply, (u.clone().requires_grad_(), v.clone().requires_grad_(),
+                                                             *levels))
 
 
 def test_a_non_finite_direction_spoils_only_its_own_sample():
@@ -93,3 +92,20 @@ def test_an_empty_lookup_gives_empty_logits_and_gradients():
     values, level_grads, direction_grad = _lookup(background, torch.zeros(0, 3), by_kernel=True)
     assert values.shape == (0, 3) and direction_grad.shape == (0, 3)
     assert all((g == 0).all() for g in level_grads)
+
+
+def test_without_a_sample_gradient_the_levels_get_theirs_as_with_one():
+    """Directions without autograd (fixed cameras): the lookup keeps no derivatives of the samples, and the levels'
+    gradients are those of the torch lookup."""
+    background = _background(16, 32, 3, torch.float32)
+    u, v = EnvironmentMap.direction_to_uv(_directions(300, torch.float32))
+    grads = []
+    for by_kernel in (True, False):
+        background.zero_grad()
+        out = background._logits_by_kernel(u, v) if by_kernel else background.logits_reference(u, v)
+        (out * torch.linspace(-1, 1, out.numel()).reshape(out.shape)).sum().backward()
+        grads.append([level.grad.clone() for level in background.maps])
+    assert not u.requires_grad
+    for actual, expected in zip(*grads, strict=True):
+        assert expected.abs().max() > 0
+        torch.testing.assert_close(actual, expected, rtol=1e-5, atol=1e-5)

@@ -1207,9 +1207,11 @@ def test_view_independent_roi_gives_surfels_inside_the_region_their_degree_0_col
 
 
 @pytest.mark.parametrize("downsample", [1, 2])
-def test_a_render_builds_the_background_texel_table_once_and_renders_as_with_one_per_lookup(monkeypatch, downsample):
+def test_a_render_reads_the_background_by_kernel_as_by_its_torch_reference(monkeypatch, downsample):
     """The learned background is looked up at the pixels' rays (with autograd) and at the reflected directions
-    (without): both read one texel table per render, with the values and gradients of a table per lookup."""
+    (without); the kernels that read its levels give the render the image of the torch lookup and its levels'
+    gradients, to float32 rounding (the lookups' logits are the same bits: tests/test_background_lookup.py)."""
+    pytest.importorskip("numba")
     model = _model_with(specular_view_angle=False, specular_background=True)
     with torch.no_grad():
         for level in model.background_map.maps:
@@ -1222,14 +1224,15 @@ def test_a_render_builds_the_background_texel_table_once_and_renders_as_with_one
         result.color.square().sum().backward()
         return [result.color.detach()] + [level.grad.clone() for level in model.background_map.maps]
 
-    built = []
-    table = type(model.background_map).texel_table
-    monkeypatch.setattr(type(model.background_map), "texel_table", lambda self: built.append(1) or table(self))
-    shared = render_and_gradients()
-    assert len(built) == 1
-    monkeypatch.setattr(type(model.background_map), "shared_table", lambda self, directions: None)
-    apart = render_and_gradients()
-    assert len(built) == 3  # the pixels' rays, then the reflected directions
-    for a, b in zip(shared, apart, strict=True):
-        assert torch.equal(a, b)
-    assert shared[1].abs().sum() > 0
+    looked_up = []
+    by_kernel = type(model.background_map)._logits_by_kernel
+    monkeypatch.setattr(type(model.background_map), "_logits_by_kernel",
+                        lambda self, u, v: looked_up.append(u.shape[0]) or by_kernel(self, u, v))
+    kernel = render_and_gradients()
+    assert len(looked_up) == 2  # the pixels' rays, then the reflected directions
+    monkeypatch.setattr(type(model.background_map), "_logits_by_kernel", lambda self, u, v: None)
+    reference = render_and_gradients()
+    torch.testing.assert_close(kernel[0], reference[0], rtol=0, atol=1e-6)
+    for a, b in zip(kernel[1:], reference[1:], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    assert kernel[1].abs().sum() > 0

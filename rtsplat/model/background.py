@@ -34,17 +34,15 @@ class BackgroundMap(nn.Module):
         # logit 0 everywhere: mid grey until the training views say otherwise
         self.maps = nn.ParameterList([nn.Parameter(torch.zeros(1, 3, h, w)) for h, w in sizes])
 
-    def forward(self, directions: Tensor, table: Tensor | None = None) -> Tensor:
+    def forward(self, directions: Tensor) -> Tensor:
         """RGB [..., 3] in (0, 1) at unit ``directions`` [..., 3]. On CPU tensors of one float type the levels
         are sampled and summed by numba kernels (:mod:`rtsplat.model.background_kernels`, through
-        :class:`BackgroundLookup` with autograd): the operations of :meth:`logits_reference`, in its order,
-        so the same logits, in a fraction of the time of the torch ops' passes over every sample; elsewhere,
-        or without numba, by :meth:`logits_reference`. ``table``: the kernels' :meth:`texel_table` when the
-        caller shares one between lookups of the same maps (a render's own rays and its reflected directions);
-        its gradient, if any, is the caller's."""
+        :class:`BackgroundLookup` with autograd), which read the levels where they are: the operations of
+        :meth:`logits_reference`, in its order, so the same logits, in a fraction of the time of the torch ops'
+        passes over every sample; elsewhere, or without numba, by :meth:`logits_reference`."""
         flat = directions.reshape(-1, 3)
         u, v = EnvironmentMap.direction_to_uv(flat)
-        logits = self._logits_by_kernel(u, v, table)
+        logits = self._logits_by_kernel(u, v)
         if logits is None:
             logits = self.logits_reference(u, v)
         return torch.sigmoid(logits).reshape(*directions.shape[:-1], 3)
@@ -54,75 +52,53 @@ class BackgroundMap(nn.Module):
         (:meth:`EnvironmentMap.sample_level`), the levels added in turn. The kernels' oracle."""
         return sum(EnvironmentMap.sample_level(level, u, v) for level in self.maps)
 
-    def _logits_by_kernel(self, u: Tensor, v: Tensor, table: Tensor | None = None) -> Tensor | None:
-        """The summed logits [M, 3] at (u, v) from the numba kernels (from ``table``, or a texel table built
-        here); None where they do not apply."""
-        if v.dtype != u.dtype or not self._kernels_apply(u):
+    def _logits_by_kernel(self, u: Tensor, v: Tensor) -> Tensor | None:
+        """The summed logits [M, 3] at (u, v) from the numba kernels; None where they do not apply: unless the
+        samples and the maps are CPU tensors of one float type, float32 or float64, and numba is installed."""
+        if v.dtype != u.dtype or not kernels_take("rtsplat.model.background_kernels", u, *self.maps):
             return None
-        first, sizes = self._layout()
-        table = self.texel_table() if table is None else table
-        if table.requires_grad or u.requires_grad or v.requires_grad:
-            return BackgroundLookup.apply(table, u, v, first, sizes)
-        return BackgroundLookup.logits(table, u, v, first, sizes)
-
-    def shared_table(self, directions: Tensor) -> Tensor | None:
-        """The :meth:`texel_table` that lookups at ``directions`` (their device and float type) would read, for a
-        caller to hand to several of them; None where the kernels do not apply (the lookups read the maps)."""
-        return self.texel_table() if self._kernels_apply(directions) else None
-
-    def _kernels_apply(self, samples: Tensor) -> bool:
-        """Whether the numba kernels look up samples like ``samples``: CPU tensors of the maps' float type, float32
-        or float64, numba installed."""
-        return kernels_take("rtsplat.model.background_kernels", samples, *self.maps)
-
-    def texel_table(self) -> Tensor:
-        """Every level's texels [3, T] (channel-major, level after level), differentiable where autograd is on:
-        what the kernels read. Built on every lookup that is not handed one (~2 MB for the default levels, a few
-        tenths of a millisecond): a kept table could not tell when the maps change, since the trainer's fused
-        Adam step updates them without moving their version counters."""
-        return torch.cat([level[0].reshape(3, -1) for level in self.maps], 1)
-
-    def _layout(self) -> tuple[Tensor, Tensor]:
-        """Each level's first column in the texel table [L] and its (H, W) [L, 2] in the maps' float type."""
-        counts = [level.shape[-2] * level.shape[-1] for level in self.maps]
-        first = torch.tensor([0] + counts[:-1], dtype=torch.int64).cumsum(0)
-        sizes = torch.tensor([list(level.shape[-2:]) for level in self.maps], dtype=self.maps[0].dtype)
-        return first, sizes
+        if torch.is_grad_enabled() and (u.requires_grad or v.requires_grad or any(m.requires_grad for m in self.maps)):
+            return BackgroundLookup.apply(u, v, *self.maps)
+        return BackgroundLookup.logits(u, v, list(self.maps))
 
 
 class BackgroundLookup(torch.autograd.Function):
-    """The learned background's summed logits [M, 3] on the CPU: ``table`` [3, T] (every level's texels,
-    channel-major, level after level), samples at (``u``, ``v``) [M], ``first`` [L] and ``sizes`` [L, 2] as
-    :meth:`BackgroundMap._layout` gives them. The values are those of :meth:`BackgroundMap.logits_reference`,
-    bit for bit; the gradients of the table, u and v are its gradients up to rounding (summed in float64 here).
-    A sample with a non-finite coordinate gives NaN, a NaN gradient of its u and v, and reads no texel."""
+    """The learned background's summed logits [M, 3] on the CPU: ``apply(u, v, *levels)`` with samples at (``u``,
+    ``v``) [M] and the map's ``levels`` [1, 3, H, W] (each half the size of the one before, as
+    :class:`BackgroundMap` holds them). The values are those of :meth:`BackgroundMap.logits_reference`, bit for bit;
+    the gradients of the levels, u and v are its gradients up to rounding (the levels' summed in their own float
+    type, sample after sample; u's and v's in float64). A sample with a non-finite coordinate gives NaN, a NaN
+    gradient of its u and v, and reads no texel."""
 
     @staticmethod
-    def logits(table: Tensor, u: Tensor, v: Tensor, first: Tensor, sizes: Tensor,
-               taps: np.ndarray | None = None, fractions: np.ndarray | None = None) -> Tensor:
-        """The forward kernel's logits; ``taps`` and ``fractions`` (when given) receive what the backward reads."""
+    def logits(u: Tensor, v: Tensor, levels: list[Tensor], taps: np.ndarray | None = None,
+               fractions: np.ndarray | None = None, jacobian: np.ndarray | None = None) -> Tensor:
+        """The forward kernel's logits; ``taps``, ``fractions`` and ``jacobian`` (when given) receive what the
+        backward reads (for the levels' gradients, for the samples')."""
         kernels = load_numba_module("rtsplat.model.background_kernels")
-        dtype = table.dtype
+        dtype = levels[0].dtype
         out = torch.empty(u.shape[0], 3, dtype=dtype)
         consts = torch.tensor([0.0, 0.5, 1.0], dtype=dtype)
         if taps is None:
             taps = np.empty((0, 0, 4), dtype=np.int64)
             fractions = np.empty((0, 0, 2), dtype=np.float64)
+        if jacobian is None:
+            jacobian = np.empty((0, 6), dtype=np.float64)
         with numba_threads(SURFEL_CHUNK):
-            kernels.background_logits_kernel(table.detach().contiguous().numpy(), first.numpy(), sizes.numpy(),
-                                             u.detach().contiguous().numpy(), v.detach().contiguous().numpy(),
-                                             consts.numpy(), out.numpy(), taps, fractions)
+            kernels.background_logits_kernel(_texels(levels), _sizes(levels).numpy(), u.detach().contiguous().numpy(),
+                                             v.detach().contiguous().numpy(), consts.numpy(), out.numpy(), taps,
+                                             fractions, jacobian)
         return out
 
     @staticmethod
-    def forward(ctx, table: Tensor, u: Tensor, v: Tensor, first: Tensor, sizes: Tensor) -> Tensor:
-        m, n_levels = u.shape[0], first.shape[0]
-        taps = np.empty((m, n_levels, 4), dtype=np.int64)
-        fractions = np.empty((m, n_levels, 2), dtype=np.float64)
-        data = table.detach().contiguous()
-        out = BackgroundLookup.logits(data, u, v, first, sizes, taps, fractions)
-        ctx.save_for_backward(data, sizes)
-        ctx.taps = (taps, fractions)
+    def forward(ctx, u: Tensor, v: Tensor, *levels: Tensor) -> Tensor:
+        m = u.shape[0]
+        taps = np.empty((m, len(levels), 4), dtype=np.int64)
+        fractions = np.empty((m, len(levels), 2), dtype=np.float64)
+        jacobian = np.empty((m if u.requires_grad or v.requires_grad else 0, 6), dtype=np.float64)
+        out = BackgroundLookup.logits(u, v, [level.detach() for level in levels], taps, fractions, jacobian)
+        ctx.taps = (taps, fractions, jacobian)
+        ctx.level_sizes = [tuple(level.shape[-2:]) for level in levels]
         ctx.sample_dtypes = (u.dtype, v.dtype)
         return out
 
@@ -130,20 +106,29 @@ class BackgroundLookup(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor):
         kernels = load_numba_module("rtsplat.model.background_kernels")
-        table, sizes = ctx.saved_tensors
-        taps, fractions = ctx.taps
+        taps, fractions, jacobian = ctx.taps
         g = grad.contiguous().numpy()
-        g_table = g_u = g_v = None
-        if ctx.needs_input_grad[0]:
-            summed = np.zeros(table.shape, dtype=np.float64)
-            with numba_threads(1):  # one channel per chunk, so that the three spread over the threads
-                kernels.background_table_grad_kernel(taps, fractions, g, summed)
-            g_table = torch.from_numpy(summed).to(table.dtype)
-        with numba_threads(SURFEL_CHUNK):
-            if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
-                su = np.empty(taps.shape[0], dtype=np.float64)
-                sv = np.empty(taps.shape[0], dtype=np.float64)
-                kernels.background_sample_grad_kernel(table.numpy(), sizes.numpy(), taps, fractions, g, su, sv)
-                g_u = torch.from_numpy(su).to(ctx.sample_dtypes[0])
-                g_v = torch.from_numpy(sv).to(ctx.sample_dtypes[1])
-        return g_table, g_u, g_v, None, None
+        g_u = g_v = None
+        g_levels = [None] * taps.shape[1]
+        if any(ctx.needs_input_grad[2:]):
+            g_levels = [torch.zeros(1, 3, h, w, dtype=grad.dtype) for h, w in ctx.level_sizes]
+            with numba_threads(1):  # one level per chunk, so that the levels spread over the threads
+                kernels.background_level_grad_kernel(taps, fractions, g, _texels(g_levels))
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            su = np.empty(taps.shape[0], dtype=np.float64)
+            sv = np.empty(taps.shape[0], dtype=np.float64)
+            with numba_threads(SURFEL_CHUNK):
+                kernels.background_sample_grad_kernel(jacobian, g, su, sv)
+            g_u = torch.from_numpy(su).to(ctx.sample_dtypes[0])
+            g_v = torch.from_numpy(sv).to(ctx.sample_dtypes[1])
+        return g_u, g_v, *g_levels
+
+
+def _texels(levels) -> tuple[np.ndarray, ...]:
+    """Each level [1, 3, H, W] as the kernels' texel array [3, H*W] (a view of a contiguous level)."""
+    return tuple(level.detach().contiguous().reshape(3, -1).numpy() for level in levels)
+
+
+def _sizes(levels) -> Tensor:
+    """Each level's (H, W) [L, 2] in the levels' float type."""
+    return torch.tensor([list(level.shape[-2:]) for level in levels], dtype=levels[0].dtype)

@@ -283,13 +283,7 @@ class RTModel(nn.Module):
         out = rasterize(self.rasterizer_surfels(camera, sh_degree, index, channels), camera, raster_settings,
                         backend=backend)
         rays = image_ray_directions(camera)  # [H,W,3], shared by the background and the specular pass
-        # the learned background's texel table, read by the pixels' own rays and by the specular pass's
-        # reflected directions: built once per render
-        background_table = None
-        if background is None and self.background_map is not None:
-            background_table = self.background_map.shared_table(rays)
-        far = (self.background_radiance(camera, rays, background_table) if background is None
-               else background.to(out.color))
+        far = self.background_radiance(camera, rays) if background is None else background.to(out.color)
         c_trans = out.color + (1.0 - out.volume_alpha) * far
         alpha = out.alpha
         alpha_safe = alpha.clamp_min(1e-6)
@@ -331,12 +325,10 @@ class RTModel(nn.Module):
                 layers.update(near=near_color, near_alpha=near_alpha)
             if specular_downsample > 1:
                 spec, beta = self._specular_downsampled(camera, out.normal, g, alpha, wanted, rays, near,
-                                                        specular_downsample, specular_gradient_share, generator,
-                                                        background_table)
+                                                        specular_downsample, specular_gradient_share, generator)
             else:
                 spec, beta = self._specular(camera, normal, g, alpha_safe, wanted, near=near, rays=rays,
-                                            gradient_share=specular_gradient_share, generator=generator,
-                                            background_table=background_table)
+                                            gradient_share=specular_gradient_share, generator=generator)
             if not self.ablations.attenuation:
                 beta = torch.ones_like(beta)
             if specular_weight < 1.0:
@@ -364,12 +356,11 @@ class RTModel(nn.Module):
         layers["reflection"] = reflection_layer(spec, roi, shade)
         return RenderResult(color, out, layers, index, g)
 
-    def background_radiance(self, camera: Camera, rays: Tensor | None = None, table: Tensor | None = None) -> Tensor:
+    def background_radiance(self, camera: Camera, rays: Tensor | None = None) -> Tensor:
         """``B(d)`` for every pixel ray [H,W,3] (learned), or a constant colour [3] (black, white, random).
-        ``rays``: the camera's :func:`image_ray_directions`, when the caller has them; ``table``: the learned
-        background's texel table (:meth:`BackgroundMap.texel_table`), when the caller shares one."""
+        ``rays``: the camera's :func:`image_ray_directions`, when the caller has them."""
         if self.background_map is not None:
-            return self.background_map(image_ray_directions(camera) if rays is None else rays, table)
+            return self.background_map(image_ray_directions(camera) if rays is None else rays)
         value = 1.0 if self.settings.background == "white" else 0.0
         return torch.full((3,), value, dtype=self.roi_center.dtype, device=self.roi_center.device)
 
@@ -445,8 +436,7 @@ class RTModel(nn.Module):
 
     def _specular_downsampled(self, camera: Camera, normal_sum: Tensor, g: dict, alpha: Tensor, wanted: Tensor,
                               rays: Tensor, near: tuple[Tensor, Tensor] | None, factor: int, gradient_share: float,
-                              generator: torch.Generator | None,
-                              background_table: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                              generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
         """C_spec [H,W,3] and beta [H,W,1] at the ``wanted`` pixels [H,W,1] (0 and 1 elsewhere), shaded once per
         ``factor`` x ``factor`` block: the network's inputs are the block's means (:func:`block_mean` of the
         blended, alpha-weighted G-buffer channels and normal, so a block reads its covered pixels' surface; of the
@@ -471,7 +461,7 @@ class RTModel(nn.Module):
         shaded = shaded > 0
         spec, beta = self._specular(camera, normal, coarse_g, coarse_alpha.clamp_min(1e-6), shaded,
                                     near=coarse_near, rays=coarse_rays, gradient_share=gradient_share,
-                                    generator=generator, background_table=background_table)
+                                    generator=generator)
         weight = shaded.to(spec.dtype)
         spec, beta = upsampled_from_blocks(torch.cat([spec, beta], -1), weight, factor, (H, W)).split([3, 1], -1)
         return torch.where(wanted, spec, 0.0), torch.where(wanted, beta, 1.0)
@@ -479,10 +469,9 @@ class RTModel(nn.Module):
     def _specular(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, shade: Tensor,
                   every_pixel: bool | None = None, near: tuple[Tensor, Tensor] | None = None,
                   rays: Tensor | None = None, gradient_share: float = 1.0,
-                  generator: torch.Generator | None = None, background_table: Tensor | None = None):
+                  generator: torch.Generator | None = None):
         """C_spec and beta where ``shade`` (the render passes the shaded pixels with region-of-interest
-        weight); 0 and 1 elsewhere (``rays``: the camera's :func:`image_ray_directions`, when known;
-        ``background_table``: the learned background's texel table, when the render shares one). On the
+        weight); 0 and 1 elsewhere (``rays``: the camera's :func:`image_ray_directions`, when known). On the
         CPU only those pixels are evaluated; on other devices (``every_pixel``, default: not on the CPU) every
         pixel is and the others are masked out, because gathering them would wait for the device to count
         them. Both give the same values and gradients.
@@ -506,7 +495,7 @@ class RTModel(nn.Module):
         sampled = gradient_share < 1.0 and torch.is_grad_enabled()
 
         def evaluate(rows: Tensor | None, env_table: Tensor | None = None) -> tuple[Tensor, Tensor]:
-            return self._specular_rows(camera, normal, g, alpha_safe, rows, near, rays, env_table, background_table)
+            return self._specular_rows(camera, normal, g, alpha_safe, rows, near, rays, env_table)
 
         if idx is None:
             s, b = evaluate(None)
@@ -534,12 +523,10 @@ class RTModel(nn.Module):
 
     def _specular_rows(self, camera: Camera, normal: Tensor, g: dict, alpha_safe: Tensor, idx: Tensor | None,
                        near: tuple[Tensor, Tensor] | None, rays: Tensor | None,
-                       env_table: Tensor | None = None,
-                       background_table: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                       env_table: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """The specular network's C_spec [N,3] and beta [N,1] at the pixels ``idx`` of the flattened image
         (None: every pixel), from the G-buffer ``g`` and the blended ``normal``; ``env_table``: the
-        environment map's texel table, when the caller shares one (:meth:`EnvironmentMap.forward`);
-        ``background_table``: the learned background's (:meth:`BackgroundMap.texel_table`), likewise."""
+        environment map's texel table, when the caller shares one (:meth:`EnvironmentMap.forward`)."""
         reflected, cos_incidence, rough, material, reflectance = specular_inputs(
             image_ray_directions(camera) if rays is None else rays, normal, g["roughness"], g["material"],
             g["reflectance"], alpha_safe, idx)
@@ -549,8 +536,7 @@ class RTModel(nn.Module):
         reflected_background = None
         if self._reads_reflected_background():
             with torch.no_grad():  # B learns only from the pixels that see it
-                table = None if background_table is None else background_table.detach()
-                reflected_background = self.background_map(reflected, table).to(env.dtype)
+                reflected_background = self.background_map(reflected).to(env.dtype)
         extra = []
         if self.settings.specular_view_angle:
             extra.append(cos_incidence)
