@@ -55,7 +55,7 @@ class BackgroundMap(nn.Module):
     def _logits_by_kernel(self, u: Tensor, v: Tensor) -> Tensor | None:
         """The summed logits [M, 3] at (u, v) from the numba kernels; None where they do not apply: unless the
         samples and the maps are CPU tensors of one float type, float32 or float64, and numba is installed."""
-        if v.dtype != u.dtype or not kernels_take("rtsplat.model.background_kernels", u, *self.maps):
+        if not kernels_take("rtsplat.model.background_kernels", u, v, *self.maps):
             return None
         if torch.is_grad_enabled() and (u.requires_grad or v.requires_grad or any(m.requires_grad for m in self.maps)):
             return BackgroundLookup.apply(u, v, *self.maps)

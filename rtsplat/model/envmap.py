@@ -285,7 +285,7 @@ class TrilinearLookup(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table: Tensor, u: Tensor, v: Tensor, level: Tensor, layout: Tensor) -> Tensor:
         data = table.detach().contiguous()
-        out, ctx.taps = _lookup(data, data[:0], data.shape[0], layout, u, v, level)
+        out, ctx.taps = _lookup(data, data[:0], layout, u, v, level)
         ctx.save_for_backward(data)
         ctx.sample_dtypes = (u.dtype, v.dtype, level.dtype)
         return out
@@ -294,9 +294,8 @@ class TrilinearLookup(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor):
         (table,) = ctx.saved_tensors
-        g_table, _, *g_samples = _lookup_gradients(table, table[:0], table.shape[0], ctx.taps, grad,
-                                                   ctx.needs_input_grad[0], any(ctx.needs_input_grad[1:4]),
-                                                   ctx.sample_dtypes)
+        g_table, _, *g_samples = _lookup_gradients(table, table[:0], ctx.taps, grad, ctx.needs_input_grad[0],
+                                                   any(ctx.needs_input_grad[1:4]), ctx.sample_dtypes)
         return g_table, *g_samples, None
 
 
@@ -318,7 +317,7 @@ class MipLookup(torch.autograd.Function):
         fine = features[0].permute(1, 2, 0).reshape(height * width, channels).contiguous()
         coarser = [lv[0].permute(1, 2, 0).reshape(-1, channels) for lv in mip_levels(features, count)[1:]]
         coarse = torch.cat(coarser) if coarser else fine[:0]
-        out, ctx.taps = _lookup(fine, coarse, fine.shape[0], layout, u, v, level)
+        out, ctx.taps = _lookup(fine, coarse, layout, u, v, level)
         ctx.save_for_backward(fine, coarse)
         ctx.layout = level_layout(height, width, count)
         ctx.sample_dtypes = (u.dtype, v.dtype, level.dtype)
@@ -328,9 +327,8 @@ class MipLookup(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor):
         fine, coarse = ctx.saved_tensors
-        g_fine, g_coarse, *g_samples = _lookup_gradients(fine, coarse, fine.shape[0], ctx.taps, grad,
-                                                         ctx.needs_input_grad[0], any(ctx.needs_input_grad[1:4]),
-                                                         ctx.sample_dtypes)
+        g_fine, g_coarse, *g_samples = _lookup_gradients(fine, coarse, ctx.taps, grad, ctx.needs_input_grad[0],
+                                                         any(ctx.needs_input_grad[1:4]), ctx.sample_dtypes)
         g_features = None
         if g_fine is not None:
             split = fine.shape[0]  # the table row where the coarser levels start, their row 0 in g_coarse
@@ -341,12 +339,12 @@ class MipLookup(torch.autograd.Function):
         return g_features, *g_samples, None, None
 
 
-def _lookup(fine: Tensor, coarse: Tensor, split: int, layout: Tensor, u: Tensor, v: Tensor,
-            level: Tensor) -> tuple[Tensor, tuple]:
-    """The forward kernel on the texel table in two parts (rows below ``split`` in ``fine``, the rest in
-    ``coarse``): the lookup [M,C] in the table's type, and what the backward reads (each sample's taps' rows,
-    weights and the weights' derivatives)."""
+def _lookup(fine: Tensor, coarse: Tensor, layout: Tensor, u: Tensor, v: Tensor, level: Tensor) -> tuple[Tensor, tuple]:
+    """The forward kernel on the texel table in two parts (its first rows in ``fine``, the rest in ``coarse``):
+    the lookup [M,C] in the table's type, and what the backward reads (each sample's taps' rows, weights and the
+    weights' derivatives)."""
     kernels = load_numba_module("rtsplat.model.envmap_kernels")
+    split = fine.shape[0]
     m = u.shape[0]
     rows = np.empty((m, kernels.TAPS), dtype=np.int64)
     weights, d_u, d_v, d_level = (np.empty((m, kernels.TAPS), dtype=np.float64) for _ in range(4))
@@ -358,11 +356,12 @@ def _lookup(fine: Tensor, coarse: Tensor, split: int, layout: Tensor, u: Tensor,
     return out, (rows, weights, d_u, d_v, d_level)
 
 
-def _lookup_gradients(fine: Tensor, coarse: Tensor, split: int, taps: tuple, grad: Tensor, table_grad: bool,
-                      sample_grad: bool, sample_dtypes: tuple) -> tuple:
+def _lookup_gradients(fine: Tensor, coarse: Tensor, taps: tuple, grad: Tensor, table_grad: bool, sample_grad: bool,
+                      sample_dtypes: tuple) -> tuple:
     """The gradients of the table's two parts (``table_grad``; else None, None) and of the samples' u, v and level
     (``sample_grad``; else three None) from the lookup's gradient ``grad`` [M,C]."""
     kernels = load_numba_module("rtsplat.model.envmap_kernels")
+    split = fine.shape[0]
     rows, weights, d_u, d_v, d_level = taps
     g = grad.to(fine.dtype).contiguous().numpy()
     g_fine = g_coarse = None

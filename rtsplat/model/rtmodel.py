@@ -151,11 +151,6 @@ class RTModel(nn.Module):
         self.mirror_planes = with_bend(planes.reshape(-1, planes.shape[-1] if planes.numel() else PLANE_COLUMNS)
                                        ).contiguous()
 
-    def _reads_reflected_background(self) -> bool:
-        """Whether the specular pass reads the learned background at the reflected directions (as the
-        network's input, ``specular_background``, or as its mirror image, ``specular_mirror``)."""
-        return self.background_map is not None and (self.settings.specular_background or self.uses_mirror)
-
     @property
     def uses_near_reflection(self) -> bool:
         return self.effects.specular and self.effects.near_reflection and self.mirror_planes.shape[0] > 0
@@ -534,7 +529,7 @@ class RTModel(nn.Module):
             reflectance = schlick_fresnel(reflectance, cos_incidence)
         env = self.env(reflected, rough, env_table)
         reflected_background = None
-        if self._reads_reflected_background():
+        if self.background_map is not None and (self.settings.specular_background or self.uses_mirror):
             with torch.no_grad():  # B learns only from the pixels that see it
                 reflected_background = self.background_map(reflected).to(env.dtype)
         extra = []
