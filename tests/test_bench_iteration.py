@@ -14,7 +14,7 @@ def test_every_method_is_a_valid_config_with_the_demo_map(method):
     # a method's options are merged key by key: one that sets a model, schedule or rate option keeps the demo's
     # map, schedule and rates
     demo = demo_options()
-    assert (cfg.model.env_height, cfg.model.env_width, cfg.model.env_levels) == (128, 256, 7)
+    assert (cfg.model.env_height, cfg.model.env_width, cfg.model.env_levels) == (64, 128, 6)
     assert cfg.schedule.specular_from == demo["schedule"]["specular_from"] == 250
     assert (cfg.lr.sh_dc, cfg.lr.sh_rest) == (demo["lr"]["sh_dc"], demo["lr"]["sh_rest"])
     assert cfg.densify.prune_occupancy == demo["densify"]["prune_occupancy"]
@@ -51,7 +51,7 @@ def test_the_demo_options_are_read_from_demo_config_yaml(tmp_path, monkeypatch):
     for method in ("rtsplat", "2dgs", "rtsplat_near_planes"):
         cfg = TrainConfig.from_dict(method_options(method, {"model": {"mlp_width": 64}}))
         assert (cfg.lr.sh_dc, cfg.schedule.iterations, cfg.model.mlp_width, cfg.model.env_height) == (
-            0.003, 500, 64, 128)
+            0.003, 500, 64, demo["defaults"]["train"]["options"]["model"]["env_height"])
         assert cfg.schedule.eval_every == 0
 
 

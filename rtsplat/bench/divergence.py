@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--width", type=int, default=100)
     parser.add_argument("--height", type=int, default=75)
-    parser.add_argument("--env", default="128,256,7", help="environment map height,width,levels")
+    parser.add_argument("--env", default="64,128,6", help="environment map height,width,levels (default: the demo's)")
     parser.add_argument("--warmup", type=int, default=60)
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=5)

@@ -2,7 +2,7 @@
 
 Trains rtsplat and 2dgs (transmission and specular off) on a prepared scene at the demo's settings
 (the training options of demo/config.yaml, read from the checkout this script belongs to: 750
-iterations, 128x256 environment map with 7 levels, the compressed schedule, its pruning and rates;
+iterations, 64x128 environment map with 6 levels, the compressed schedule, its pruning and rates;
 evaluations, checkpoints and logging off). A method's options and ``--options`` are merged over them
 key by key. Each (checkout, method) pair runs in its own worker process. A process of the first
 checkout first trains ``--warmup`` iterations (default 300: past ``specular_from``, so the full

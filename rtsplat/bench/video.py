@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-DEMO_MODEL = {"env_height": 128, "env_width": 256, "env_levels": 7}
+DEMO_MODEL = {"env_height": 64, "env_width": 128, "env_levels": 6}
 
 
 def train_toy(root: Path, iterations: int) -> tuple[Path, Path]:
