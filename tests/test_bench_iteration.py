@@ -53,6 +53,11 @@ def test_the_demo_options_are_read_from_demo_config_yaml(tmp_path, monkeypatch):
         assert (cfg.lr.sh_dc, cfg.schedule.iterations, cfg.model.mlp_width, cfg.model.env_height) == (
             0.003, 500, 64, demo["defaults"]["train"]["options"]["model"]["env_height"])
         assert cfg.schedule.eval_every == 0
+    # the toy models of the video, viewer and divergence benchmarks take the same map
+    options = demo["defaults"]["train"]["options"]["model"]
+    options.update(env_height=32, env_width=64, env_levels=5)
+    changed.write_text(yaml.safe_dump(demo))
+    assert bench.demo_environment_map() == {"env_height": 32, "env_width": 64, "env_levels": 5}
 
 
 def test_a_missing_demo_config_is_a_clear_error(tmp_path, monkeypatch):

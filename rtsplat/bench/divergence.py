@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from rtsplat.bench.iteration import demo_environment_map
 from rtsplat.bench.toy_scene import write_scene
 from rtsplat.train.trainer import Trainer
 from rtsplat.train_config import TrainConfig
@@ -50,12 +51,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--width", type=int, default=100)
     parser.add_argument("--height", type=int, default=75)
-    parser.add_argument("--env", default="64,128,6", help="environment map height,width,levels (default: the demo's)")
+    parser.add_argument("--env", help="environment map height,width,levels (default: demo/config.yaml's)")
     parser.add_argument("--warmup", type=int, default=60)
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
-    height, width, levels = (int(v) for v in args.env.split(","))
+    if args.env is None:
+        env_map = demo_environment_map()
+    else:
+        height, width, levels = (int(v) for v in args.env.split(","))
+        env_map = {"env_height": height, "env_width": width, "env_levels": levels}
     with tempfile.TemporaryDirectory() as tmp:
         scene = write_scene(Path(tmp) / "scene", views=8, width=args.width, height=args.height)
         cfg = TrainConfig.from_dict({
@@ -63,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
             "schedule": {"iterations": 10**6, "volume_until": 10, "specular_from": 20, "densify_from": 30,
                          "densify_until": args.warmup, "densify_every": 15, "reset_every": 0, "log_every": 10**6,
                          "checkpoint_every": 0},
-            "model": {"env_height": height, "env_width": width, "env_levels": levels},
+            "model": env_map,
         })
         trainer = Trainer(scene, cfg, Path(tmp) / "run", progress=False, log=lambda m: None)
         for _ in range(args.warmup):

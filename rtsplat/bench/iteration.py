@@ -233,6 +233,13 @@ def demo_options() -> dict:
     return deep_merge(trainer_options(demo, demo.scenes[0], "rtsplat"), {"schedule": TIMING_SCHEDULE})
 
 
+def demo_environment_map() -> dict:
+    """The demo's environment map settings (``env_height``, ``env_width``, ``env_levels`` of
+    :func:`demo_options`' model), for the benchmarks that train a toy model the demo's way."""
+    model = demo_options()["model"]
+    return {key: model[key] for key in ("env_height", "env_width", "env_levels")}
+
+
 def method_options(method: str, options: dict | None = None) -> dict:
     """The training options of ``method``: the demo's (:func:`demo_options`), the method's merged over them, then
     ``options`` (``--options``), each merged key by key."""

@@ -24,18 +24,17 @@ from pathlib import Path
 
 import torch
 
-DEMO_MODEL = {"env_height": 64, "env_width": 128, "env_levels": 6}
-
 
 def train_toy(root: Path, iterations: int) -> tuple[Path, Path]:
     """A toy scene trained with the demo's model settings: (run folder, prepared scene folder)."""
+    from rtsplat.bench.iteration import demo_environment_map
     from rtsplat.bench.toy_scene import train_quietly, write_scene
 
     scene = write_scene(root / "scene", views=12, width=100, height=75)
     schedule = {"iterations": iterations, "volume_until": iterations // 6, "specular_from": iterations // 3,
                 "densify_from": iterations // 4, "densify_every": max(iterations // 12, 1), "reset_every": 0,
                 "eval_every": 0, "checkpoint_every": 0, "log_every": 10**9}
-    train_quietly(scene, root / "run", schedule, DEMO_MODEL)
+    train_quietly(scene, root / "run", schedule, demo_environment_map())
     return root / "run", root / "scene"
 
 

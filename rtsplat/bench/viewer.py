@@ -1,7 +1,7 @@
 """The viewer's speed on CPU: ``python -m rtsplat.bench.viewer``.
 
 Builds a demo-like model (the toy scene's wall and pane seen from ``--views`` views at 200x150, about
-``--surfels`` surfels started from its points, the demo's 64x128 environment map with 6 levels, trained
+``--surfels`` surfels started from its points, the demo's environment map (demo/config.yaml), trained
 ``--iterations`` iterations through the specular stage, so every branch of the render runs) unless
 ``--run`` (and ``--data``) name a trained run, then prints:
 
@@ -33,6 +33,7 @@ import torch
 
 
 def _demo_like_run(root: Path, *, views: int, surfels: int, iterations: int) -> tuple[Path, Path]:
+    from rtsplat.bench.iteration import demo_environment_map
     from rtsplat.bench.toy_scene import train_quietly, write_scene
 
     n_side = max(4, round(math.sqrt(surfels / 3)))  # three starting surfels per point of the wall
@@ -40,7 +41,7 @@ def _demo_like_run(root: Path, *, views: int, surfels: int, iterations: int) -> 
     train_quietly(scene, root / "run",
                   {"iterations": iterations, "volume_until": 1, "specular_from": 2, "densify_from": 10_000,
                    "reset_every": 0, "checkpoint_every": 0, "log_every": 10_000, "eval_every": 0},
-                  {"env_height": 64, "env_width": 128, "env_levels": 6})
+                  demo_environment_map())
     return root / "run", scene.root
 
 
