@@ -7,8 +7,9 @@ finished it, with ``earlier_parts`` when a resumed run was started by other code
 their own; the report groups the runs by it (:func:`group_runs`) and says on its first screen when they mix
 commits, trees with uncommitted changes or machines (:func:`mixture_sentences`).
 
-Uncommitted changes are the differences of the tracked files to the commit (``git diff HEAD``); untracked
-files are not counted.
+Uncommitted changes are the differences of the tracked files to the commit (``git diff HEAD``) outside the
+documentation (:data:`NOT_CODE`: the docs/ folder and Markdown files, which no stage reads), so a run trained
+while only pages were edited is the commit's run; untracked files are not counted.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ PACKAGES = ("rtsplat", "torch", "numpy", "numba", "scipy", "pycolmap", "mitsuba"
 SHORT = 12  # the commit's characters a label shows
 NOT_RECORDED = "not recorded"
 ROOT = Path(__file__).resolve().parent.parent  # the checkout that holds this package, when it is one
+# pathspecs of what uncommitted changes leave out: pages that no stage reads (``*.md`` at any depth)
+NOT_CODE = (":(exclude)docs", ":(exclude)*.md")
 
 
 def cpu_model() -> str:
@@ -45,14 +48,14 @@ def _git(*args: str, root: Path) -> subprocess.CompletedProcess | None:
 
 
 def source_tree(root: Path = ROOT) -> dict:
-    """``commit`` (the full hash of HEAD), ``dirty`` (tracked files differ from it) and ``diff_sha256`` (the
-    first 16 hex digits of the SHA-256 of ``git diff HEAD``; None on a clean tree); all None when ``root`` is
-    not the top of a git checkout (an installed package)."""
+    """``commit`` (the full hash of HEAD), ``dirty`` (tracked files other than :data:`NOT_CODE` differ from it)
+    and ``diff_sha256`` (the first 16 hex digits of the SHA-256 of that ``git diff HEAD``; None on a clean tree);
+    all None when ``root`` is not the top of a git checkout (an installed package)."""
     unknown = {"commit": None, "dirty": None, "diff_sha256": None}
     top = _git("rev-parse", "--show-toplevel", root=root)
     if top is None or Path(top.stdout.decode().strip()).resolve() != root.resolve():
         return unknown
-    head, diff = _git("rev-parse", "HEAD", root=root), _git("diff", "HEAD", "--binary", root=root)
+    head, diff = _git("rev-parse", "HEAD", root=root), _git("diff", "HEAD", "--binary", "--", ".", *NOT_CODE, root=root)
     if head is None or diff is None:
         return unknown
     digest = hashlib.sha256(diff.stdout).hexdigest()[:16] if diff.stdout else None

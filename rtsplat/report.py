@@ -1143,8 +1143,9 @@ def _provenance_section(doc: Document, groups: list[dict], scenes: dict[str, dic
                         any_metrics: dict) -> None:
     doc.heading(PROVENANCE_HEADING)
     doc.paragraph("What each run's training recorded (rtsplat.provenance): the commit, with '+changes' and a hash "
-                  "of the differences when the tree had uncommitted changes, the machine (host name, CPU model, "
-                  "cores), the device and the package versions; a run resumed by other code lists each part.")
+                  "of the differences when the tree had uncommitted changes (edits to docs/ and Markdown files, "
+                  "which no stage reads, do not count), the machine (host name, CPU model, cores), the device and "
+                  "the package versions; a run resumed by other code lists each part.")
     doc.table(["commit", "machine", "device", "packages", "runs"],
               [[g["commit"], g["machine"], g["device"], g["packages"], ", ".join(g["runs"])] for g in groups])
     computed = "; ".join(f"{label} ({len(runs)} run{'' if len(runs) == 1 else 's'})"
