@@ -31,14 +31,15 @@ def test_source_tree_names_the_commit_and_tells_uncommitted_changes_apart(tmp_pa
     assert source_tree(root)["diff_sha256"] != first["diff_sha256"]
     # edits to the documentation (docs/, Markdown anywhere), which no stage reads, are not uncommitted changes
     (root / "code.py").write_text("x = 1\n")
-    for page in ("docs/page.md", "docs/figure.svg", "README.md", "pkg/notes.md"):
-        (root / page).parent.mkdir(exist_ok=True)
-        (root / page).write_text("one\n")
+    documentation = [root / page for page in ("docs/page.md", "docs/figure.svg", "README.md", "pkg/notes.md")]
+    for page in documentation:
+        page.parent.mkdir(exist_ok=True)
+        page.write_text("one\n")
     _git(root, "add", ".")
     _git(root, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "pages")
     pages = source_tree(root)
-    for page in ("docs/page.md", "docs/figure.svg", "README.md", "pkg/notes.md"):
-        (root / page).write_text("two\n")
+    for page in documentation:
+        page.write_text("two\n")
     assert source_tree(root) == pages and pages["dirty"] is False
     (root / "pkg" / "notes.py").write_text("z = 1\n")
     _git(root, "add", "pkg/notes.py")  # staged, not committed: a change to the code
