@@ -93,3 +93,33 @@ def test_trainer_saves_every_views_correction_and_render_applies_them(tmp_path):
     for rec, camera in zip(prepared.train_cameras, cameras, strict=True):
         expected = rigid_motion(torch.tensor(corrections[rec.name])) @ rec.to_camera().world_to_camera
         torch.testing.assert_close(camera.world_to_camera, expected)
+
+
+def test_test_views_fit_their_poses_keep_them_by_name_and_a_fresh_set_restores_them():
+    """rtsplat.train.evaluation.TestViews: the fit moves a perturbed test view towards its photo (higher
+    PSNR), its rows name every view, and restoring them elsewhere gives the same cameras; a view the
+    saved rows do not name keeps a zero correction."""
+    from rtsplat.train.data import ViewSet
+    from rtsplat.train.evaluation import TestViews
+
+    surfels = _textured_scene()
+
+    def render(camera):
+        return rasterize(surfels, camera).color
+
+    truth = small_camera(48, 36)
+    photo = render(truth).detach()
+    start = truth.corrected(torch.tensor([0.010, -0.008, 0.012, 0.015, -0.01, 0.01], dtype=torch.float64))
+    other = small_camera(48, 36)
+    views = ViewSet(["a.png", "b.png"], [start, other], [photo, render(other).detach()], [None, None])
+    test = TestViews(views, torch.device("cpu"), poses=True, appearance=False)
+    before = test.psnr(render)["test_psnr"]
+    test.fit(render, steps=40, extent=1.0, pose_lr=2e-3, appearance_prior=0.0)
+    assert test.psnr(render)["test_psnr"] > before + 3.0
+    assert test.seconds > 0 and test.poses[0].abs().max() > 0
+    rows = test.rows()
+    assert set(rows) == {"poses"} and sorted(rows["poses"]) == ["a.png", "b.png"]
+    fresh = TestViews(views, torch.device("cpu"), poses=True, appearance=False)
+    fresh.restore({"a.png": rows["poses"]["a.png"], "c.png": [1.0] * 6}, {})
+    torch.testing.assert_close(fresh.cameras()[0].world_to_camera, test.cameras()[0].world_to_camera)
+    assert torch.equal(fresh.poses[1], torch.zeros(6))

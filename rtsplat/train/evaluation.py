@@ -1,13 +1,14 @@
 """Test-view evaluation during and after training: the test views' pose and appearance corrections fitted
-to their images with the model fixed, their PSNR, and the best PSNR the train log saw.
+to their images with the model fixed (:class:`TestViews`), their PSNR, and the best PSNR the train log saw.
 
-:class:`rtsplat.train.trainer.Trainer` holds the corrections and renders the views; these functions take
-the render as a callable (camera -> colour [H,W,3]).
+The render is a callable (camera -> colour [H,W,3]) that :class:`rtsplat.train.trainer.Trainer` passes in;
+nothing here holds the model.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,6 +24,63 @@ from rtsplat.train.cameras import fit_corrections
 from rtsplat.train.data import ViewSet
 
 Render = Callable[[Camera], Tensor]
+
+
+class TestViews:
+    """The test views and their corrections [views, 6]: the pose (rotation vector, translation; fitted only
+    where the training poses are refined) and the appearance (log gain, offset per channel; fitted only where
+    the training views learn one), both zero until :meth:`fit` runs, and the seconds the fits took."""
+
+    def __init__(self, views: ViewSet, device: torch.device, *, poses: bool, appearance: bool):
+        self.views = views
+        self.fits_poses, self.fits_appearance = poses, appearance
+        self.poses = torch.zeros(len(views), 6, device=device)
+        self.appearance = torch.zeros(len(views), 6, device=device)
+        self.seconds = 0.0
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def fit(self, render: Render, steps: int, extent: float, pose_lr: float, appearance_prior: float) -> None:
+        """Fit the poses to the photos in ``steps`` steps from the current ones (the photo brought back to the
+        model's colours by the view's current appearance correction), then the appearance corrections in
+        closed form on the render at the fitted pose."""
+        if len(self.views) == 0:
+            return
+        start = time.perf_counter()
+        if self.fits_poses and steps > 0:
+            self.poses = fit_test_poses(render, self.views, self.poses,
+                                        self.appearance if self.fits_appearance else None, extent, steps, pose_lr)
+        if self.fits_appearance:
+            fit_test_appearance(render, self.cameras(), self.views.images, appearance_prior, self.appearance)
+        self.seconds += time.perf_counter() - start
+
+    def cameras(self) -> list[Camera]:
+        """The views' cameras with their pose corrections."""
+        return [camera.corrected(correction)
+                for camera, correction in zip(self.views.cameras, self.poses, strict=True)]
+
+    def psnr(self, render: Render) -> dict[str, float]:
+        """:func:`views_psnr` of the views at their corrected cameras, their appearance corrections applied."""
+        if len(self.views) == 0:
+            return {}
+        return views_psnr(render, self.cameras(), self.views, self.appearance if self.fits_appearance else None)
+
+    def rows(self) -> dict[str, dict[str, list[float]]]:
+        """The corrections by view name: ``{"poses": {...}, "appearance": {...}}``, each only where it is fitted."""
+        out = {}
+        for key, fitted, values in (("poses", self.fits_poses, self.poses),
+                                    ("appearance", self.fits_appearance, self.appearance)):
+            if fitted:
+                out[key] = dict(zip(self.views.names, values.tolist(), strict=True))
+        return out
+
+    def restore(self, poses: dict[str, list[float]], appearance: dict[str, list[float]]) -> None:
+        """Copy in the saved corrections (by view name) of the views that have one."""
+        for rows, saved in ((self.poses, poses), (self.appearance, appearance)):
+            for index, name in enumerate(self.views.names):
+                if name in saved:
+                    rows[index] = torch.as_tensor(saved[name], device=rows.device)
 
 
 def fit_test_poses(render: Render, views: ViewSet, corrections: Tensor, appearance: Tensor | None, extent: float,

@@ -1,6 +1,6 @@
 """The glass's mirror planes fitted to the model's own see-through surface, once, as the near reflections
-start (:meth:`rtsplat.train.trainer.Trainer.fit_mirror_planes`; :mod:`rtsplat.train.planes` refines them
-from the images afterwards).
+start (:func:`fit_near_planes`, which :meth:`rtsplat.train.trainer.Trainer.fit_mirror_planes` calls;
+:mod:`rtsplat.train.planes` refines them from the images afterwards).
 
 The points are the surface depth of every training view's transparent pixels (mask > 0.5, surface alpha
 > 0.5) with the surface normals (:func:`glass_samples`); the planes are fitted within ``PLANE_TOLERANCE`` of
@@ -10,16 +10,19 @@ the points' diagonal (:func:`rtsplat.model.mirror.fit_planes`) and kept where th
 
 from __future__ import annotations
 
+import time
+
 import torch
 from torch import Tensor
 
-from rtsplat.model.mirror import empty_planes, fit_planes
+from rtsplat.model.mirror import empty_planes, fit_planes, is_bent
 from rtsplat.model.rtmodel import RTModel, image_ray_directions
 from rtsplat.raster import RasterSettings, rasterize
 from rtsplat.scene import PreparedScene
 from rtsplat.train import losses
 from rtsplat.train.data import ViewSet
-from rtsplat.train.effects import NEAR_COVERAGE_VIEWS, planes_seen_edge_on, see_through_planes
+from rtsplat.train.effects import NEAR_COVERAGE_VIEWS, decide_near_planes, planes_seen_edge_on, see_through_planes
+from rtsplat.train_config import TrainConfig
 
 PLANE_TOLERANCE = 0.01  # mirror planes: thickness tolerance, a fraction of the glass points' diagonal
 MAX_PLANE_POINTS = 50_000  # glass points the mirror planes are fitted to (a random subset beyond)
@@ -103,3 +106,33 @@ def marked_centres(scene: PreparedScene) -> Tensor:
     if not records:
         return torch.zeros(0, 3, dtype=torch.float64)
     return torch.stack([c.to_camera(dtype=torch.float64).center for c in records])
+
+
+@torch.no_grad()
+def fit_near_planes(model: RTModel, views: ViewSet, scene: PreparedScene, cfg: TrainConfig,
+                    generator: torch.Generator) -> tuple[Tensor, dict]:
+    """The mirror planes the near reflections use (none where they stay off) and the fit's record: the planes
+    fitted to ``model``'s see-through surface in the training ``views`` (:func:`glass_samples`,
+    :func:`glass_planes`), and whether the near reflections go on
+    (:func:`rtsplat.train.effects.decide_near_planes`, from how planar the glass is and how much of the model
+    the planes would reflect, :func:`near_coverage`).
+
+    A plane is glass only if the scene seen through it lies behind it: of the pixels whose ray meets
+    the plane first, most must have their volume depth (what the transmission shows) beyond the plane
+    by more than its thickness (:data:`rtsplat.train.effects.BEHIND_SHARE`). A floor seen through a dome, or
+    the floor inside a cabin, is a plane the see-through pixels hit, but what they show lies on it, not behind
+    it. With propagated masks, a plane a marked view sees edge-on is a face of the hull the glass was seeded on,
+    not a pane (:func:`rtsplat.train.effects.planes_seen_edge_on`), and is left out too."""
+    start = time.perf_counter()
+    xyz, normal, rays, coverage_views = glass_samples(model, views, cfg.raster, cfg.backend, generator)
+    planes, share, dropped, hull_faces = glass_planes(xyz, normal, rays, marked_centres(scene), cfg.seed)
+    coverage = near_coverage(model, planes, coverage_views, cfg.raster, cfg.backend) if planes.shape[0] else None
+    use, why = decide_near_planes(cfg.effects.near_reflection, planes.shape[0], share, coverage)
+    if dropped:
+        why += f" ({dropped} plane(s) with nothing behind them left out)"
+    if hull_faces:
+        why += f" ({hull_faces} plane(s) seen edge-on by a marked view left out: faces of the marked views' hull)"
+    record = {"points": int(xyz.shape[0]), "planes": int(planes.shape[0]), "bent_planes": int(is_bent(planes).sum()),
+              "planar_share": share, "coverage": None if coverage is None else round(coverage, 4), "on": use,
+              "reason": why, "seconds": round(time.perf_counter() - start, 3)}
+    return (planes if use else empty_planes()), record

@@ -7,7 +7,6 @@ is :mod:`rtsplat.train.run`'s; :meth:`Trainer.train` runs it."""
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +21,6 @@ from rtsplat.errors import PipelineError
 from rtsplat.io.train_log import LOG_NAME
 from rtsplat.model.appearance import apply_appearance
 from rtsplat.model.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
-from rtsplat.model.mirror import empty_planes, is_bent
 from rtsplat.model.rtmodel import RenderResult, RTModel
 from rtsplat.model.specular import cpu_has_amx_tiles
 from rtsplat.model.surfels import (
@@ -51,12 +49,9 @@ from rtsplat.train.clock import ScheduleClock
 from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl, DensityEvents
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
-from rtsplat.train.effects import (
-    decide_effects,
-    decide_near_planes,
-)
-from rtsplat.train.evaluation import fit_test_appearance, fit_test_poses, views_psnr
-from rtsplat.train.glass_planes import glass_planes, glass_samples, marked_centres, near_coverage
+from rtsplat.train.effects import decide_effects
+from rtsplat.train.evaluation import TestViews, views_psnr
+from rtsplat.train.glass_planes import fit_near_planes
 from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, load_optimizer_state, position_lr
 from rtsplat.train.planes import PlaneRefinement
@@ -139,7 +134,6 @@ class Trainer:
         self.effect_reasons["appearance"] = self.appearance_decision.reason
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
                            if self.appearance_decision.on else None)
-        self.test_appearance = torch.zeros(len(self.test_views), 6, device=self.device)
         surfels, n_see_through = self._init_surfels()
         self.model = self.new_model(surfels)
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
@@ -149,8 +143,9 @@ class Trainer:
         c = cfg.cameras
         self.poses = PoseCorrections(len(self.train_views), self.extent, c.lr_rotation, c.lr_translation,
                                      self.device) if c.refine else None
-        self.test_corrections = torch.zeros(len(self.test_views), 6, device=self.device)
-        self.test_fit_seconds = 0.0  # time spent fitting test-view corrections (not in self.elapsed)
+        # the test views' pose and appearance corrections, fitted with the model fixed (not in self.elapsed)
+        self.test = TestViews(self.test_views, self.device, poses=self.poses is not None,
+                              appearance=self.appearance is not None)
         self.frozen = torch.zeros(len(self.model.surfels), dtype=torch.bool, device=self.device)
         self.any_frozen = False  # kept on the host: the step tests it without reading the device
         self.iteration = 0
@@ -199,41 +194,16 @@ class Trainer:
         seeds = self._transparent_surface_surfels(*surface)
         return concat_surfels([surfels, seeds]), len(seeds)
 
-    @torch.no_grad()
     def fit_mirror_planes(self) -> dict:
-        """Fit the glass's mirror planes to the model's own see-through surface and switch the near
-        reflections on where it is planar (:func:`rtsplat.train.effects.decide_near_planes`).
-
-        The points are the surface depth of every training view's transparent pixels (mask > 0.5,
-        surface alpha > 0.5) with the surface normals, at most ``MAX_PLANE_POINTS`` of them; the planes
-        are fitted within ``PLANE_TOLERANCE`` of the points' diagonal (:func:`rtsplat.model.mirror.fit_planes`;
-        :mod:`rtsplat.train.glass_planes`).
-        A plane is glass only if the scene seen through it lies behind it: of the pixels whose ray meets
-        the plane first, most must have their volume depth (what the transmission shows) beyond the plane
-        by more than its thickness (:data:`BEHIND_SHARE`). A floor seen through a dome, or the floor inside
-        a cabin, is a plane the see-through pixels hit, but what they show lies on it, not behind it. With
-        propagated masks, a plane a marked view sees edge-on is a face of the hull the glass was seeded on,
-        not a pane (:func:`rtsplat.train.effects.planes_seen_edge_on`), and is left out too."""
-        start = time.perf_counter()
-        cfg = self.cfg
-        xyz, normal, rays, coverage_views = glass_samples(self.model, self.train_views, cfg.raster, cfg.backend,
-                                                          self.rng)
-        planes, share, dropped, hull_faces = glass_planes(xyz, normal, rays, marked_centres(self.scene), cfg.seed)
-        coverage = (near_coverage(self.model, planes, coverage_views, cfg.raster, cfg.backend)
-                    if planes.shape[0] else None)
-        use, why = decide_near_planes(cfg.effects.near_reflection, planes.shape[0], share, coverage)
-        if dropped:
-            why += f" ({dropped} plane(s) with nothing behind them left out)"
-        if hull_faces:
-            why += f" ({hull_faces} plane(s) seen edge-on by a marked view left out: faces of the marked views' hull)"
-        self.model.set_mirror_planes(planes if use else empty_planes())
+        """Fit the glass's mirror planes to the model's own see-through surface, switch the near reflections on
+        where it is planar (:func:`rtsplat.train.glass_planes.fit_near_planes`) and learn the planes from here
+        on; returns the fit's record (``near_fit``)."""
+        planes, record = fit_near_planes(self.model, self.train_views, self.scene, self.cfg, self.rng)
+        self.near_fit = {"iteration": self.iteration, **record}
+        self.model.set_mirror_planes(planes)
         self._start_plane_refinement()
-        self.near_fit = {"iteration": self.iteration, "points": int(xyz.shape[0]), "planes": int(planes.shape[0]),
-                         "bent_planes": int(is_bent(planes).sum()), "planar_share": share,
-                         "coverage": None if coverage is None else round(coverage, 4), "on": use, "reason": why,
-                         "seconds": round(time.perf_counter() - start, 3)}
-        self.log(f"near reflection at iteration {self.iteration}: {'on' if use else 'off'} ({why}; "
-                 f"fitted in {self.near_fit['seconds']:.1f} s)")
+        self.log(f"near reflection at iteration {self.iteration}: {'on' if record['on'] else 'off'} "
+                 f"({record['reason']}; fitted in {record['seconds']:.1f} s)")
         write_effects(self)
         return self.near_fit
 
@@ -450,65 +420,36 @@ class Trainer:
                                  raster_settings=self.cfg.raster, backend=self.cfg.backend).color
 
     def fit_test_cameras(self, steps: int) -> None:
-        """Fit the test views' pose corrections to their images (model fixed), continuing from the
-        current ones, then their appearance corrections (closed form, on the render at the fitted pose);
-        poses only with pose refinement (``cameras.refine``), appearance only where it is learnt. The pose
-        fit compares the render with the photo brought back to the model's colours by the view's current
-        appearance correction."""
-        if len(self.test_views) == 0:
-            return
-        start = time.perf_counter()
-        render = self._evaluation_color
-        if self.poses is not None and steps > 0:
-            self.test_corrections = fit_test_poses(
-                render, self.test_views, self.test_corrections,
-                self.test_appearance if self.appearance is not None else None, self.extent, steps,
-                self.cfg.cameras.test_fit_lr)
-        if self.appearance is not None:
-            fit_test_appearance(render, self.test_cameras(), self.test_views.images, self.cfg.appearance.test_prior,
-                                self.test_appearance)
-        self.test_fit_seconds += time.perf_counter() - start
-
-    def test_cameras(self) -> list:
-        """The test views' cameras with their fitted corrections."""
-        return [camera.corrected(correction)
-                for camera, correction in zip(self.test_views.cameras, self.test_corrections, strict=True)]
+        """Fit the test views' corrections to their photos with the model fixed (:meth:`TestViews.fit`): the
+        poses only with pose refinement (``cameras.refine``), the appearance only where it is learnt."""
+        self.test.fit(self._evaluation_color, steps, self.extent, self.cfg.cameras.test_fit_lr,
+                      self.cfg.appearance.test_prior)
 
     @torch.no_grad()
     def evaluate(self, views: ViewSet | None = None) -> dict[str, float]:
-        """Test PSNR (entire image, transparent region) of ``views`` (default: the test views, with
-        their fitted pose and appearance corrections; :func:`rtsplat.train.evaluation.views_psnr`)."""
-        appearance = self.test_appearance if views is None and self.appearance is not None else None
-        cameras = views.cameras if views is not None else self.test_cameras()
-        views = views or self.test_views
-        if len(views) == 0:
-            return {}
-        return views_psnr(self._evaluation_color, cameras, views, appearance)
+        """Test PSNR (entire image, transparent region) of ``views`` at their cameras (default: the test views
+        with their fitted corrections; :func:`rtsplat.train.evaluation.views_psnr`)."""
+        if views is None:
+            return self.test.psnr(self._evaluation_color)
+        return views_psnr(self._evaluation_color, views.cameras, views, None) if len(views) else {}
 
     def camera_corrections(self) -> dict[str, list[float]]:
         """Every view's pose correction by name (rotation vector in radians, translation), for
         :meth:`rtsplat.camera.Camera.corrected`; empty without pose refinement."""
         if self.poses is None:
             return {}
-        return self._by_view(self.poses.values(), self.test_corrections)
+        return {**self._train_rows(self.poses.values()), **self.test.rows()["poses"]}
 
     def appearance_corrections(self) -> dict[str, list[float]]:
         """Every view's appearance correction by name (log gain, offset per channel), for
         :func:`rtsplat.model.appearance.apply_appearance`; empty where appearance is not learnt."""
         if self.appearance is None:
             return {}
-        return self._by_view(self.appearance.detached(), self.test_appearance)
+        return {**self._train_rows(self.appearance.detached()), **self.test.rows()["appearance"]}
 
-    def _by_view(self, train: Tensor, test: Tensor) -> dict[str, list[float]]:
-        """Per-view rows of the training and the test views, by view name (what a checkpoint keeps)."""
-        return {**dict(zip(self.train_views.names, train.tolist(), strict=True)),
-                **dict(zip(self.test_views.names, test.tolist(), strict=True))}
-
-    def _restore_test_rows(self, rows: Tensor, saved: dict[str, list[float]]) -> None:
-        """Copy into ``rows`` [test views, ...] the saved rows of the test views that have one."""
-        for index, name in enumerate(self.test_views.names):
-            if name in saved:
-                rows[index] = torch.as_tensor(saved[name], device=self.device)
+    def _train_rows(self, rows: Tensor) -> dict[str, list[float]]:
+        """The training views' rows by view name (what a checkpoint keeps)."""
+        return dict(zip(self.train_views.names, rows.tolist(), strict=True))
 
     def appearance_summary(self) -> dict:
         """Whether appearance is learnt, why, how confident that decision is, what it rested on (the spread, the
@@ -519,7 +460,7 @@ class Trainer:
                "views_measured": self.exposure.views, "observations_per_view": self.exposure.observations,
                "noise": self.exposure.noise}
         if self.appearance is not None:
-            for split, values in (("train", self.appearance.detached()), ("test", self.test_appearance)):
+            for split, values in (("train", self.appearance.detached()), ("test", self.test.appearance)):
                 if len(values):
                     out[f"{split}_mean_abs_log_gain"] = float(values[:, :3].abs().mean())
                     out[f"{split}_mean_abs_offset"] = float(values[:, 3:].abs().mean())
@@ -530,8 +471,8 @@ class Trainer:
         corrections, for the run summary."""
         if self.poses is None:
             return {}
-        out = {"test_fit_seconds": round(self.test_fit_seconds, 3)}
-        for split, values in (("train", self.poses.values()), ("test", self.test_corrections)):
+        out = {"test_fit_seconds": round(self.test.seconds, 3)}
+        for split, values in (("train", self.poses.values()), ("test", self.test.poses)):
             if len(values):
                 out[f"{split}_pose_correction_deg"] = math.degrees(float(values[:, :3].norm(dim=1).mean()))
                 out[f"{split}_pose_correction_translation"] = float(values[:, 3:].norm(dim=1).mean())
@@ -613,10 +554,9 @@ class Trainer:
         self.frozen = state["frozen"].to(self.device)
         if self.poses is not None and state.get("poses") is not None:
             self.poses.load_state_dict(state["poses"])
-        self._restore_test_rows(self.test_corrections, state.get("camera_corrections", {}))
         if self.appearance is not None and state.get("appearance") is not None:
             self.appearance.load_state_dict(state["appearance"])
-        self._restore_test_rows(self.test_appearance, state.get("appearance_corrections", {}))
+        self.test.restore(state.get("camera_corrections", {}), state.get("appearance_corrections", {}))
         self.any_frozen = bool(self.frozen.any())
         self.near_fit = state.get("near_fit")
         self.provenance = list(state.get("provenance") or [])
