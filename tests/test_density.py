@@ -124,7 +124,8 @@ def test_early_pruning_removes_only_seen_low_occupancy_surfels_before_the_first_
     with torch.no_grad():
         surfels.occupancy_logit.copy_(torch.logit(occupancy))
     config = Densification(grad_threshold=1e9, prune_occupancy=0.2, early_prune_occupancy=0.3)
-    control = DensityControl(config, Schedule(iterations=100, densify_from=25, densify_every=10), extent=1.0,
+    control = DensityControl(config, Schedule(iterations=100, volume_until=20, specular_from=40, densify_from=25,
+                                              densify_every=10), extent=1.0,
                              spared_early=torch.arange(40) == 2)  # a see-through seed: left to densification
     optimizer = build_optimizer(torch.nn.Module(), surfels, TrainConfig().lr, 1.0)
     control._ensure(40, "cpu")
@@ -159,7 +160,8 @@ def test_early_pruning_removes_only_seen_low_occupancy_surfels_before_the_first_
     control.seen_since_reset[:] = True
     low = int(((surfels.occupancy.detach() < 0.2) & ~frozen).sum())
     events, _ = control.step(30, surfels, optimizer, torch.Generator(), frozen)
-    assert events.pruned == low == 3 and control.grad_count.sum() == 0  # it spares none, resets the statistics
+    # after the volume stage: it spares none, resets the statistics
+    assert events.pruned == low == 3 and control.grad_count.sum() == 0
     assert len(control.spared_early) == 0  # and ends early pruning's mask
     off = DensityControl(Densification(prune_occupancy=0.2), Schedule(iterations=100, densify_from=25,
                                                                        densify_every=10), extent=1.0)
@@ -169,6 +171,34 @@ def test_early_pruning_removes_only_seen_low_occupancy_surfels_before_the_first_
     events, _ = off.step(10, surfels, build_optimizer(torch.nn.Module(), surfels, TrainConfig().lr, 1.0),
                          torch.Generator())
     assert not events.any() and len(surfels) == 10  # early_prune_occupancy 0: off
+
+
+def test_density_steps_spare_the_see_through_seeds_while_the_volume_stage_lasts():
+    """The see-through surface's seeds (``spared_early``) under the occupancy threshold survive the density steps
+    at or before ``schedule.volume_until``, the mask following its rows; the first step after the stage prunes
+    them like any surfel and forgets the mask. A low surfel that is not a seed goes at the first step."""
+    surfels = _surfels(n=20)
+    occupancy = torch.full((20,), 0.5)
+    occupancy[[3, 7, 11]] = 0.05
+    with torch.no_grad():
+        surfels.occupancy_logit.copy_(torch.logit(occupancy))
+    seeds = torch.zeros(20, dtype=torch.bool)
+    seeds[[3, 7]] = True
+    control = DensityControl(Densification(grad_threshold=1e9, prune_occupancy=0.2),
+                             Schedule(iterations=100, volume_until=30, specular_from=50, densify_from=20,
+                                      densify_every=10), extent=1.0, spared_early=seeds)
+    optimizer = build_optimizer(torch.nn.Module(), surfels, TrainConfig().lr, 1.0)
+    control._ensure(20, "cpu")
+    control.seen_since_reset[:] = True
+    events, frozen = control.step(20, surfels, optimizer, torch.Generator())
+    assert events.pruned == events.pruned_occupancy == 1 and len(surfels) == 19  # row 11 only
+    assert torch.equal(control.spared_early, seeds[torch.arange(20) != 11])
+    assert torch.allclose(surfels.occupancy.detach()[control.spared_early], torch.tensor([0.05, 0.05]))
+    events, frozen = control.step(30, surfels, optimizer, torch.Generator(), frozen)
+    assert not events.pruned and len(surfels) == 19  # the stage's last iteration: still spared
+    events, _ = control.step(40, surfels, optimizer, torch.Generator(), frozen)
+    assert events.pruned == 2 and len(surfels) == 17 and len(control.spared_early) == 0
+    assert surfels.occupancy.detach().min() > 0.2
 
 
 def test_density_control_ends_at_half_the_run_by_default():

@@ -6,7 +6,8 @@
   run, as 2DGS): clone small surfels whose mean gradient exceeds the threshold (the clone and its
   original share the original's coverage), split large ones in two (two halves along the longer
   tangent axis, or the 2DGS random split), then prune: occupancy below 0.05 (never opacity: a clear window has
-  low opacity) among surfels seen since the last reset, and, once the first reset has happened (as
+  low opacity) among surfels seen since the last reset (the see-through surface's seeds excepted while the
+  volume stage lasts: it does not render them as glass), and, once the first reset has happened (as
   2DGS, whose size pruning starts after its first opacity reset), over-large surfels: before that,
   large surfels are the floor, walls and backdrop that the initial points describe coarsely, and
   deleting them leaves holes that the remaining steps cannot fill;
@@ -57,8 +58,9 @@ class DensityControl:
     max_radius: Tensor = field(default_factory=lambda: torch.zeros(0))
     seen_since_reset: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
     resets_done: int = 0
-    # the rows that early pruning leaves to the first densification: the see-through surface's seeds, which
-    # the volume stage has no use for (their occupancy dips there and recovers once transmission is on)
+    # the see-through surface's seeds, which no pruning removes while the volume stage lasts (early pruning,
+    # and density steps up to schedule.volume_until): that stage has no use for them, and their occupancy dips
+    # there and recovers once transmission is on. Forgotten at the first density step after the stage.
     spared_early: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
 
     def _ensure(self, n: int, device) -> None:
@@ -111,7 +113,8 @@ class DensityControl:
         stop = s.densify_stop()
         previous = iteration - 1 if previous is None else previous
         if passed(previous, iteration, s.densify_every, start=s.densify_from, stop=stop) is not None:
-            frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events)
+            frozen = self._densify_and_prune(surfels, optimizer, generator, frozen, events,
+                                             spare_seeds=iteration <= s.volume_until)
         elif self.config.early_prune_occupancy > 0 and passed(
                 previous, iteration, s.densify_every, stop=min(s.densify_from, stop)) is not None:
             frozen = self._prune_early(surfels, optimizer, frozen, events)
@@ -119,9 +122,14 @@ class DensityControl:
             self._reset(surfels, optimizer, events)
         return events, frozen
 
-    def _densify_and_prune(self, surfels, optimizer, generator, frozen, events) -> Tensor:
+    def _densify_and_prune(self, surfels, optimizer, generator, frozen, events, spare_seeds: bool) -> Tensor:
+        """Clone, split, then prune (the module's rules); ``spare_seeds``: the ``spared_early`` rows are not
+        pruned, and the mask follows them through this step."""
         c = self.config
         device = surfels.means.device
+        n = len(surfels)
+        seeds = self.spared_early[:n] if spare_seeds else self.spared_early[:0]
+        seeds = torch.cat([seeds, torch.zeros(n - len(seeds), dtype=torch.bool, device=device)])
         mean_grad = self.grad_sum / self.grad_count.clamp_min(1)
         big = surfels.scales.amax(-1) > c.percent_dense * self.extent
         candidates = (mean_grad >= c.grad_threshold) & ~frozen
@@ -176,7 +184,8 @@ class DensityControl:
             too_big = surfels.scales.detach().amax(-1) > c.max_world_scale * self.extent
             if c.max_screen_size > 0:
                 too_big |= max_radius > c.max_screen_size
-        remove |= (low_occupancy | too_big) & ~frozen
+        spared = torch.cat([seeds, no_rows])
+        remove |= (low_occupancy | too_big) & ~frozen & ~spared
         keep = ~remove
         if not keep.any():  # never prune the scene away entirely: drop only the split parents
             keep = ~torch.cat([split, no_rows])
@@ -190,7 +199,7 @@ class DensityControl:
         self.grad_sum = torch.zeros(n_new, device=device)
         self.grad_count = torch.zeros(n_new, device=device)
         self.max_radius = torch.zeros(n_new, device=device)
-        self.spared_early = self.spared_early[:0]  # early pruning is over: its rows no longer name the seeds
+        self.spared_early = spared[keep] if spare_seeds else self.spared_early[:0]
         return frozen[keep]
 
     def _prune_early(self, surfels, optimizer, frozen, events) -> Tensor:
