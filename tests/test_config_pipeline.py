@@ -192,9 +192,9 @@ def test_the_benchmark_configs_over_the_demo_build_every_method(layer):
         assert trees[("dome", "rtsplat")]["densify"]["prune_occupancy"] == 0.2
         assert light["densify"]["prune_occupancy"] == 0.05
         assert light["schedule"]["iterations"] == 0.8 * demo_iterations
-        late = trees[("dome", "rtsplat_densify_late")]["schedule"]
-        assert (late["densify_from"], trees[("dome", "rtsplat")]["schedule"]["densify_from"]) == (188, 124)
-        assert late["volume_until"] == trees[("dome", "rtsplat")]["schedule"]["volume_until"]  # the rest kept
+        early = trees[("dome", "rtsplat_densify_early")]["schedule"]
+        assert (early["densify_from"], trees[("dome", "rtsplat")]["schedule"]["densify_from"]) == (124, 188)
+        assert early["volume_until"] == trees[("dome", "rtsplat")]["schedule"]["volume_until"]  # the rest kept
     assert trees[("dome", "2dgs_x4")]["effects"] == {"transmission": "off", "specular": "off",
                                                       "near_reflection": "off", "appearance": "auto"}
 

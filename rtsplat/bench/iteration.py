@@ -6,7 +6,7 @@ iterations, 64x128 environment map with 6 levels, the compressed schedule, its p
 evaluations, checkpoints and logging off). A method's options and ``--options`` are merged over them
 key by key. Each (checkout, method) pair runs in its own worker process. A process of the first
 checkout first trains ``--warmup`` iterations (default 300: past ``specular_from``, so the full
-model runs, at SH degree 2, after three density steps, so the surfel count is a trained one) and
+model runs, at SH degree 2, after two densifications, so the surfel count is a trained one) and
 writes the training state; every worker loads it (so all start from the same model and the same C
 heap history) and times ``--iterations`` iterations per round. Rounds are
 interleaved over the workers (the order alternates), so every worker sees the same load; the median
