@@ -127,9 +127,9 @@ class DensityControl:
         pruned, and the mask follows them through this step."""
         c = self.config
         device = surfels.means.device
-        n = len(surfels)
-        seeds = self.spared_early[:n] if spare_seeds else self.spared_early[:0]
-        seeds = torch.cat([seeds, torch.zeros(n - len(seeds), dtype=torch.bool, device=device)])
+        seeds = self._seed_rows(len(surfels), device)
+        if not spare_seeds:
+            seeds.zero_()
         mean_grad = self.grad_sum / self.grad_count.clamp_min(1)
         big = surfels.scales.amax(-1) > c.percent_dense * self.extent
         candidates = (mean_grad >= c.grad_threshold) & ~frozen
@@ -209,8 +209,7 @@ class DensityControl:
         c = self.config
         threshold = min(c.early_prune_occupancy, c.prune_occupancy)
         n = len(surfels)
-        spared = self.spared_early[:n]
-        spared = torch.cat([spared, torch.zeros(n - len(spared), dtype=torch.bool, device=spared.device)])
+        spared = self._seed_rows(n, surfels.means.device)
         remove = (surfels.occupancy.detach() < threshold) & self.seen_since_reset & ~frozen & ~spared
         n_removed = int(remove.sum())
         if n_removed == 0 or n_removed == n:  # never prune the scene away entirely
@@ -222,6 +221,11 @@ class DensityControl:
             setattr(self, name, getattr(self, name)[keep])
         self.spared_early = spared[keep]
         return frozen[keep]
+
+    def _seed_rows(self, n: int, device) -> Tensor:
+        """The ``spared_early`` mask over ``n`` rows (rows past its end are no seeds)."""
+        seeds = self.spared_early[:n].to(device)
+        return torch.cat([seeds, torch.zeros(n - len(seeds), dtype=torch.bool, device=device)])
 
     def _reset(self, surfels, optimizer, events) -> None:
         cap = logit(self.config.reset_value)

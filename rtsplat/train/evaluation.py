@@ -38,9 +38,6 @@ class TestViews:
         self.appearance = torch.zeros(len(views), 6, device=device)
         self.seconds = 0.0
 
-    def __len__(self) -> int:
-        return len(self.views)
-
     def fit(self, render: Render, steps: int, extent: float, pose_lr: float, appearance_prior: float) -> None:
         """Fit the poses to the photos in ``steps`` steps from the current ones (the photo brought back to the
         model's colours by the view's current appearance correction), then the appearance corrections in
@@ -62,18 +59,7 @@ class TestViews:
 
     def psnr(self, render: Render) -> dict[str, float]:
         """:func:`views_psnr` of the views at their corrected cameras, their appearance corrections applied."""
-        if len(self.views) == 0:
-            return {}
         return views_psnr(render, self.cameras(), self.views, self.appearance if self.fits_appearance else None)
-
-    def rows(self) -> dict[str, dict[str, list[float]]]:
-        """The corrections by view name: ``{"poses": {...}, "appearance": {...}}``, each only where it is fitted."""
-        out = {}
-        for key, fitted, values in (("poses", self.fits_poses, self.poses),
-                                    ("appearance", self.fits_appearance, self.appearance)):
-            if fitted:
-                out[key] = dict(zip(self.views.names, values.tolist(), strict=True))
-        return out
 
     def restore(self, poses: dict[str, list[float]], appearance: dict[str, list[float]]) -> None:
         """Copy in the saved corrections (by view name) of the views that have one."""
@@ -102,11 +88,18 @@ def fit_test_appearance(render: Render, cameras: list[Camera], images: list[Tens
         out[index] = fit_appearance(render(camera), image, prior)
 
 
+def rows_by_name(names: list[str], rows: Tensor) -> dict[str, list[float]]:
+    """Per-view rows [views, ...] by view name (how a checkpoint keeps the views' corrections)."""
+    return dict(zip(names, rows.tolist(), strict=True))
+
+
 @torch.no_grad()
 def views_psnr(render: Render, cameras: list[Camera], views: ViewSet, appearance: Tensor | None) -> dict[str, float]:
     """Mean PSNR of ``views`` rendered at ``cameras``, over the entire image (``test_psnr``) and over the
     transparent region of the views that have one (``test_psnr_transparent``); ``appearance``: the views'
-    corrections applied to the renders (None: none)."""
+    corrections applied to the renders (None: none). No views: an empty dict."""
+    if len(views) == 0:
+        return {}
     full, region = [], []
     for index, (camera, image, mask) in enumerate(zip(cameras, views.images, views.masks, strict=True)):
         color = render(camera)

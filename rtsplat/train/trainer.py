@@ -50,7 +50,7 @@ from rtsplat.train.data import ViewSet, load_views, scene_extent
 from rtsplat.train.density import DensityControl, DensityEvents
 from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import decide_effects
-from rtsplat.train.evaluation import TestViews, views_psnr
+from rtsplat.train.evaluation import TestViews, rows_by_name, views_psnr
 from rtsplat.train.glass_planes import fit_near_planes
 from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, load_optimizer_state, position_lr
@@ -431,25 +431,23 @@ class Trainer:
         with their fitted corrections; :func:`rtsplat.train.evaluation.views_psnr`)."""
         if views is None:
             return self.test.psnr(self._evaluation_color)
-        return views_psnr(self._evaluation_color, views.cameras, views, None) if len(views) else {}
+        return views_psnr(self._evaluation_color, views.cameras, views, None)
 
     def camera_corrections(self) -> dict[str, list[float]]:
         """Every view's pose correction by name (rotation vector in radians, translation), for
         :meth:`rtsplat.camera.Camera.corrected`; empty without pose refinement."""
         if self.poses is None:
             return {}
-        return {**self._train_rows(self.poses.values()), **self.test.rows()["poses"]}
+        return {**rows_by_name(self.train_views.names, self.poses.values()),
+                **rows_by_name(self.test_views.names, self.test.poses)}
 
     def appearance_corrections(self) -> dict[str, list[float]]:
         """Every view's appearance correction by name (log gain, offset per channel), for
         :func:`rtsplat.model.appearance.apply_appearance`; empty where appearance is not learnt."""
         if self.appearance is None:
             return {}
-        return {**self._train_rows(self.appearance.detached()), **self.test.rows()["appearance"]}
-
-    def _train_rows(self, rows: Tensor) -> dict[str, list[float]]:
-        """The training views' rows by view name (what a checkpoint keeps)."""
-        return dict(zip(self.train_views.names, rows.tolist(), strict=True))
+        return {**rows_by_name(self.train_views.names, self.appearance.detached()),
+                **rows_by_name(self.test_views.names, self.test.appearance)}
 
     def appearance_summary(self) -> dict:
         """Whether appearance is learnt, why, how confident that decision is, what it rested on (the spread, the
