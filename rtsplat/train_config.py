@@ -91,6 +91,15 @@ class Schedule:
         "half the run, so that the phase follows the run's length", minimum=0
     )
     densify_from: int = setting(500, help="densification starts after this iteration", minimum=0)
+    dense_start_densify_from: int | None = setting(
+        None, help="with a dense start (at least densify.dense_start_per_pixel surfels started from the SfM points "
+        "per pixel of a training view), densification starts after this iteration instead of densify_from: its "
+        "first step prunes most of a dense start (55-88% on the tuning scenes' ground-truth clouds), and the "
+        "surfels it prunes stop costing time earlier. At 124 instead of the demo's 188 on the ten tuning scenes "
+        "(8-13 surfels per pixel): 0.90x rtsplat's and 0.88x 2dgs's training CPU seconds, median +0.03 / +0.06 "
+        "and -0.11 / -0.07 dB; on sparse SfM starts (1-2.3 per pixel) it saved nothing and cost 2dgs 6% "
+        "(docs/fidelity.md, finding 53). null: densify_from whatever the start", minimum=0
+    )
     densify_until: int | None = setting(
         None, help="density control and resets stop at this iteration (exclusive); null: half the run, the 2DGS "
         "ratio (15000 of 30000), so that the second half refines a fixed set of surfels", minimum=0
@@ -355,6 +364,12 @@ class Densification:
         "resolution, summed): more surfels than pixels have more parameters than the images have values. 0: no "
         "such cap", minimum=0.0
     )
+    dense_start_per_pixel: float = setting(
+        4.0, help="a start is dense when the surfels started from the SfM points number at least this many per "
+        "pixel of a training view (at the training resolution, the views' mean); then "
+        "schedule.dense_start_densify_from, where set, places the first density step (rtsplat/train/initial.py)",
+        minimum=0.0
+    )
 
 
 @dataclass
@@ -498,8 +513,8 @@ def resume_differences(checkpoint_config: dict[str, Any], cfg: TrainConfig) -> l
 # Every setting counted in iterations, by section (log_every stays: it is a logging rate).
 ITERATION_COUNTS = {
     "schedule": ("iterations", "volume_until", "specular_from", "separate_background_until", "densify_from",
-                 "densify_until", "densify_every", "reset_every", "sh_degree_every", "full_resolution_from",
-                 "checkpoint_every", "eval_every"),
+                 "dense_start_densify_from", "densify_until", "densify_every", "reset_every", "sh_degree_every",
+                 "full_resolution_from", "checkpoint_every", "eval_every"),
     "lr": ("position_max_steps",),
     "losses": ("perceptual_from", "normal_from"),
     "cameras": ("refine_from",),

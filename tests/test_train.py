@@ -835,6 +835,43 @@ def test_the_starting_cap_follows_the_budget_and_the_training_pixels():
     assert starting_cap(Densification(max_surfels=200_000, initial_pixels_per_surfel=0), 30_000) == 100_000
 
 
+def test_the_density_start_comes_early_for_a_dense_start_only():
+    from rtsplat.train.initial import StartingSurfels, density_start
+    from rtsplat.train_config import Densification, Schedule
+
+    def start(surfels: int, early: int | None = 124, **schedule):
+        plan = StartingSurfels(surfels, surfels, 1, 10**6, "")
+        schedule = {"iterations": 750, "densify_from": 188, "densify_every": 62, **schedule}
+        return density_start(Schedule(dense_start_densify_from=early, **schedule), Densification(), plan, 7500.0)
+
+    # 4 starting surfels per pixel of a training view by default: 30000 at 7500 pixels
+    assert (start(29_999).densify_from, start(29_999).first_step) == (188, 248)  # sparse: 186 < 188
+    assert (start(30_000).densify_from, start(30_000).first_step) == (124, 124)  # dense
+    assert "a dense start: 4.00" in start(30_000).reason and "a sparse start: 4.00" in start(29_999).reason
+    assert start(10**6, early=None).densify_from == 188 and "null" in start(10**6, early=None).reason
+    assert start(10**6, early=300, densify_until=280).first_step is None  # no step before density control stops
+    assert start(10**6, early=0).first_step == 62  # the first step is never iteration 0
+
+
+def test_the_trainer_places_the_first_density_step_by_its_starting_surfels_per_pixel_of_a_view(glass_scene, tmp_path):
+    train_pixels = sum(c.width * c.height for c in glass_scene.train_cameras)
+    per_pixel = 4 * glass_scene.load_points()[0].shape[0] / (train_pixels / len(glass_scene.train_cameras))
+
+    def density_steps(run: str, threshold: float) -> tuple[list[int], dict]:
+        # every surfel cloned at every step (grad_threshold 0), so that each step shows in the log
+        cfg = config(12, schedule={"dense_start_densify_from": 2, "densify_until": 5},
+                     densify={"grad_threshold": 0.0, "dense_start_per_pixel": threshold})
+        trainer = Trainer(glass_scene, cfg, tmp_path / run, progress=False, log=lambda m: None)
+        steps = [trainer.step() for _ in range(5)]
+        assert len(trainer.model.surfels) > trainer.starting.surfels
+        return [s.iteration for s in steps if s.density], trainer.density_start.to_dict()
+
+    dense, record = density_steps("dense", 0.99 * per_pixel)
+    assert dense == [2, 4] and record["densify_from"] == 2 and "a dense start" in record["reason"]
+    sparse, record = density_steps("sparse", 1.01 * per_pixel)
+    assert sparse == [4] and record["densify_from"] == 4 and "a sparse start" in record["reason"]
+
+
 def test_a_capped_start_uses_a_seeded_subset_of_the_points_with_the_whole_clouds_normals(glass_scene, tmp_path):
     from rtsplat.model.surfels import point_cloud_normals
     from rtsplat.raster.projection import quat_to_rotmat

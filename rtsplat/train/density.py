@@ -3,7 +3,8 @@
 * statistics: per surfel, the accumulated norm of the 2DGS densification signal over the views
   where it was visible, the largest screen radius, and whether it was seen since the last reset;
 * every ``densify_every`` iterations in [densify_from, densify_until) (default: the first half of the
-  run, as 2DGS): clone small surfels whose mean gradient exceeds the threshold (the clone and its
+  run, as 2DGS; the trainer passes the ``densify_from`` that :func:`rtsplat.train.initial.density_start`
+  chose for its start): clone small surfels whose mean gradient exceeds the threshold (the clone and its
   original share the original's coverage), split large ones in two (two halves along the longer
   tangent axis, or the 2DGS random split), then prune: occupancy below 0.05 (never opacity: a clear window has
   low opacity) among surfels seen since the last reset (the see-through surface's seeds excepted while the

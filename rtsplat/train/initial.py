@@ -7,6 +7,10 @@ most one surfel per ``densify.initial_pixels_per_surfel`` training pixels. Over 
 drop first (down to one per point), then the points: a random subset, drawn with the run's seed.
 A small scene is never capped, so it starts exactly as without the rule; a real capture's 100k-1M
 points start a bounded number of surfels instead of millions.
+
+How dense the start is also places the first density step (:func:`density_start`): most of a dense
+start is pruned by that step, so ``schedule.dense_start_densify_from`` can bring it forward; a sparse
+start keeps ``schedule.densify_from``, since there the step mostly grows surfels.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import torch
 from torch import Tensor
 
 from rtsplat.model.surfels import SurfelParameters, init_from_points, point_cloud_normals, scatter_points
-from rtsplat.train_config import Densification
+from rtsplat.train_config import Densification, Schedule
 
 
 @dataclass(frozen=True)
@@ -47,6 +51,43 @@ def starting_cap(densify: Densification, train_pixels: int) -> int:
     if densify.initial_pixels_per_surfel > 0:
         cap = min(cap, train_pixels / densify.initial_pixels_per_surfel)
     return max(1, int(cap))
+
+
+@dataclass(frozen=True)
+class DensityStart:
+    """Where density control starts: ``densify_from`` (``schedule.densify_from``, or
+    ``schedule.dense_start_densify_from`` for a dense start), the iteration of the first density step
+    it gives (the first multiple of ``schedule.densify_every`` from there; None: none before density
+    control stops) and why."""
+
+    densify_from: int
+    first_step: int | None
+    reason: str
+
+    def to_dict(self) -> dict[str, int | str]:
+        return asdict(self)
+
+
+def density_start(schedule: Schedule, densify: Densification, starting: StartingSurfels,
+                  view_pixels: float) -> DensityStart:
+    """Where density control starts for a run that starts ``starting`` surfels from the SfM points and
+    trains on views of ``view_pixels`` pixels (their mean at the training resolution): after
+    ``schedule.dense_start_densify_from`` when that is set and the start has at least
+    ``densify.dense_start_per_pixel`` surfels per such pixel, else after ``schedule.densify_from``."""
+    early = schedule.dense_start_densify_from
+    if early is None:
+        densify_from, reason = schedule.densify_from, "schedule.densify_from (dense_start_densify_from: null)"
+    else:
+        per_pixel = starting.surfels / max(view_pixels, 1.0)
+        dense = per_pixel >= densify.dense_start_per_pixel
+        rule = (f"{'a dense' if dense else 'a sparse'} start: {per_pixel:.2f} starting surfels per pixel of a "
+                f"training view, {'at least' if dense else 'below'} densify.dense_start_per_pixel "
+                f"{densify.dense_start_per_pixel:g}")
+        densify_from, reason = ((early, f"schedule.dense_start_densify_from ({rule})") if dense
+                                else (schedule.densify_from, f"schedule.densify_from ({rule})"))
+    every = schedule.densify_every
+    first = max(-(-densify_from // every), 1) * every
+    return DensityStart(densify_from, first if first < schedule.densify_stop() else None, reason)
 
 
 def plan_starting_surfels(sfm_points: int, copies: int, cap: int) -> StartingSurfels:

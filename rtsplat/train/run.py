@@ -147,6 +147,9 @@ class TrainingRun:
         t.log(f"per-view appearance: {t.appearance is not None} ({reasons['appearance']})")
         t.log(f"perceptual loss: {t.perceptual_note}")
         t.log(f"starting surfels: {t.starting.surfels} ({t.starting.reason})")
+        first = t.density_start.first_step
+        t.log(f"density control from iteration {t.density_start.densify_from}, the first step at "
+              f"{'none' if first is None else first} ({t.density_start.reason})")
         backend = default_backend(t.device) if cfg.backend == "auto" else cfg.backend
         t.log(f"device: {t.device} (train.device: {cfg.device}), rasterizer backend: {backend}, specular "
               f"network's products: {t.model.specular_products() or 'no network'}")
@@ -228,6 +231,7 @@ class TrainingRun:
                    "seconds_per_iteration": round(t.elapsed / max(t.iteration, 1), 5),
                    "kernel_warm_up_seconds": self.warm_up_seconds,
                    "surfels": len(t.model.surfels), "starting_surfels": t.starting.to_dict(),
+                   "density_start": t.density_start.to_dict(),
                    "effects": t.effects.to_dict(), "specular_products": t.model.specular_products(),
                    "specular_gradient_share": t.specular_gradient_share if t.effects.specular else None,
                    "near_reflection": t.near_fit, "appearance": t.appearance_summary(),

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +52,7 @@ from rtsplat.train.divergence import DivergenceWatch, diverged_error
 from rtsplat.train.effects import decide_effects
 from rtsplat.train.evaluation import TestViews, rows_by_name, views_psnr
 from rtsplat.train.glass_planes import fit_near_planes
-from rtsplat.train.initial import initial_surfels, plan_starting_surfels, starting_cap
+from rtsplat.train.initial import density_start, initial_surfels, plan_starting_surfels, starting_cap
 from rtsplat.train.optim import append_rows, build_optimizer, load_optimizer_state, position_lr
 from rtsplat.train.planes import PlaneRefinement
 from rtsplat.train.resume import check_resumable
@@ -130,6 +130,8 @@ class Trainer:
         train_pixels = sum(int(image.shape[0]) * int(image.shape[1]) for image in self.train_views.images)
         self.starting = plan_starting_surfels(self.points[0].shape[0], cfg.densify.initial_copies,
                                               starting_cap(cfg.densify, train_pixels))
+        self.density_start = density_start(cfg.schedule, cfg.densify, self.starting,
+                                           train_pixels / max(len(self.train_views), 1))
         self.exposure, self.appearance_decision = self._decide_appearance()
         self.effect_reasons["appearance"] = self.appearance_decision.reason
         self.appearance = (AppearanceCorrections(len(self.train_views), cfg.appearance.lr, self.device)
@@ -137,7 +139,8 @@ class Trainer:
         surfels, n_see_through = self._init_surfels()
         self.model = self.new_model(surfels)
         self.optimizer = build_optimizer(self.model, self.model.surfels, cfg.lr, self.extent)
-        self.density = DensityControl(cfg.densify, cfg.schedule, self.extent,
+        self.density = DensityControl(cfg.densify,
+                                      replace(cfg.schedule, densify_from=self.density_start.densify_from), self.extent,
                                       spared_early=torch.arange(len(surfels), device=self.device)
                                       >= len(surfels) - n_see_through)
         c = cfg.cameras
