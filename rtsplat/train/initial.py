@@ -76,15 +76,15 @@ def density_start(schedule: Schedule, densify: Densification, starting: Starting
     ``densify.dense_start_per_pixel`` surfels per such pixel, else after ``schedule.densify_from``."""
     early = schedule.dense_start_densify_from
     if early is None:
-        densify_from, reason = schedule.densify_from, "schedule.densify_from (dense_start_densify_from: null)"
+        densify_from, reason = schedule.densify_from, "schedule.densify_from; dense_start_densify_from is null"
     else:
         per_pixel = starting.surfels / max(view_pixels, 1.0)
         dense = per_pixel >= densify.dense_start_per_pixel
         rule = (f"{'a dense' if dense else 'a sparse'} start: {per_pixel:.2f} starting surfels per pixel of a "
                 f"training view, {'at least' if dense else 'below'} densify.dense_start_per_pixel "
                 f"{densify.dense_start_per_pixel:g}")
-        densify_from, reason = ((early, f"schedule.dense_start_densify_from ({rule})") if dense
-                                else (schedule.densify_from, f"schedule.densify_from ({rule})"))
+        densify_from, reason = ((early, f"schedule.dense_start_densify_from for {rule}") if dense
+                                else (schedule.densify_from, f"schedule.densify_from for {rule}"))
     every = schedule.densify_every
     first = max(-(-densify_from // every), 1) * every
     return DensityStart(densify_from, first if first < schedule.densify_stop() else None, reason)
