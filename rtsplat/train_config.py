@@ -97,7 +97,7 @@ class Schedule:
         "first step prunes most of a dense start (55-88% on the tuning scenes' ground-truth clouds), and the "
         "surfels it prunes stop costing time earlier. At 124 instead of the demo's 188 on the ten tuning scenes "
         "(8-13 surfels per pixel): 0.90x rtsplat's and 0.88x 2dgs's training CPU seconds, median +0.03 / +0.06 "
-        "and -0.11 / -0.07 dB; on sparse SfM starts (1-2.3 per pixel) it saved nothing and cost 2dgs 6% "
+        "and -0.11 / -0.07 dB; on sparse SfM starts (1.1-1.9 per pixel) it saved nothing and cost 2dgs 3-6% "
         "(docs/fidelity.md, finding 53). null: densify_from whatever the start", minimum=0
     )
     densify_until: int | None = setting(
