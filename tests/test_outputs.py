@@ -56,7 +56,7 @@ OUTPUTS = {
 INPUTS = {
     "--scene-dir", "--masks", "--sfm", "--data", "--run", "--renders", "--gt-layers", "--results", "--config",
     "--report", "--check", "--dataset", "--prepared", "--scene", "--checkout", "--model", "scene_dir", "scenes",
-    "dataset", "--seconds-of",
+    "dataset", "--seconds-of", "--baseline",
 }
 
 

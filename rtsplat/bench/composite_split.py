@@ -142,4 +142,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from rtsplat.errors import run_command
+
+    raise SystemExit(run_command("python -m rtsplat.bench.composite_split", main))
