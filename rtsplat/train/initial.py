@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from rtsplat.model.surfels import SurfelParameters, init_from_points, point_cloud_normals, scatter_points
+from rtsplat.train.clock import passed
 from rtsplat.train_config import Densification, Schedule
 
 
@@ -85,9 +86,12 @@ def density_start(schedule: Schedule, densify: Densification, starting: Starting
                 f"{densify.dense_start_per_pixel:g}")
         densify_from, reason = ((early, f"schedule.dense_start_densify_from for {rule}") if dense
                                 else (schedule.densify_from, f"schedule.densify_from for {rule}"))
-    every = schedule.densify_every
-    first = max(-(-densify_from // every), 1) * every
-    return DensityStart(densify_from, first if first < schedule.densify_stop() else None, reason)
+    # the first step is where DensityControl's clock (passed) first fires: the one multiple of densify_every in
+    # the window of that length from densify_from (from 1: never iteration 0)
+    before = max(densify_from, 1) - 1
+    first = passed(before, before + schedule.densify_every, schedule.densify_every, start=densify_from,
+                   stop=schedule.densify_stop())
+    return DensityStart(densify_from, first, reason)
 
 
 def plan_starting_surfels(sfm_points: int, copies: int, cap: int) -> StartingSurfels:
