@@ -10,6 +10,11 @@ mask, then the mean over the views):
 * ``layers' sum``: the true reflection plus transmission against the scene's image: how well the renderer's
   two layers (their own samples) agree with the image they split, a ceiling of any layer metric.
 
+And for the image itself (:func:`image_references`, :func:`run_image`): the true transmission plus the
+reflection's mean colour against the image (a model with every detail behind the glass right and a reflection
+without structure), and how much of a run's error inside the mask lies along the true reflection's detail
+(its deviation from its mean): the part of the error a better reflection could remove.
+
 Used by ``rtsplat report`` beside the runs' layer scores and by ``python -m rtsplat.bench.layer_ceiling``.
 """
 
@@ -93,7 +98,7 @@ def luminance_correlation(a: np.ndarray, b: np.ndarray) -> float:
 
 def ceilings(views: list[View], sigmas=BLUR_SIGMAS) -> dict[str, float]:
     """Mean over the views of each reference's reflection-layer PSNR (and the layers' sum's)."""
-    mean_colour = np.mean(np.concatenate([v.reflection[v.mask] for v in views]), axis=0)
+    mean_colour = _mean_reflection(views)
     rows: dict[str, list[float]] = {"zero": [], "truth's mean": []}
     rows.update({f"truth blurred {s:g} px": [] for s in sigmas})
     rows[LAYERS_SUM] = []
@@ -106,6 +111,52 @@ def ceilings(views: list[View], sigmas=BLUR_SIGMAS) -> dict[str, float]:
                                                                v.mask))
         rows[LAYERS_SUM].append(masked_psnr(v.reflection + v.transmission, v.image, v.mask))
     return {k: float(np.mean(x)) for k, x in rows.items()}
+
+
+def _mean_reflection(views: list[View]) -> np.ndarray:
+    """The true reflection's mean colour over every view's mask."""
+    return np.mean(np.concatenate([v.reflection[v.mask] for v in views]), axis=0)
+
+
+def image_references(views: list[View]) -> dict[str, float]:
+    """Mean over the views of the image PSNR inside the mask of the true transmission alone and of the true
+    transmission plus the reflection's mean colour (:func:`ceilings` scores the layers' sum)."""
+    mean_colour = _mean_reflection(views)
+    alone = [masked_psnr(v.transmission, v.image, v.mask) for v in views]
+    flat = [masked_psnr(np.clip(v.transmission + mean_colour, 0, 1), v.image, v.mask) for v in views]
+    return {"transmission alone": float(np.mean(alone)), "transmission + reflection's mean": float(np.mean(flat))}
+
+
+def reflection_share_of_error(error: np.ndarray, detail: np.ndarray) -> tuple[float, float]:
+    """The least-squares fit ``error ~ k detail`` over the pixels given ([N,3] each): ``k`` (1 where the
+    error is exactly the detail left out, 0 where the error ignores it) and the share of the error's energy
+    it explains (0 where there is no detail)."""
+    e, d = error.astype(np.float64).ravel(), detail.astype(np.float64).ravel()
+    dd, ee = float(d @ d), float(e @ e)
+    if dd == 0.0 or ee == 0.0:
+        return 0.0, 0.0
+    k = float(d @ e) / dd
+    return k, 1.0 - float(((e - k * d) ** 2).sum()) / ee
+
+
+def run_image(views: list[View], renders: Path) -> dict[str, float]:
+    """A run's final image inside the mask: its PSNR, and :func:`reflection_share_of_error` of its error
+    (image minus render) against the true reflection's detail (medians over the views of the fit)."""
+    from rtsplat.io.images import read_image
+
+    mean_colour = _mean_reflection(views)
+    psnrs, slopes, shares = [], [], []
+    for v in views:
+        path = renders / "color" / f"{v.name}.png"
+        if not path.is_file():
+            raise PipelineError(f"the run has no image for view {v.name}", path=path,
+                                fix="pass the folder `rtsplat render` wrote for this prepared scene")
+        ours = read_image(path)[..., :3]
+        psnrs.append(masked_psnr(ours, v.image, v.mask))
+        k, share = reflection_share_of_error((v.image - ours)[v.mask], (v.reflection - mean_colour)[v.mask])
+        slopes.append(k)
+        shares.append(share)
+    return {"psnr": float(np.mean(psnrs)), "slope": float(np.median(slopes)), "share": float(np.median(shares))}
 
 
 def run_reflection(views: list[View], renders: Path) -> dict[str, float]:

@@ -62,10 +62,45 @@ def test_the_bench_prints_every_reference_and_the_run(tmp_path, capsys):
     reflections = write_prepared(tmp_path / "data")
     for k, reflection in enumerate(reflections):
         write_png(tmp_path / "renders" / "reflection" / f"{k:04d}.png", reflection)
+        write_png(tmp_path / "renders" / "color" / f"{k:04d}.png", reflection)
     assert bench_main(["--data", str(tmp_path / "data"), "--renders", str(tmp_path / "renders")]) == 0
     printed = capsys.readouterr().out
-    for reference in ("zero", "truth's mean", "truth blurred 1 px", "layers' sum", "luminance correlation +1.00"):
+    for reference in ("zero", "truth's mean", "truth blurred 1 px", "layers' sum", "luminance correlation +1.00",
+                      "transmission alone", "transmission + reflection's mean", "reflection's detail: slope"):
         assert reference in printed
+
+
+def test_an_image_without_the_reflection_detail_has_all_its_error_along_that_detail(tmp_path):
+    """A render that is the true transmission plus the reflection's mean colour errs by exactly the
+    reflection's detail (slope and share near 1); the image itself scores far above it; an error of noise
+    that ignores the reflection is not laid on it."""
+    write_prepared(tmp_path / "data")
+    views = layer_ceiling.read_views(tmp_path / "data")
+    mean_colour = np.mean(np.concatenate([v.reflection[v.mask] for v in views]), axis=0)
+    rng = np.random.default_rng(1)
+    for v in views:
+        write_png(tmp_path / "flat" / "color" / f"{v.name}.png", np.clip(v.transmission + mean_colour, 0, 1))
+        noisy = np.clip(v.image + rng.normal(0, 0.05, v.image.shape), 0, 1)
+        write_png(tmp_path / "noisy" / "color" / f"{v.name}.png", noisy)
+    references = layer_ceiling.image_references(views)
+    flat = layer_ceiling.run_image(views, tmp_path / "flat")
+    assert references["transmission alone"] < references["transmission + reflection's mean"]
+    assert abs(flat["psnr"] - references["transmission + reflection's mean"]) < 0.2  # the same image, 8-bit
+    assert flat["slope"] > 0.9 and flat["share"] > 0.9
+    noisy = layer_ceiling.run_image(views, tmp_path / "noisy")
+    assert noisy["psnr"] > flat["psnr"] and noisy["share"] < 0.1
+    (tmp_path / "flat" / "color" / "0002.png").unlink()
+    with pytest.raises(PipelineError, match="0002"):
+        layer_ceiling.run_image(views, tmp_path / "flat")
+
+
+def test_the_share_of_an_error_along_a_detail():
+    detail = np.array([[0.1, -0.2, 0.3], [-0.1, 0.2, 0.0]])
+    assert layer_ceiling.reflection_share_of_error(0.5 * detail, detail) == pytest.approx((0.5, 1.0))
+    across = np.array([[0.2, 0.1, 0.0], [0.0, 0.0, 0.5]])  # orthogonal to the detail: explains nothing
+    assert float((across * detail).sum()) == pytest.approx(0.0)
+    assert layer_ceiling.reflection_share_of_error(across, detail) == pytest.approx((0.0, 0.0))
+    assert layer_ceiling.reflection_share_of_error(detail, np.zeros_like(detail)) == (0.0, 0.0)
 
 
 def test_only_the_named_views_are_read(tmp_path):

@@ -5,8 +5,12 @@ transparent mask. This prints, per prepared scene and over all its views with la
 references of :mod:`rtsplat.layer_references`, computed from the ground truth itself
 (no reflection, the truth's mean colour painted flat, the truth blurred, the layers' sum against the image).
 
-With ``--renders`` (a folder written by ``rtsplat render``), the run's reflection layer is scored beside
-them, with its mean and the correlation of its luminance with the truth's (per view, then the mean).
+Then the image inside the mask: the true transmission alone and plus the reflection's mean colour against
+the image. With ``--renders`` (a folder written by ``rtsplat render``), the run's reflection layer is scored
+beside the layer references, with its mean and the correlation of its luminance with the truth's (per view,
+then the mean), and its final image beside the image references, with the part of its error that follows the
+true reflection's detail (``slope``: 1 where the error is that detail left out; ``share``: of the error's
+energy; medians over the views).
 
     python -m rtsplat.bench.layer_ceiling --data demo/prepared/dome --renders demo/renders/dome/rtsplat
 """
@@ -16,7 +20,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rtsplat.layer_references import ceilings, read_views, run_reflection
+from rtsplat.layer_references import ceilings, image_references, read_views, run_image, run_reflection
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,6 +42,13 @@ def main(argv: list[str] | None = None) -> int:
             ours = run_reflection(views, args.renders[i])
             print(f"  {'run ' + str(args.renders[i]):32s} {ours['psnr']:6.2f}  (mean {ours['mean']:.3f} against "
                   f"{ours['truth mean']:.3f}, luminance correlation {ours['correlation']:+.2f})")
+        print("  the image inside the mask, PSNR dB")
+        for name, value in image_references(views).items():
+            print(f"  {name:32s} {value:6.2f}")
+        if args.renders:
+            image = run_image(views, args.renders[i])
+            print(f"  {'run ' + str(args.renders[i]):32s} {image['psnr']:6.2f}  (its error along the reflection's "
+                  f"detail: slope {image['slope']:+.2f}, share {image['share']:.2f})")
     return 0
 
 
