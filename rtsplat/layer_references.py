@@ -139,19 +139,25 @@ def reflection_share_of_error(error: np.ndarray, detail: np.ndarray) -> tuple[fl
     return k, 1.0 - float(((e - k * d) ** 2).sum()) / ee
 
 
+def _rendered(renders: Path, folder: str, what: str, name: str) -> np.ndarray:
+    """The run's ``folder`` render (``color``, ``reflection``) of view ``name``, [H,W,3]; a clear error naming
+    the view where ``rtsplat render`` did not write it."""
+    from rtsplat.io.images import read_image
+
+    path = renders / folder / f"{name}.png"
+    if not path.is_file():
+        raise PipelineError(f"the run has no {what} for view {name}", path=path,
+                            fix="pass the folder `rtsplat render` wrote for this prepared scene")
+    return read_image(path)[..., :3]
+
+
 def run_image(views: list[View], renders: Path) -> dict[str, float]:
     """A run's final image inside the mask: its PSNR, and :func:`reflection_share_of_error` of its error
     (image minus render) against the true reflection's detail (medians over the views of the fit)."""
-    from rtsplat.io.images import read_image
-
     mean_colour = _mean_reflection(views)
     psnrs, slopes, shares = [], [], []
     for v in views:
-        path = renders / "color" / f"{v.name}.png"
-        if not path.is_file():
-            raise PipelineError(f"the run has no image for view {v.name}", path=path,
-                                fix="pass the folder `rtsplat render` wrote for this prepared scene")
-        ours = read_image(path)[..., :3]
+        ours = _rendered(renders, "color", "image", v.name)
         psnrs.append(masked_psnr(ours, v.image, v.mask))
         k, share = reflection_share_of_error((v.image - ours)[v.mask], (v.reflection - mean_colour)[v.mask])
         slopes.append(k)
@@ -161,15 +167,9 @@ def run_image(views: list[View], renders: Path) -> dict[str, float]:
 
 def run_reflection(views: list[View], renders: Path) -> dict[str, float]:
     """A run's reflection layer against the truth: PSNR, mean, luminance correlation (means over the views)."""
-    from rtsplat.io.images import read_image
-
     psnrs, means, truth_means, correlations = [], [], [], []
     for v in views:
-        path = renders / "reflection" / f"{v.name}.png"
-        if not path.is_file():
-            raise PipelineError(f"the run has no reflection layer for view {v.name}", path=path,
-                                fix="pass the folder `rtsplat render` wrote for this prepared scene")
-        ours = read_image(path)[..., :3]
+        ours = _rendered(renders, "reflection", "reflection layer", v.name)
         psnrs.append(masked_psnr(ours, v.reflection, v.mask))
         means.append(float(ours[v.mask].mean()))
         truth_means.append(float(v.reflection[v.mask].mean()))

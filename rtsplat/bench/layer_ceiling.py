@@ -23,6 +23,23 @@ from pathlib import Path
 from rtsplat.layer_references import ceilings, image_references, read_views, run_image, run_reflection
 
 
+def _reflection_text(ours: dict) -> str:
+    return (f"{ours['psnr']:6.2f}  (mean {ours['mean']:.3f} against {ours['truth mean']:.3f}, luminance correlation "
+            f"{ours['correlation']:+.2f})")
+
+
+def _image_text(ours: dict) -> str:
+    return (f"{ours['psnr']:6.2f}  (its error along the reflection's detail: slope {ours['slope']:+.2f}, share "
+            f"{ours['share']:.2f})")
+
+
+# per section: its title, the references from the truth, the run's scores, how they are printed
+SECTIONS = (
+    ("the reflection layer inside the mask, PSNR dB", ceilings, run_reflection, _reflection_text),
+    ("the image inside the mask, PSNR dB", image_references, run_image, _image_text),
+)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -35,20 +52,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give one --renders per --data, or none")
     for i, data in enumerate(args.data):
         views = read_views(data)
-        print(f"{data} ({len(views)} views with layers): reflection-layer PSNR inside the mask, dB")
-        for name, value in ceilings(views).items():
-            print(f"  {name:32s} {value:6.2f}")
-        if args.renders:
-            ours = run_reflection(views, args.renders[i])
-            print(f"  {'run ' + str(args.renders[i]):32s} {ours['psnr']:6.2f}  (mean {ours['mean']:.3f} against "
-                  f"{ours['truth mean']:.3f}, luminance correlation {ours['correlation']:+.2f})")
-        print("  the image inside the mask, PSNR dB")
-        for name, value in image_references(views).items():
-            print(f"  {name:32s} {value:6.2f}")
-        if args.renders:
-            image = run_image(views, args.renders[i])
-            print(f"  {'run ' + str(args.renders[i]):32s} {image['psnr']:6.2f}  (its error along the reflection's "
-                  f"detail: slope {image['slope']:+.2f}, share {image['share']:.2f})")
+        renders = args.renders[i] if args.renders else None
+        print(f"{data} ({len(views)} views with layers):")
+        for title, references, run, describe in SECTIONS:
+            print(f"  {title}")
+            rows = {name: f"{value:6.2f}" for name, value in references(views).items()}
+            if renders:
+                rows[f"run {renders}"] = describe(run(views, renders))
+            for name, text in rows.items():
+                print(f"  {name:32s} {text}")
     return 0
 
 
