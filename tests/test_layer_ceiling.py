@@ -72,8 +72,8 @@ def test_the_bench_prints_every_reference_and_the_run(tmp_path, capsys):
 
 def test_an_image_without_the_reflection_detail_has_all_its_error_along_that_detail(tmp_path):
     """A render that is the true transmission plus the reflection's mean colour errs by exactly the
-    reflection's detail (slope and share near 1); the image itself scores far above it; an error of noise
-    that ignores the reflection is not laid on it."""
+    reflection's detail (slope and share near 1); the image with noise that ignores the reflection scores
+    above it, and almost none of its error is laid on the detail."""
     write_prepared(tmp_path / "data")
     views = layer_ceiling.read_views(tmp_path / "data")
     mean_colour = np.mean(np.concatenate([v.reflection[v.mask] for v in views]), axis=0)
