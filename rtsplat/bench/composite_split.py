@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -47,29 +46,13 @@ def view_surfels(run, views: int, channels: tuple[str, ...] | None, opaque: bool
 
 def composite_ms(views: list) -> tuple[float, float]:
     """Mean forward and backward ms per view of the compositing (the ``cpu`` backend's autograd function)."""
-    import rtsplat.raster.cpu as cpu
     from rtsplat.bench.raster import _loss, with_grad
+    from rtsplat.bench.raster_cpu import timed_compositing
     from rtsplat.raster import rasterize
 
-    spent = {"forward": 0.0, "backward": 0.0}
-    composite = cpu._Composite
-    forward, backward = composite.forward, composite.backward
-
-    def timed(name, fn):
-        def call(*args, **kwargs):
-            start = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                spent[name] += time.perf_counter() - start
-        return staticmethod(call)
-
-    composite.forward, composite.backward = timed("forward", forward), timed("backward", backward)
-    try:
+    with timed_compositing({"forward": 0.0, "backward": 0.0}) as spent:
         for surfels, camera in views:
             _loss(rasterize(with_grad(surfels), camera, backend="cpu")).backward()
-    finally:
-        composite.forward, composite.backward = staticmethod(forward), staticmethod(backward)
     return 1000.0 * spent["forward"] / len(views), 1000.0 * spent["backward"] / len(views)
 
 

@@ -20,41 +20,60 @@ import json
 import statistics
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
+
+
+@contextmanager
+def timed_compositing(spent: dict[str, float]):
+    """While inside, every call of the ``cpu`` backend's compositing forward and backward (its autograd
+    function, wrapped from outside) adds its wall seconds to ``spent["forward"]`` / ``spent["backward"]``;
+    the function is restored on leaving. Defined in this file, not in the package, because a worker runs this
+    file against the ``rtsplat`` of any checkout."""
+    import rtsplat.raster.cpu as cpu
+
+    composite = cpu._Composite
+    forward, backward = composite.forward, composite.backward
+
+    def timed(name, fn):
+        def call(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[name] += time.perf_counter() - start
+
+        return staticmethod(call)
+
+    composite.forward, composite.backward = timed("forward", forward), timed("backward", backward)
+    try:
+        yield spent
+    finally:
+        composite.forward, composite.backward = staticmethod(forward), staticmethod(backward)
 
 
 # -- worker: one checkout ------------------------------------------------------------------------
 def _worker() -> int:
+    totals = {"forward": 0.0, "backward": 0.0}
+    with timed_compositing(totals):
+        return _serve(totals)
+
+
+def _serve(totals: dict[str, float]) -> int:
+    """The worker's loop: the warm-up, then one reply per request, the compositing timed into ``totals``."""
     import torch
 
     import rtsplat
-    import rtsplat.raster.cpu as cpu
     from rtsplat.bench.raster import _loss, sphere_scene, with_grad
     from rtsplat.camera import camera_from_fov
     from rtsplat.raster import rasterize
 
-    totals = {"fwd": 0.0, "bwd": 0.0}
-
-    def wrap(name, fn):
-        def timed(*args, **kwargs):
-            t0 = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                totals[name] += time.perf_counter() - t0
-
-        return timed
-
-    composite = cpu._Composite
-    composite.forward = staticmethod(wrap("fwd", composite.forward))
-    composite.backward = staticmethod(wrap("bwd", composite.backward))
-
     def step(scene, camera):
         leaf = with_grad(scene)
-        totals["fwd"] = totals["bwd"] = 0.0
+        totals["forward"] = totals["backward"] = 0.0
         t0 = time.perf_counter()
         _loss(rasterize(leaf, camera, backend="cpu")).backward()
-        return time.perf_counter() - t0, totals["fwd"], totals["bwd"]
+        return time.perf_counter() - t0, totals["forward"], totals["backward"]
 
     t0 = time.perf_counter()
     warm_camera = camera_from_fov((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), width=32, height=24, fov_x_deg=50.0)
